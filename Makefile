@@ -1,0 +1,61 @@
+# rebar-servo: two commands on a fresh machine, `make dataset` and `make test`, do the whole set-up.
+SHELL := /bin/bash
+PY := .venv/bin/python
+REBAR := .venv/bin/rebar
+STAMP := .venv/.installed
+DEB_PKGS := libegl1 libgl1 libgl1-mesa-dri libegl-mesa0 libgomp1
+export EGL_PLATFORM ?= surfaceless
+DATA ?= data
+WORKERS ?= $(shell nproc)
+
+.PHONY: setup system-deps dataset smoke mesh train eval test check format bench clean
+
+setup: system-deps $(STAMP)
+
+# Debian packages Open3D's EGL renderer needs; installed only when missing (needs root or sudo).
+system-deps:
+	@missing=$$(for p in $(DEB_PKGS); do dpkg-query -W -f='$${Status}' $$p 2>/dev/null | grep -q "ok installed" || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+	  echo "installing Debian packages: $$missing"; \
+	  if [ "$$(id -u)" = 0 ]; then SUDO=; else SUDO=sudo; fi; \
+	  $$SUDO apt-get update -qq && DEBIAN_FRONTEND=noninteractive $$SUDO apt-get install -y -qq $$missing; \
+	fi
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || python3.11 -m venv .venv || python3 -m venv .venv
+	$(PY) -m pip install -q --upgrade pip
+	# torch first: the CPU wheel, so that the package's torch requirement never pulls a CUDA build
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e ".[dev]"
+	@touch $(STAMP)
+
+mesh: setup
+	$(REBAR) mesh pipelines/paper-tunnel.yaml --out $(DATA)/mesh/paper-tunnel
+
+dataset: setup
+	$(REBAR) dataset build pipelines/paper-tunnel.yaml --out $(DATA) --workers $(WORKERS) | tee $(DATA)/.last-build
+	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-build)"
+	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-build)"
+
+smoke: setup
+	$(REBAR) dataset build pipelines/smoke.yaml --out $(DATA) --workers $(WORKERS) --force | tee $(DATA)/.last-smoke
+	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-smoke)"
+	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-smoke)"
+
+# pytest exits 5 when it collects no tests: a broken suite, reported as a failure.
+test: setup
+	@$(PY) -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc
+
+check: setup
+	.venv/bin/ruff format --check rebar_data tests
+	.venv/bin/ruff check rebar_data tests
+
+format: setup
+	.venv/bin/ruff format rebar_data tests
+	.venv/bin/ruff check --fix rebar_data tests
+
+bench: setup
+	$(REBAR) bench
+
+clean:
+	rm -rf .pytest_cache .ruff_cache

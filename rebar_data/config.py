@@ -1,0 +1,250 @@
+"""Typed pipeline configs. A bad config is one clear message naming the field, the value and what is accepted.
+
+A pipeline file (``pipelines/<name>.yaml``) has the dataset's identity (``name``, ``version``,
+``seed``), the rebar mesh (``mesh``, ``realism``) and, for datasets, the rendering sections defined in
+:mod:`rebar_data.scene.config`. Unknown keys are errors: a typo must never be silently ignored.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+import numpy as np
+import yaml
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+
+Positive = Annotated[float, Field(gt=0)]
+NonNegative = Annotated[float, Field(ge=0)]
+Fraction = Annotated[float, Field(ge=0, le=1)]
+Vec3 = tuple[float, float, float]
+
+
+class ConfigError(Exception):
+    """A user's config (or the file holding it) is wrong; the message says what and how to fix it."""
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class Layer(Strict):
+    """One reinforcement mat: two crossing bar directions at a face of the element.
+
+    ``face`` is the side of the element the mat sits against: ``top`` (for a tunnel segment, the
+    extrados) or ``bottom`` (the intrados). Direction-0 bars lie nearer the face, direction-1 bars
+    beneath them, touching. ``offset_m`` shifts the bar pattern in the plane of the mat.
+    """
+
+    face: Literal["top", "bottom"] = "top"
+    cover_m: NonNegative | None = None
+    offset_m: tuple[float, float] = (0.0, 0.0)
+
+
+class MeshBase(Strict):
+    bar_diameter_m: Positive = 0.012
+    cover_m: NonNegative = 0.05
+    end_cover_m: NonNegative = 0.05
+    crossing_tolerance_m: NonNegative = 0.005
+    layers: list[Layer] = Field(default_factory=lambda: [Layer()], min_length=1)
+
+
+class PlanarMesh(MeshBase):
+    """Planar slab of ``width_m`` (x) by ``height_m`` (y); direction 0 bars run along x."""
+
+    kind: Literal["planar"]
+    width_m: Positive
+    height_m: Positive
+    thickness_m: Positive = 0.25
+    spacing_x_m: Positive = 0.1
+    spacing_y_m: Positive = 0.1
+
+    @model_validator(mode="after")
+    def _fits(self) -> PlanarMesh:
+        _check_fits("spacing_x_m", self.spacing_x_m, "width_m", self.width_m, self.end_cover_m)
+        _check_fits("spacing_y_m", self.spacing_y_m, "height_m", self.height_m, self.end_cover_m)
+        _check_thickness(self)
+        return self
+
+    def extents(self) -> tuple[float, float]:
+        return self.width_m, self.height_m
+
+
+class TunnelSegmentMesh(MeshBase):
+    """Curved tunnel-segment mat: hoop bars (arcs, direction 0) and longitudinal bars (lines, direction 1).
+
+    The segment is a cylindrical shell of ``thickness_m`` whose inner and outer arc lengths are
+    ``intrados_arc_m`` and ``extrados_arc_m`` and whose length along the tunnel axis is ``width_m``; the
+    three fix the segment's angle and radii. ``spacing_axial_m`` separates hoop bars along the axis,
+    ``spacing_arc_m`` separates longitudinal bars along the arc.
+    """
+
+    kind: Literal["tunnel_segment"]
+    intrados_arc_m: Positive
+    extrados_arc_m: Positive
+    width_m: Positive
+    thickness_m: Positive = 0.30
+    spacing_axial_m: Positive = 0.1
+    spacing_arc_m: Positive = 0.1
+
+    @model_validator(mode="after")
+    def _fits(self) -> TunnelSegmentMesh:
+        if self.extrados_arc_m <= self.intrados_arc_m:
+            raise ValueError(
+                f"extrados_arc_m = {self.extrados_arc_m} must be longer than intrados_arc_m = "
+                f"{self.intrados_arc_m} (the outer arc of a segment is the longer one)"
+            )
+        if self.angle_rad >= np.pi:
+            raise ValueError(
+                f"the segment spans {np.degrees(self.angle_rad):.0f} degrees; accepted: under 180 "
+                "(increase thickness_m or bring the two arc lengths closer)"
+            )
+        _check_fits("spacing_axial_m", self.spacing_axial_m, "width_m", self.width_m, self.end_cover_m)
+        _check_fits(
+            "spacing_arc_m", self.spacing_arc_m, "intrados_arc_m", self.intrados_arc_m, self.end_cover_m
+        )
+        _check_thickness(self)
+        return self
+
+    @property
+    def angle_rad(self) -> float:
+        return (self.extrados_arc_m - self.intrados_arc_m) / self.thickness_m
+
+    @property
+    def intrados_radius_m(self) -> float:
+        return self.intrados_arc_m / self.angle_rad
+
+    @property
+    def extrados_radius_m(self) -> float:
+        return self.extrados_arc_m / self.angle_rad
+
+
+def _check_fits(spacing_name: str, spacing: float, extent_name: str, extent: float, end_cover: float) -> None:
+    usable = extent - 2 * end_cover
+    if spacing > usable:
+        raise ValueError(
+            f"{spacing_name} = {spacing} is larger than the mesh: {extent_name} = {extent} less twice "
+            f"end_cover_m leaves {usable:.4g} m; accepted: a spacing of at most {usable:.4g} m"
+        )
+
+
+def _check_thickness(mesh: MeshBase) -> None:
+    for i, layer in enumerate(mesh.layers):
+        cover = mesh.cover_m if layer.cover_m is None else layer.cover_m
+        need = cover + 2 * mesh.bar_diameter_m
+        room = mesh.thickness_m / 2 if len(mesh.layers) > 1 else mesh.thickness_m
+        if need > room:
+            raise ValueError(
+                f"layers[{i}]: cover {cover} m plus two bars of {mesh.bar_diameter_m} m does not fit in "
+                f"thickness_m = {mesh.thickness_m}; accepted: a thicker element or less cover"
+            )
+
+
+class Pose(Strict):
+    """Rigid pose of the mesh in the world: XYZ Euler angles (degrees, extrinsic) then translation."""
+
+    translation_m: Vec3 = (0.0, 0.0, 0.0)
+    rotation_deg: Vec3 = (0.0, 0.0, 0.0)
+
+
+class Realism(Strict):
+    """Seeded departures from the ideal grid. All default to off."""
+
+    ribs: bool = False
+    rib_spacing_m: Positive = 0.008
+    rib_height_m: NonNegative = 0.0006
+    tie_wire_fraction: Fraction = 0.0
+    tie_wire_diameter_m: Positive = 0.0016
+    jitter_m: NonNegative = 0.0
+    jitter_normal_m: NonNegative = 0.0
+    bow_m: NonNegative = 0.0
+    missing_fraction: Annotated[float, Field(ge=0, lt=1)] = 0.0
+    diameters_m: list[Positive] | None = None
+    pose_jitter_translation_m: NonNegative = 0.0
+    pose_jitter_rotation_deg: NonNegative = 0.0
+
+
+class MeshConfig(Strict):
+    """What ``rebar mesh`` needs: the grid, its realism options, its pose and the seed."""
+
+    seed: Annotated[int, Field(ge=0)] = 0
+    mesh: Annotated[PlanarMesh | TunnelSegmentMesh, Field(discriminator="kind")]
+    realism: Realism = Realism()
+    pose: Pose = Pose()
+
+
+_SEMVER = re.compile(r"^\d+\.\d+\.\d+$")
+
+
+def read_yaml(path: str | Path) -> dict[str, Any]:
+    """Read a YAML mapping, turning every way a file can be unusable into a ConfigError."""
+    p = Path(path)
+    if not p.exists():
+        raise ConfigError(f"{p}: no such config file; accepted: a YAML file such as pipelines/smoke.yaml")
+    if p.is_dir():
+        raise ConfigError(f"{p}: is a folder; accepted: a YAML config file")
+    try:
+        data = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        raise ConfigError(f"{p}: not valid YAML{where}: {getattr(e, 'problem', e)}") from None
+    if not isinstance(data, dict):
+        raise ConfigError(f"{p}: the top level is {type(data).__name__}; accepted: a mapping of keys")
+    return data
+
+
+def validate(model: type[BaseModel], data: dict[str, Any], source: str) -> Any:
+    """Validate ``data`` against ``model``; the first problem becomes one ConfigError sentence."""
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        raise ConfigError(format_validation_error(e, source, data)) from None
+
+
+def format_validation_error(e: ValidationError, source: str, data: Any = None) -> str:
+    err = e.errors(include_url=False)[0]
+    path = [x for x in err["loc"] if not _is_union_tag(x)]
+    loc = ".".join(str(x) for x in path)
+    kind, msg = err["type"], err["msg"]
+    value = err.get("input")
+    if kind == "extra_forbidden":
+        return f"{source}: unknown key '{loc}'; check its spelling (accepted keys are listed in the README)"
+    if kind == "missing" and path and isinstance(path[-1], int):
+        parent = ".".join(str(x) for x in path[:-1])
+        given = _lookup(data, path[:-1])
+        return f"{source}: {parent} = {given!r} is not accepted: it needs more than {path[-1]} items"
+    if kind == "missing":
+        return f"{source}: '{loc}' is required but missing"
+    if kind == "value_error":
+        msg = msg.removeprefix("Value error, ")
+        return f"{source}: {loc + ': ' if loc else ''}{msg}"
+    shown = repr(value) if not isinstance(value, dict) else "a mapping"
+    return f"{source}: {loc} = {shown} is not accepted: {msg[0].lower() + msg[1:]}"
+
+
+def _lookup(data: Any, path: list) -> Any:
+    for key in path:
+        try:
+            data = data[key]
+        except (KeyError, IndexError, TypeError):
+            return None
+    return data
+
+
+def _is_union_tag(x: object) -> bool:
+    return isinstance(x, str) and x in ("planar", "tunnel_segment")
+
+
+def load_mesh_config(path: str | Path) -> MeshConfig:
+    """The mesh part of a pipeline file (the other sections are checked by the dataset config)."""
+    data = read_yaml(path)
+    keys = {k: data[k] for k in ("seed", "mesh", "realism", "pose") if k in data}
+    return validate(MeshConfig, keys, str(path))
+
+
+def semver(value: str) -> str:
+    if not _SEMVER.match(value):
+        raise ValueError(f"version = {value!r} is not accepted: use MAJOR.MINOR.PATCH, such as 1.0.0")
+    return value

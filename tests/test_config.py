@@ -1,0 +1,89 @@
+from __future__ import annotations
+
+import copy
+
+import pytest
+import yaml
+
+from rebar_data.cli import main
+
+GOOD = {
+    "name": "t",
+    "version": "0.1.0",
+    "seed": 1,
+    "mesh": {"kind": "planar", "width_m": 1.0, "height_m": 0.6},
+}
+
+
+def _with(path: str, value):
+    cfg = copy.deepcopy(GOOD)
+    node = cfg
+    keys = path.split(".")
+    for k in keys[:-1]:
+        node = node.setdefault(k, {})
+    node[keys[-1]] = value
+    return cfg
+
+
+BAD = [
+    # (config, words the message must contain)
+    (_with("mesh.spacing_x_m", -0.1), ["mesh.spacing_x_m", "-0.1", "greater than 0"]),
+    (_with("mesh.width_m", "wide"), ["mesh.width_m", "'wide'", "number"]),
+    (_with("mesh.spacing_y_m", 2.0), ["spacing_y_m = 2.0", "larger than the mesh", "at most"]),
+    (_with("mesh.colour", "red"), ["unknown key", "mesh.colour"]),
+    (_with("mesh.kind", "hexagonal"), ["mesh", "hexagonal", "planar", "tunnel_segment"]),
+    (_with("seed", -4), ["seed", "-4", "greater than or equal to 0"]),
+    (_with("realism.missing_fraction", 1.5), ["realism.missing_fraction", "1.5", "less than 1"]),
+    (_with("realism.tie_wire_fraction", "some"), ["realism.tie_wire_fraction", "'some'"]),
+    (_with("mesh.layers", []), ["mesh.layers", "at least 1"]),
+    (_with("mesh.layers", [{"face": "side"}]), ["mesh.layers.0.face", "'side'", "'top' or 'bottom'"]),
+    (_with("mesh.bar_diameter_m", 0), ["mesh.bar_diameter_m", "0", "greater than 0"]),
+    (_with("mesh.cover_m", 0.24), ["layers[0]", "thickness_m"]),
+    (
+        {
+            **GOOD,
+            "mesh": {"kind": "tunnel_segment", "intrados_arc_m": 2.5, "extrados_arc_m": 2.3, "width_m": 3},
+        },
+        ["extrados_arc_m", "longer than intrados_arc_m"],
+    ),
+    (_with("pose.rotation_deg", [0, 0]), ["pose.rotation_deg", "[0, 0]"]),
+    ({k: v for k, v in GOOD.items() if k != "mesh"}, ["'mesh' is required"]),
+]
+
+
+@pytest.mark.parametrize(("cfg", "words"), BAD, ids=[w[0] for _, w in BAD])
+def test_bad_config_is_one_clear_message_and_writes_nothing(cfg, words, tmp_path, capsys):
+    path = tmp_path / "bad.yaml"
+    path.write_text(yaml.safe_dump(cfg))
+    out = tmp_path / "out"
+    assert main(["mesh", str(path), "--out", str(out)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0, err  # one line
+    assert "Traceback" not in err
+    for w in words:
+        assert w in err, (w, err)
+    assert not out.exists()
+    assert [p.name for p in tmp_path.iterdir()] == ["bad.yaml"]
+
+
+def test_missing_file_not_yaml_and_not_a_mapping(tmp_path, capsys):
+    assert main(["mesh", str(tmp_path / "nope.yaml"), "--out", str(tmp_path / "o")]) == 2
+    assert "no such config file" in capsys.readouterr().err
+    bad = tmp_path / "broken.yaml"
+    bad.write_text("mesh: [unclosed\n")
+    assert main(["mesh", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "not valid YAML at line" in capsys.readouterr().err
+    bad.write_text("- just\n- a list\n")
+    assert main(["mesh", str(bad), "--out", str(tmp_path / "o")]) == 2
+    assert "accepted: a mapping" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_good_config_builds_and_prints_the_folder_last(tmp_path, capsys):
+    path = tmp_path / "good.yaml"
+    path.write_text(yaml.safe_dump(GOOD))
+    assert main(["mesh", str(path), "--out", str(tmp_path / "m"), "--rrd", str(tmp_path / "m.rrd")]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == str(tmp_path / "m")
+    for f in ("mesh.glb", "mesh.ply", "bars.parquet", "crossings.parquet"):
+        assert (tmp_path / "m" / f).stat().st_size > 0
+    assert (tmp_path / "m.rrd").stat().st_size > 0
