@@ -182,10 +182,8 @@ def _segment_segment(a: Line, b: Line) -> tuple[float, float, np.ndarray, np.nda
     c = float(np.dot(da, db))
     denom = 1.0 - c * c
     e, f = float(np.dot(da, r)), float(np.dot(db, r))
-    if denom > 1e-15:
-        s = np.clip((c * f - e) / denom, 0.0, a.length)
-    else:  # parallel: any point will do, take the start of a
-        s = 0.0
+    # parallel segments: any point will do, take the start of a
+    s = np.clip((c * f - e) / denom, 0.0, a.length) if denom > 1e-15 else 0.0
     t = np.clip(c * s + f, 0.0, b.length)
     s = np.clip(c * t - e, 0.0, a.length)
     t = np.clip(c * s + f, 0.0, b.length)

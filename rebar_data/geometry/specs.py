@@ -77,7 +77,7 @@ def positions(extent: float, spacing: float, end_cover: float, offset: float) ->
 def build_layout(cfg: MeshConfig) -> MeshLayout:
     """All bars of the configured mesh, posed in the world, with the seeded realism applied."""
     rngs = rng_streams(cfg.seed)
-    mesh, real = cfg.mesh, cfg.realism
+    mesh = cfg.mesh
     world_from_mesh = _pose(cfg, rngs["pose"])
     raw: list[tuple[Curve, float, int, int]] = []
     for li, layer in enumerate(mesh.layers):
