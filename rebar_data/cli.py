@@ -1,49 +1,29 @@
-"""`rebar`: the command line. User errors are one line on stderr and exit status 2, never a traceback."""
+"""`rebar`: the command line. User errors are one line on stderr and exit status 2, never a traceback.
+
+Each command group lives beside the code it drives, in a ``commands`` module with a ``register``
+function; this module only assembles them.
+"""
 
 from __future__ import annotations
 
 import argparse
-import shutil
+import importlib
 import sys
-import tempfile
-from pathlib import Path
 
 from rebar_data.config import ConfigError
 
-
-def _mesh(args: argparse.Namespace) -> None:
-    from rebar_data.config import load_mesh_config
-    from rebar_data.geometry.build import build_rebar_mesh
-    from rebar_data.geometry.export import write_mesh_outputs
-
-    cfg = load_mesh_config(args.config)
-    rm = build_rebar_mesh(cfg)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.tmp-") as tmp:
-        write_mesh_outputs(rm, Path(tmp) / "mesh")
-        if out.exists():
-            shutil.rmtree(out)
-        Path(tmp, "mesh").rename(out)
-    if args.rrd:
-        from rebar_data.geometry.recording import write_mesh_recording
-
-        write_mesh_recording(rm, Path(args.rrd))
-    print(
-        f"{len(rm.bars)} bars, {len(rm.crossings)} crossings, {len(rm.mesh.faces)} triangles", file=sys.stderr
-    )
-    print(out)
+COMMAND_MODULES = [
+    "rebar_data.geometry.commands",
+]
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="rebar", description=__doc__)
+    p = argparse.ArgumentParser(
+        prog="rebar", description="Synthetic rebar data, detector and servo evaluation."
+    )
     sub = p.add_subparsers(dest="command", required=True)
-
-    m = sub.add_parser("mesh", help="build a rebar mesh: GLB, PLY, bars and crossings tables")
-    m.add_argument("config", help="pipeline YAML, such as pipelines/paper-tunnel.yaml")
-    m.add_argument("--out", required=True, help="output folder")
-    m.add_argument("--rrd", help="also write a Rerun recording of the mesh and crossings")
-    m.set_defaults(func=_mesh)
+    for name in COMMAND_MODULES:
+        importlib.import_module(name).register(sub)
     return p
 
 
