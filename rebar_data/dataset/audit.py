@@ -1,0 +1,287 @@
+"""``rebar dataset audit``: label-quality checks on a built dataset, with a report and pictures.
+
+Checks (each with its measured figure and bar):
+- reprojection: visible/occluded labels equal the projection of their 3D point with the stored camera
+  (max error <= 1e-3 px, depth within 1e-6 m), and visibility 0 exactly when the point projects outside;
+- formats: YOLO, COCO and Parquet hold the same visible keypoints;
+- geometry: the 3D points are the crossings of the mesh rebuilt from the recorded config;
+- instance pass: visible keypoints land on one of their own parts, occluded ones on something else;
+- duplicates: no two images are identical;
+- leakage: no scene or trajectory in two splits (unless the split rule is random).
+Plots of the distributions and a contact sheet are written beside the report.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pandas as pd
+import pyarrow.parquet as pq
+
+from rebar_data.dataset import layout
+from rebar_data.dataset.layout import DatasetInfo
+
+REPROJECTION_MAX_PX = 1e-3
+DEPTH_MAX_M = 1e-6
+FORMAT_MAX_PX = 1e-6
+GEOMETRY_MAX_M = 1e-9
+VISIBLE_ON_OWN_MIN = 0.99  # share of visible keypoints whose pixel (3x3) shows one of their parts
+OCCLUDED_OFF_OWN_MIN = 0.95  # share of occluded keypoints whose pixel shows something else
+INSTANCE_OFFSET = 3
+
+
+@dataclass
+class Check:
+    name: str
+    passed: bool
+    value: float
+    bar: str
+    detail: str
+
+
+def load_tables(ds: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
+    return pq.read_table(ds / layout.SAMPLES).to_pandas(), pq.read_table(ds / layout.KEYPOINTS).to_pandas()
+
+
+def check_reprojection(S: pd.DataFrame, K: pd.DataFrame) -> list[Check]:
+    s = S.set_index("image_id")
+    worst_px, worst_z, wrong_vis = 0.0, 0.0, 0
+    for iid, g in K.groupby("image_id", sort=False):
+        row = s.loc[iid]
+        T = np.asarray(row.world_from_camera, float).reshape(4, 4)
+        P = g[["x_world", "y_world", "z_world"]].to_numpy(float)
+        pc = (P - T[:3, 3]) @ T[:3, :3]
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = row.fx * pc[:, 0] / z + row.cx
+            v = row.fy * pc[:, 1] / z + row.cy
+        inside = (z > 0) & (u >= 0) & (u < row.width) & (v >= 0) & (v < row.height)
+        vis = g["visibility"].to_numpy()
+        wrong_vis += int(np.sum((vis > 0) != inside))
+        m = vis > 0
+        if m.any():
+            err = np.hypot(u[m] - g["u"].to_numpy()[m], v[m] - g["v"].to_numpy()[m])
+            worst_px = max(worst_px, float(err.max()))
+            worst_z = max(worst_z, float(np.abs(z[m] - g["depth_m"].to_numpy()[m]).max()))
+    return [
+        Check(
+            "reprojection_px",
+            worst_px <= REPROJECTION_MAX_PX,
+            worst_px,
+            f"<= {REPROJECTION_MAX_PX} px",
+            "largest distance between a label and the projection of its 3D point",
+        ),
+        Check(
+            "reprojection_depth_m",
+            worst_z <= DEPTH_MAX_M,
+            worst_z,
+            f"<= {DEPTH_MAX_M} m",
+            "largest difference between depth_m and the camera-frame z of the 3D point",
+        ),
+        Check(
+            "visibility_vs_frame",
+            wrong_vis == 0,
+            wrong_vis,
+            "0",
+            "keypoints whose visibility (0 vs >0) disagrees with projecting inside the image",
+        ),
+    ]
+
+
+def _yolo_points(ds: Path, S: pd.DataFrame) -> dict[str, np.ndarray]:
+    out = {}
+    for row in S.itertuples():
+        txt = (ds / layout.label_path(row.split, row.image_id)).read_text().split()
+        vals = np.array(txt, float).reshape(-1, 8) if txt else np.zeros((0, 8))
+        out[row.image_id] = np.c_[vals[:, 5] * row.width, vals[:, 6] * row.height, vals[:, 7]]
+    return out
+
+
+def _coco_points(ds: Path) -> dict[str, np.ndarray]:
+    pts: dict[str, list] = {}
+    for split in layout.SPLITS:
+        d = json.loads((ds / layout.coco_path(split)).read_text())
+        key = {im["id"]: Path(im["file_name"]).stem for im in d["images"]}
+        for k in key.values():
+            pts.setdefault(k, [])
+        for a in d["annotations"]:
+            pts[key[a["image_id"]]].append(a["keypoints"][:3])
+    return {k: np.array(v, float).reshape(-1, 3) for k, v in pts.items()}
+
+
+def _sorted(p: np.ndarray) -> np.ndarray:
+    return p[np.lexsort((p[:, 1], p[:, 0]))] if len(p) else p
+
+
+def check_formats(ds: Path, S: pd.DataFrame, K: pd.DataFrame) -> Check:
+    yolo, coco = _yolo_points(ds, S), _coco_points(ds)
+    vis = K[K.visibility == 2]
+    table = {iid: g[["u", "v", "visibility"]].to_numpy(float) for iid, g in vis.groupby("image_id")}
+    worst, mismatched = 0.0, []
+    for iid in S.image_id:
+        t = _sorted(table.get(iid, np.zeros((0, 3))))
+        for name, pts in (("yolo", yolo.get(iid)), ("coco", coco.get(iid))):
+            p = _sorted(pts if pts is not None else np.zeros((0, 3)))
+            if len(p) != len(t) or (len(p) and np.any(p[:, 2] != t[:, 2])):
+                mismatched.append(f"{iid} ({name})")
+                continue
+            if len(p):
+                worst = max(worst, float(np.abs(p[:, :2] - t[:, :2]).max()))
+    ok = not mismatched and worst <= FORMAT_MAX_PX
+    detail = "YOLO, COCO and Parquet hold the same visible keypoints"
+    if mismatched:
+        detail += f"; they differ for {len(mismatched)} images, e.g. {mismatched[0]}"
+    return Check("formats_agree_px", ok, worst, f"<= {FORMAT_MAX_PX} px, same keypoints", detail)
+
+
+def check_geometry(info: DatasetInfo, K: pd.DataFrame):
+    """Rebuild the mesh from the recorded config; the table's 3D points must be its crossings."""
+    from rebar_data.dataset.config import PipelineConfig
+    from rebar_data.geometry.build import build_rebar_mesh
+
+    cfg = PipelineConfig.model_validate(info.config)
+    rm = build_rebar_mesh(cfg.mesh_config())
+    first = K[K.image_id == K.image_id.iloc[0]].sort_values("crossing_id")
+    ok_count = len(first) == len(rm.crossings)
+    err = (
+        float(np.abs(first[["x_world", "y_world", "z_world"]].to_numpy() - rm.crossings.point).max())
+        if ok_count
+        else float("inf")
+    )
+    check = Check(
+        "geometry_m",
+        ok_count and err <= GEOMETRY_MAX_M,
+        err,
+        f"<= {GEOMETRY_MAX_M} m",
+        f"{len(rm.crossings)} crossings in the rebuilt mesh, {len(first)} rows per image",
+    )
+    return check, rm
+
+
+def check_instances(ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm) -> list[Check]:
+    from rebar_data.labels.keypoints import CrossingParts
+
+    own = CrossingParts.of(rm).own
+    hits = {1: [0, 0], 2: [0, 0]}  # visibility -> [agreeing, total]
+    for row in S.itertuples():
+        if not isinstance(row.instance_file, str):
+            continue
+        inst = (
+            cv2.imread(str(ds / row.instance_file), cv2.IMREAD_UNCHANGED).astype(np.int32) - INSTANCE_OFFSET
+        )
+        g = K[(K.image_id == row.image_id) & (K.visibility > 0)]
+        h, w = inst.shape
+        for kp in g.itertuples():
+            x, y = int(np.floor(kp.u)), int(np.floor(kp.v))
+            mine = own[kp.crossing_id]
+            if kp.visibility == 2:
+                patch = inst[max(y - 1, 0) : min(y + 2, h), max(x - 1, 0) : min(x + 2, w)]
+                agree = bool(np.isin(patch, mine).any())
+            else:
+                agree = inst[y, x] not in mine
+            hits[kp.visibility][0] += agree
+            hits[kp.visibility][1] += 1
+    out = []
+    for vis, bar, name, what in (
+        (
+            2,
+            VISIBLE_ON_OWN_MIN,
+            "visible_on_own_bar",
+            "visible keypoints whose pixel (3x3) shows one of their own parts",
+        ),
+        (
+            1,
+            OCCLUDED_OFF_OWN_MIN,
+            "occluded_off_own_bar",
+            "occluded keypoints whose pixel shows something else",
+        ),
+    ):
+        agree, total = hits[vis]
+        share = agree / total if total else 1.0
+        out.append(Check(name, share >= bar, share, f">= {bar}", f"{agree} of {total} {what}"))
+    return out
+
+
+def check_duplicates(ds: Path, S: pd.DataFrame) -> Check:
+    from rebar_data.dataset.writers.manifest import sha256_file
+
+    digests = [sha256_file(ds / f) for f in S.file_name]
+    dup = len(digests) - len(set(digests))
+    return Check("duplicate_images", dup == 0, dup, "0", "images whose bytes equal another image's")
+
+
+def check_leakage(info: DatasetInfo, S: pd.DataFrame) -> list[Check]:
+    out = []
+    for col in ("scene_id", "trajectory_id"):
+        n = int((S.groupby(col)["split"].nunique() > 1).sum())
+        rule = info.split.get("rule")
+        applies = rule != "random" and (col == "trajectory_id" or rule == "scene")
+        out.append(
+            Check(
+                f"{col}_in_two_splits",
+                n == 0 or not applies,
+                n,
+                "0" if applies else "not applicable (split rule)",
+                f"{col.replace('_id', '')}s present in more than one split (split rule: {rule})",
+            )
+        )
+    return out
+
+
+def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Check], dict]:
+    """Run every check, write ``audit/report.json``, ``report.md``, plots and the contact sheet."""
+    from rebar_data.dataset.audit_plots import contact_sheet, distribution_plots
+
+    ds = Path(ds)
+    info = DatasetInfo.read(ds)
+    S, K = load_tables(ds)
+    checks = check_reprojection(S, K)
+    checks.append(check_formats(ds, S, K))
+    geo, rm = check_geometry(info, K)
+    checks.append(geo)
+    checks += check_instances(ds, S, K, rm)
+    checks.append(check_duplicates(ds, S))
+    checks += check_leakage(info, S)
+    out = ds / layout.AUDIT_DIR
+    out.mkdir(exist_ok=True)
+    stats = distribution_plots(S, K, out)
+    contact_sheet(ds, S, K, out / "contact_sheet.png", n=contact_sheet_images)
+    report = {
+        "dataset": f"{info.name} v{info.version}",
+        "passed": all(c.passed for c in checks),
+        "checks": [asdict(c) for c in checks],
+        "stats": stats,
+    }
+    (out / "report.json").write_text(json.dumps(report, indent=2, sort_keys=True, default=float) + "\n")
+    (out / "report.md").write_text(_markdown(info, checks, stats))
+    return checks, stats
+
+
+def _markdown(info: DatasetInfo, checks: list[Check], stats: dict) -> str:
+    lines = [
+        f"# Audit of {info.name} v{info.version}",
+        "",
+        "| check | result | value | bar | what |",
+        "|---|---|---|---|---|",
+    ]
+    for c in checks:
+        lines.append(
+            f"| {c.name} | {'pass' if c.passed else 'FAIL'} | {c.value:.6g} | {c.bar} | {c.detail} |"
+        )
+    lines += ["", "## Distributions", ""]
+    for k, v in stats.items():
+        lines.append(f"- {k}: {v}")
+    lines += [
+        "",
+        "![keypoints per image](keypoints_per_image.png)",
+        "![visibility](visibility.png)",
+        "![lighting and materials](coverage.png)",
+        "",
+        "![contact sheet](contact_sheet.png)",
+        "",
+    ]
+    return "\n".join(lines)

@@ -1,0 +1,74 @@
+"""`rebar dataset build|validate|audit`."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from rebar_data.config import ConfigError
+
+
+def _dataset_path(p: str) -> Path:
+    path = Path(p)
+    if not path.is_dir():
+        raise ConfigError(f"{p}: no such folder; accepted: a dataset folder such as data/smoke/v0.1.0")
+    return path
+
+
+def run_build(args: argparse.Namespace) -> int:
+    from rebar_data.dataset.build import build_dataset
+
+    out = build_dataset(args.config, args.out, workers=args.workers, force=args.force, resume=args.resume)
+    print(out)
+    return 0
+
+
+def run_validate(args: argparse.Namespace) -> int:
+    from rebar_data.dataset.validate import validate_dataset
+
+    failures = validate_dataset(_dataset_path(args.path))
+    for line in failures:
+        print(line)
+    if failures:
+        print(f"{args.path}: INVALID ({len(failures)} failures)", file=sys.stderr)
+        return 1
+    print(f"{args.path}: valid")
+    return 0
+
+
+def run_audit(args: argparse.Namespace) -> int:
+    from rebar_data.dataset.audit import audit_dataset
+    from rebar_data.dataset.layout import DatasetFormatError
+
+    path = _dataset_path(args.path)
+    try:
+        checks, _ = audit_dataset(path)
+    except DatasetFormatError as e:
+        raise ConfigError(str(e)) from None
+    for c in checks:
+        print(f"{'pass' if c.passed else 'FAIL'}  {c.name}: {c.value:.6g} (bar {c.bar}) - {c.detail}")
+    failed = [c.name for c in checks if not c.passed]
+    print(f"report: {path / 'audit' / 'report.md'}")
+    if failed:
+        print(f"{args.path}: audit FAILED: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    return 0
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    d = sub.add_parser("dataset", help="build, validate and audit datasets")
+    dsub = d.add_subparsers(dest="dataset_command", required=True)
+    b = dsub.add_parser("build", help="render and label a dataset; prints its folder last")
+    b.add_argument("config", help="pipeline YAML, such as pipelines/paper-tunnel.yaml")
+    b.add_argument("--out", required=True, help="root folder; the dataset goes to OUT/<name>/v<version>")
+    b.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    b.add_argument("--force", action="store_true", help="rebuild a version that exists (replaced at the end)")
+    b.add_argument("--resume", action="store_true", help="continue an interrupted build of the same config")
+    b.set_defaults(func=run_build)
+    v = dsub.add_parser("validate", help="check every file against schemas/ and the manifest")
+    v.add_argument("path")
+    v.set_defaults(func=run_validate)
+    a = dsub.add_parser("audit", help="label-quality checks, report and contact sheet (audit/)")
+    a.add_argument("path")
+    a.set_defaults(func=run_audit)

@@ -1,0 +1,110 @@
+"""The on-disk dataset format: path templates, the schema version and the typed ``meta/info.json``.
+
+A reader refuses a dataset whose major schema version it does not know, and warns (does not fail) on
+unknown keys in info.json, so newer minor versions stay readable.
+"""
+
+from __future__ import annotations
+
+import json
+import warnings
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+
+SCHEMA_VERSION = "1.0.0"
+SPLITS = ("train", "val", "test")
+KEYPOINT_NAMES = ["intersection"]
+CATEGORY = "rebar_crossing"
+
+INFO = "meta/info.json"
+MANIFEST = "meta/manifest.parquet"
+DATA_YAML = "data.yaml"
+SAMPLES = "tables/samples.parquet"
+KEYPOINTS = "tables/keypoints.parquet"
+AUDIT_DIR = "audit"
+
+
+def image_path(split: str, image_id: str) -> str:
+    return f"images/{split}/{image_id}.png"
+
+
+def label_path(split: str, image_id: str) -> str:
+    return f"labels/{split}/{image_id}.txt"
+
+
+def depth_path(split: str, image_id: str) -> str:
+    return f"depth/{split}/{image_id}.png"
+
+
+def instance_path(split: str, image_id: str) -> str:
+    return f"instances/{split}/{image_id}.png"
+
+
+def coco_path(split: str) -> str:
+    return f"annotations/{split}.json"
+
+
+def dataset_dir(root: Path, name: str, version: str) -> Path:
+    return Path(root) / name / f"v{version}"
+
+
+class DatasetFormatError(Exception):
+    """A dataset on disk cannot be read by this version of the toolkit."""
+
+
+@dataclass
+class DatasetInfo:
+    """Everything ``meta/info.json`` holds: identity, provenance, counts and label conventions."""
+
+    name: str
+    version: str
+    schema_version: str
+    generator: dict  # {"name", "version", "git_commit"}
+    config: dict  # the resolved pipeline config
+    config_hash: str
+    seed: int
+    counts: dict  # per split: images, keypoints (all rows), visible, occluded
+    split: dict  # {"rule", "fractions", "groups": {split: [ids]}}
+    image_size: dict  # {"width", "height"}
+    intrinsics: dict  # {"fx", "fy", "cx", "cy", "convention"}
+    keypoint_names: list[str]
+    oks_sigma: float
+    oks_area: str
+    conventions: dict
+    description: str = ""
+    extra: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        extra = d.pop("extra")
+        d.update(extra)
+        return d
+
+    @classmethod
+    def from_dict(cls, d: dict) -> DatasetInfo:
+        major = str(d.get("schema_version", "0")).split(".")[0]
+        if major != SCHEMA_VERSION.split(".")[0]:
+            raise DatasetFormatError(
+                f"schema_version {d.get('schema_version')!r} is not readable by this toolkit "
+                f"(reads {SCHEMA_VERSION.split('.')[0]}.x)"
+            )
+        known = {f.name for f in fields(cls)} - {"extra"}
+        unknown = sorted(set(d) - known)
+        if unknown:
+            warnings.warn(
+                f"info.json has keys this toolkit does not know: {', '.join(unknown)}", stacklevel=2
+            )
+        return cls(**{k: d[k] for k in known if k in d}, extra={k: d[k] for k in unknown})
+
+    def write(self, path: Path) -> None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        path.write_text(json.dumps(self.to_dict(), indent=2, sort_keys=True) + "\n")
+
+    @classmethod
+    def read(cls, dataset: Path) -> DatasetInfo:
+        p = Path(dataset) / INFO
+        if not p.exists():
+            raise DatasetFormatError(
+                f"{dataset}: no {INFO}; is this a dataset folder (<root>/<name>/v<version>)?"
+            )
+        return cls.from_dict(json.loads(p.read_text()))

@@ -1,0 +1,107 @@
+"""Renders and labels the frames of one trajectory; one long-lived renderer per worker process.
+
+A worker writes its images (and depth and instance maps) into the staging folder and returns the
+labels and per-frame parameters to the process that assembles the tables, so the tables do not
+depend on which worker did what.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rebar_data.dataset import layout
+from rebar_data.dataset.config import PipelineConfig
+from rebar_data.dataset.plan import Sample
+from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
+from rebar_data.labels.keypoints import CrossingParts, FrameLabels, LabelRule, label_frame
+from rebar_data.scene.cameras import intrinsics_from_config
+from rebar_data.scene.sample import SceneSample, sample_sensor
+
+INSTANCE_OFFSET = 3  # instance maps store id + 3: 0 distractor, 1 surroundings, 2 nothing, 3+ rebar parts
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    image_id: str
+    labels: FrameLabels
+    sensor: dict
+    image_sha256: str
+
+
+class FrameWorker:
+    """Owns one renderer and the mesh; renders a trajectory's frames into ``staging``."""
+
+    def __init__(self, cfg: PipelineConfig, staging: Path, rm: RebarMesh | None = None):
+        from rebar_data.render.renderer import Renderer
+
+        self.cfg = cfg
+        self.staging = Path(staging)
+        self.rm = rm if rm is not None else build_rebar_mesh(cfg.mesh_config())
+        self.parts = CrossingParts.of(self.rm)
+        self.intrinsics = intrinsics_from_config(cfg.camera)
+        self.rule = LabelRule(**cfg.labels.model_dump())
+        self.renderer = Renderer(self.intrinsics, cfg.render)
+        self.renderer.set_mesh(self.rm)
+
+    def run(self, scene: SceneSample, samples: list[Sample]) -> list[FrameRecord]:
+        self.renderer.set_scene(scene)
+        return [self._one(s) for s in samples]
+
+    def _one(self, s: Sample) -> FrameRecord:
+        import hashlib
+
+        rng = np.random.default_rng(s.seed)
+        sensor = sample_sensor(self.cfg.scene, rng)
+        frame = self.renderer.render(s.world_from_camera, sensor, rng)
+        labels = label_frame(
+            self.rm, self.parts, s.world_from_camera, self.intrinsics, self.renderer.cast_rays, self.rule
+        )
+        png = _encode(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
+        _write(self.staging / layout.image_path(s.split, s.image_id), png)
+        if self.cfg.dataset.store_depth:
+            depth_mm = np.clip(np.round(frame.depth_m * 1000.0), 0, 65535).astype(np.uint16)
+            _write(self.staging / layout.depth_path(s.split, s.image_id), _encode(depth_mm))
+        if self.cfg.dataset.store_instances:
+            inst = (frame.instance + INSTANCE_OFFSET).astype(np.uint16)
+            _write(self.staging / layout.instance_path(s.split, s.image_id), _encode(inst))
+        return FrameRecord(s.image_id, labels, sensor.record(), hashlib.sha256(png).hexdigest())
+
+    def close(self) -> None:
+        self.renderer.close()
+
+
+def _encode(img: np.ndarray) -> bytes:
+    ok, buf = cv2.imencode(".png", img, [cv2.IMWRITE_PNG_COMPRESSION, 3])
+    if not ok:
+        raise RuntimeError("PNG encoding failed")
+    return buf.tobytes()
+
+
+def _write(path: Path, data: bytes) -> None:
+    """Write via a temporary name and rename, so a killed build never leaves a truncated file."""
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
+    tmp.write_bytes(data)
+    tmp.replace(path)
+
+
+# --- process-pool plumbing: one FrameWorker per process -------------------------------------------
+
+_WORKER: FrameWorker | None = None
+
+
+def init_process(cfg: PipelineConfig, staging: Path, rm: RebarMesh | None) -> None:
+    global _WORKER
+    os.environ.setdefault("EGL_PLATFORM", "surfaceless")
+    _WORKER = FrameWorker(cfg, staging, rm)
+
+
+def run_in_process(task: tuple[str, SceneSample, list[Sample]]) -> tuple[str, list[FrameRecord]]:
+    trajectory_id, scene, samples = task
+    assert _WORKER is not None, "init_process was not called in this worker"
+    return trajectory_id, _WORKER.run(scene, samples)

@@ -1,0 +1,125 @@
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import open3d as o3d
+import pytest
+
+from rebar_data.config import MeshConfig
+from rebar_data.geometry.build import build_rebar_mesh
+from rebar_data.labels.keypoints import CrossingParts, label_frame
+from rebar_data.labels.projection import camera_from_world, project
+
+
+@dataclass(frozen=True)
+class K:
+    width: int = 640
+    height: int = 480
+    fx: float = 525.0
+    fy: float = 525.0
+    cx: float = 320.0
+    cy: float = 240.0
+
+
+def _look_down(height: float, x: float = 0.0, y: float = 0.0) -> np.ndarray:
+    """Camera above the slab looking straight down (-z), image x along world x."""
+    T = np.eye(4)
+    T[:3, :3] = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])
+    T[:3, 3] = [x, y, height]
+    return T
+
+
+def _tensor_mesh(m):
+    return o3d.t.geometry.TriangleMesh(
+        o3d.core.Tensor(np.asarray(m.vertices, np.float32)), o3d.core.Tensor(np.asarray(m.faces, np.int32))
+    )
+
+
+def _caster(rm, extra=None):
+    scene = o3d.t.geometry.RaycastingScene()
+    scene.add_triangles(_tensor_mesh(rm.mesh))
+    ids = [rm.triangle_part_id]
+    if extra is not None:
+        scene.add_triangles(_tensor_mesh(extra))
+
+    def cast(origins, dirs):
+        rays = o3d.core.Tensor(np.c_[origins, dirs].astype(np.float32))
+        r = scene.cast_rays(rays)
+        geom = r["geometry_ids"].numpy()
+        prim = r["primitive_ids"].numpy()
+        inst = np.full(len(origins), -1, np.int32)
+        hit0 = geom == 0
+        inst[hit0] = ids[0][prim[hit0]]
+        inst[geom == 1] = -3
+        return r["t_hit"].numpy().astype(float), inst
+
+    return cast
+
+
+@pytest.fixture(scope="module")
+def slab():
+    cfg = MeshConfig.model_validate(
+        {
+            "seed": 1,
+            "mesh": {"kind": "planar", "width_m": 1.0, "height_m": 0.6},
+            "realism": {"tie_wire_fraction": 0.5},
+        }
+    )
+    return build_rebar_mesh(cfg)
+
+
+def test_projection_matches_the_pinhole_formula():
+    T = _look_down(1.0, 0.1, 0.2)
+    pts = np.array([[0.1, 0.2, 0.0], [0.3, 0.2, 0.5], [0.0, 0.0, 2.0]])
+    p = project(pts, T, fx=500, fy=510, cx=320, cy=240, width=640, height=480)
+    np.testing.assert_allclose(p.point_camera[0], [0, 0, 1.0], atol=1e-15)
+    np.testing.assert_allclose([p.u[0], p.v[0]], [320, 240])
+    np.testing.assert_allclose([p.u[1], p.v[1]], [320 + 500 * 0.2 / 0.5, 240])
+    assert list(p.in_image) == [True, True, False]  # the last one is behind the camera
+    np.testing.assert_allclose(camera_from_world(T) @ T, np.eye(4), atol=1e-15)
+
+
+def test_top_view_sees_every_crossing_in_the_frame(slab):
+    T = _look_down(1.2)
+    lab = label_frame(slab, CrossingParts.of(slab), T, K(), _caster(slab))
+    inside = (lab.u >= 0) & (lab.u < 640) & (lab.v >= 0) & (lab.v < 480)
+    assert inside.sum() > 20
+    assert np.all(lab.visibility[inside] == 2)
+    assert np.all(lab.visibility[~inside] == 0)
+    # boxes follow the rule: 4 bar diameters at the crossing's depth
+    np.testing.assert_allclose(lab.box_size_px[inside], 4 * 525 * 0.012 / lab.depth_m[inside])
+
+
+def test_an_occluder_makes_crossings_occluded(slab):
+    import trimesh
+
+    T = _look_down(1.2)
+    board = trimesh.creation.box(extents=[0.25, 0.25, 0.01])
+    board.apply_translation([0.0, 0.0, 0.5])  # between camera and slab, over the centre
+    lab = label_frame(slab, CrossingParts.of(slab), T, K(), _caster(slab, board))
+    c = slab.crossings.point
+    # rays from the camera to crossings within ~0.2 m of the centre pass through the board
+    behind = np.hypot(c[:, 0], c[:, 1]) < 0.15
+    assert behind.any()
+    assert np.all(lab.visibility[behind] == 1)
+    assert np.all(lab.hit_instance[behind] == -3)
+    assert np.sum(lab.visibility == 2) > 10
+
+
+def test_grazing_view_finds_crossings_hidden_behind_nearer_bars(slab):
+    e = np.radians(8.0)
+    fwd = np.array([1.0, 0.0, -np.tan(e)])
+    fwd /= np.linalg.norm(fwd)
+    right = np.array([0.0, -1.0, 0.0])
+    T = np.eye(4)
+    T[:3, :3] = np.stack([right, np.cross(fwd, right), fwd], axis=1)
+    T[:3, 3] = [-0.9, 0.0, 0.9 * np.tan(e)]
+    parts = CrossingParts.of(slab)
+    lab = label_frame(slab, parts, T, K(), _caster(slab))
+    hidden = lab.visibility == 1
+    assert hidden.sum() >= 10 and (lab.visibility == 2).sum() >= 10
+    # what hides them is rebar (another bar, or their own bar far from the crossing, seen along it)
+    assert np.all(lab.hit_instance[hidden] >= 0)
+    seen = lab.visibility == 2
+    assert np.all(np.any(lab.hit_instance[seen][:, None] == parts.own[seen], axis=1))
