@@ -15,6 +15,7 @@ from rebar_data.config import ConfigError
 COMMAND_MODULES = [
     "rebar_data.geometry.commands",
     "rebar_data.dataset.commands",
+    "rebar_data.bench",
 ]
 
 
