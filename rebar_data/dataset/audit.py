@@ -93,9 +93,13 @@ def check_reprojection(S: pd.DataFrame, K: pd.DataFrame) -> list[Check]:
 
 
 def _yolo_points(ds: Path, S: pd.DataFrame) -> dict[str, np.ndarray]:
+    """Visible keypoints per image from the YOLO files (an image whose file is missing is left out)."""
     out = {}
     for row in S.itertuples():
-        txt = (ds / layout.label_path(row.split, row.image_id)).read_text().split()
+        p = ds / layout.label_path(row.split, row.image_id)
+        if not p.exists():
+            continue
+        txt = p.read_text().split()
         vals = np.array(txt, float).reshape(-1, 8) if txt else np.zeros((0, 8))
         out[row.image_id] = np.c_[vals[:, 5] * row.width, vals[:, 6] * row.height, vals[:, 7]]
     return out
@@ -163,26 +167,31 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame):
 
 
 def check_instances(ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm) -> list[Check]:
-    from rebar_data.labels.keypoints import CrossingParts
+    """Visible keypoints must show one of their own parts at their depth in the instance and depth passes
+    (3x3 pixels around the label); occluded ones must show something else, or something in front."""
+    from rebar_data.labels.keypoints import CrossingParts, LabelRule
 
-    own = CrossingParts.of(rm).own
+    parts = CrossingParts.of(rm)
+    near_m = LabelRule().near_diameters * parts.diameter_max_m + 0.002  # + depth quantisation
     hits = {1: [0, 0], 2: [0, 0]}  # visibility -> [agreeing, total]
     for row in S.itertuples():
-        if not isinstance(row.instance_file, str):
+        if not isinstance(row.instance_file, str) or not isinstance(row.depth_file, str):
             continue
         inst = (
             cv2.imread(str(ds / row.instance_file), cv2.IMREAD_UNCHANGED).astype(np.int32) - INSTANCE_OFFSET
         )
+        depth = cv2.imread(str(ds / row.depth_file), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0
         g = K[(K.image_id == row.image_id) & (K.visibility > 0)]
         h, w = inst.shape
         for kp in g.itertuples():
             x, y = int(np.floor(kp.u)), int(np.floor(kp.v))
-            mine = own[kp.crossing_id]
+            mine, near = parts.own[kp.crossing_id], near_m[kp.crossing_id]
             if kp.visibility == 2:
-                patch = inst[max(y - 1, 0) : min(y + 2, h), max(x - 1, 0) : min(x + 2, w)]
-                agree = bool(np.isin(patch, mine).any())
+                win = (slice(max(y - 1, 0), min(y + 2, h)), slice(max(x - 1, 0), min(x + 2, w)))
+                ok = np.isin(inst[win], mine) & (np.abs(depth[win] - kp.depth_m) <= near)
+                agree = bool(ok.any())
             else:
-                agree = inst[y, x] not in mine
+                agree = inst[y, x] not in mine or depth[y, x] < kp.depth_m - near
             hits[kp.visibility][0] += agree
             hits[kp.visibility][1] += 1
     out = []
@@ -191,13 +200,13 @@ def check_instances(ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm) -> list[Chec
             2,
             VISIBLE_ON_OWN_MIN,
             "visible_on_own_bar",
-            "visible keypoints whose pixel (3x3) shows one of their own parts",
+            "visible keypoints showing one of their own parts at their depth",
         ),
         (
             1,
             OCCLUDED_OFF_OWN_MIN,
             "occluded_off_own_bar",
-            "occluded keypoints whose pixel shows something else",
+            "occluded keypoints showing something else or something in front",
         ),
     ):
         agree, total = hits[vis]

@@ -45,7 +45,7 @@ def distribution_plots(S: pd.DataFrame, K: pd.DataFrame, out: Path) -> dict:
     fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 2.4 * nrow), squeeze=False)
     for ax, c in zip(axes.flat, cols, strict=False):
         col = S[c]
-        if col.dtype == object or col.dtype == bool:
+        if pd.api.types.is_bool_dtype(col) or not pd.api.types.is_numeric_dtype(col):
             col.astype(str).value_counts().sort_index().plot.bar(ax=ax, rot=30, color="#4472c4")
         else:
             ax.hist(col.to_numpy(float), bins=20, color="#4472c4")
@@ -94,7 +94,9 @@ def contact_sheet(
     ]
     cols = 6
     rows = int(np.ceil(len(pick) / cols))
-    sheet = np.full((rows * (tile + 18), cols * tile, 3), 30, np.uint8)
+    first = pick.iloc[0]
+    tile_h = int(round(tile * first.height / max(first.width, first.height)))
+    sheet = np.full((rows * (tile_h + 18), cols * tile, 3), 30, np.uint8)
     for i, row in enumerate(pick.itertuples()):
         img = cv2.cvtColor(cv2.imread(str(ds / row.file_name)), cv2.COLOR_BGR2RGB)
         img = draw_keypoints(img, K[K.image_id == row.image_id])
@@ -103,7 +105,7 @@ def contact_sheet(
             img, (int(img.shape[1] * scale), int(img.shape[0] * scale)), interpolation=cv2.INTER_AREA
         )
         r, c = divmod(i, cols)
-        y, x = r * (tile + 18), c * tile
+        y, x = r * (tile_h + 18), c * tile
         sheet[y + 18 : y + 18 + img.shape[0], x : x + img.shape[1]] = img
         label = f"{row.split} {row.image_id} ({row.n_visible} vis)"
         cv2.putText(

@@ -118,8 +118,10 @@ def _run_tasks(
         finally:
             worker.close()
         return
-    ctx = mp.get_context("fork")
-    with ctx.Pool(min(workers, len(tasks)), initializer=init_process, initargs=(cfg, staging, rm)) as pool:
+    # spawn, not fork: a process forked after EGL and Filament were initialised in the parent can hang.
+    # Each worker rebuilds the mesh from the config (deterministic, under a second).
+    ctx = mp.get_context("spawn")
+    with ctx.Pool(min(workers, len(tasks)), initializer=init_process, initargs=(cfg, staging, None)) as pool:
         yield from pool.imap_unordered(run_in_process, tasks)
 
 

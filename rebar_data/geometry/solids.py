@@ -73,6 +73,9 @@ def tube(
     n2 = np.cross(tangents, n1)
     ang = 2.0 * np.pi * np.arange(sides) / sides
     ring = np.cos(ang)[None, :, None] * n1[:, None, :] + np.sin(ang)[None, :, None] * n2[:, None, :]
+    # circumscribed polygon: the faces touch the true cylinder, so bars that touch overlap slightly and
+    # the crossing point lies inside the solid rather than in a sliver gap between two inscribed tubes
+    r = r / np.cos(np.pi / sides)
     verts = (centers[:, None, :] + r[:, None, None] * ring).reshape(-1, 3)
     m = len(s)
     i = np.arange(m - 1)[:, None]

@@ -1,9 +1,11 @@
 """Keypoint labels for one frame: every crossing projected exactly, with visibility by a ray test.
 
 Visibility follows COCO and Ultralytics: 0 when the crossing projects outside the image (or behind the
-camera), 1 when it projects inside but something else is hit first, 2 when the first hit along the ray
-from the camera centre to the crossing is one of the crossing's own parts (either bar, or its tie
-wire) within ``near_diameters`` bar diameters of the crossing.
+camera); 2 when the first hit along the ray from the camera centre to the crossing is one of the
+crossing's own parts (either bar, or its tie wire) within ``near_diameters`` bar diameters of the
+crossing, or lies beyond the crossing (the ray slipped through the gap between two bars that do not
+quite touch: nothing is in front); 1 otherwise, when something else, or the crossing's own bar far from
+it (seen along its length), is hit first.
 
 Each keypoint also gets a square detection box centred on it, so the same labels serve detection
 and pose training. Its side is ``box_bar_diameters`` times the larger projected bar diameter at the
@@ -21,6 +23,7 @@ import numpy as np
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.labels.projection import project
 
+BEYOND_TOLERANCE_M = 1e-4  # a first hit this close to the crossing, or past it, is not in front of it
 CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
@@ -90,8 +93,10 @@ def label_frame(
         inst = np.asarray(inst, np.int32)
         own = np.any(inst[:, None] == parts.own[idx], axis=1)
         hit_point = origin + dirs * np.where(np.isfinite(t_hit), t_hit, 0.0)[:, None]
+        hit = np.isfinite(t_hit)
         near = np.linalg.norm(hit_point - pts[idx], axis=1) <= rule.near_diameters * parts.diameter_max_m[idx]
-        vis[idx] = np.where(own & near & np.isfinite(t_hit), 2, 1)
+        beyond = ~hit | (t_hit >= dist - BEYOND_TOLERANCE_M)
+        vis[idx] = np.where((own & near & hit) | beyond, 2, 1)
         hit_instance[idx] = inst
     f = (k.fx + k.fy) / 2.0
     with np.errstate(divide="ignore", invalid="ignore"):

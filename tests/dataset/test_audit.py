@@ -1,0 +1,62 @@
+from __future__ import annotations
+
+import json
+import shutil
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from rebar_data.cli import main
+from rebar_data.dataset.audit import audit_dataset
+
+
+@pytest.fixture
+def copy(tiny_dataset, tmp_path):
+    dst = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, dst)
+    return dst
+
+
+def _failed(ds) -> set[str]:
+    checks, _ = audit_dataset(ds)
+    return {c.name for c in checks if not c.passed}
+
+
+def test_audit_command_writes_a_report_and_exits_zero(copy, capsys):
+    assert main(["dataset", "audit", str(copy)]) == 0
+    report = json.loads((copy / "audit/report.json").read_text())
+    assert report["passed"] is True
+    assert {c["name"] for c in report["checks"]} >= {
+        "reprojection_px",
+        "formats_agree_px",
+        "visible_on_own_bar",
+        "occluded_off_own_bar",
+        "duplicate_images",
+        "scene_id_in_two_splits",
+    }
+
+
+def test_a_label_off_by_a_hundredth_of_a_pixel_fails_reprojection(copy):
+    p = copy / "tables/keypoints.parquet"
+    t = pq.read_table(p).to_pandas()
+    t.loc[t.index[t.visibility == 2][0], "u"] += 0.01
+    pq.write_table(pa.Table.from_pandas(t, schema=pq.read_schema(p), preserve_index=False), p)
+    assert {"reprojection_px", "formats_agree_px"} <= _failed(copy)
+
+
+def test_a_yolo_file_of_another_image_fails_format_agreement(copy):
+    labels = sorted((copy / "labels").rglob("*.txt"), key=lambda p: p.stat().st_size)
+    labels[0].write_text(labels[-1].read_text())
+    assert _failed(copy) == {"formats_agree_px"}
+
+
+def test_duplicate_images_and_split_leakage_are_caught(copy):
+    imgs = sorted((copy / "images/train").glob("*.png"))
+    shutil.copy(imgs[0], imgs[1])
+    p = copy / "tables/samples.parquet"
+    t = pq.read_table(p).to_pandas()
+    t.loc[t.index[t.split == "val"][0], "split"] = "train"
+    pq.write_table(pa.Table.from_pandas(t, schema=pq.read_schema(p), preserve_index=False), p)
+    failed = _failed(copy)
+    assert "duplicate_images" in failed and "scene_id_in_two_splits" in failed
