@@ -42,6 +42,22 @@ smoke: setup
 	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-smoke)"
 	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-smoke)"
 
+# Train the detector on the default dataset (built first when missing) and ship it with its model card.
+# An interrupted run resumes from runs/train/paper-tunnel/last.pt; a finished one is re-scored and re-shipped.
+train: setup
+	@ver=$$(sed -n 's/^version: *//p' pipelines/paper-tunnel.yaml | head -1); ds=$(DATA)/paper-tunnel/v$$ver; \
+	if [ ! -d "$$ds" ]; then $(MAKE) --no-print-directory dataset || exit 1; fi; \
+	$(REBAR) train "$$ds" --out runs/train/paper-tunnel --ship
+
+# Servo evaluation: the paper's set-up (shipped detector) and the randomized suite with detector faults,
+# each checked against eval/thresholds.yaml. Outputs (tables, plots, .rrd recordings) go to $(EVAL_OUT).
+EVAL_OUT ?= runs/eval
+eval: setup
+	$(REBAR) servo run eval/paper.yaml --out $(EVAL_OUT)/paper
+	$(REBAR) servo check $(EVAL_OUT)/paper
+	$(REBAR) servo run eval/random.yaml --out $(EVAL_OUT)/random
+	$(REBAR) servo check $(EVAL_OUT)/random
+
 # pytest exits 5 when it collects no tests: a broken suite, reported as a failure.
 test: setup
 	@$(PY) -m pytest -q; rc=$$?; if [ $$rc -eq 5 ]; then echo "pytest collected no tests"; exit 1; fi; exit $$rc

@@ -14,8 +14,11 @@ from rebar_data.config import ConfigError
 
 COMMAND_MODULES = [
     "rebar_data.geometry.commands",
+    "rebar_data.render.commands",
     "rebar_data.dataset.commands",
     "rebar_data.bench",
+    "rebar_data.servo.commands",
+    "rebar_data.perception.commands",
 ]
 
 

@@ -1,0 +1,202 @@
+"""Training crops with augmentation that moves keypoints exactly with the pixels.
+
+Geometry is one affine map per crop, ``crop_from_image`` (2x3, continuous pixel coordinates with COCO's
+corner origin), built from a random centre, scale, rotation and flips; pixels are resampled with the same
+map converted to OpenCV's pixel-index convention, so a keypoint and the pixels around it stay together
+to well under a tenth of a pixel. Mosaic fills the four quadrants of a crop from four images. Photometric
+changes (brightness, contrast, saturation, hue, gamma, blur, noise) touch pixels only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from rebar_data.perception.config import AugmentConfig
+from rebar_data.perception.model import STRIDE
+
+SEAM_PX = 3.0  # crossings this close to a mosaic seam are cut in two: neither positive nor negative
+
+
+@dataclass
+class Crop:
+    """One training crop.
+
+    Attributes:
+        image: (S, S, 3) uint8 RGB.
+        positives: (N, 2) visible crossings in crop pixels.
+        ignore: (M, 2) points to leave out of the loss (occluded crossings, crossings cut by a seam).
+        rays: (2, S / 4, S / 4) viewing ray ((u - cx) / fx, (v - cy) / fy) of each output cell's centre
+            in the virtual camera that films the crop (see :func:`crop_rays`).
+    """
+
+    image: np.ndarray
+    positives: np.ndarray
+    ignore: np.ndarray
+    rays: np.ndarray
+
+
+@dataclass
+class Source:
+    """One image to crop from: pixels, crossings to learn, points to ignore, intrinsics (fx, fy, cx, cy)."""
+
+    image: np.ndarray
+    positives: np.ndarray
+    ignore: np.ndarray
+    camera: tuple[float, float, float, float]
+
+
+def index_matrix(crop_from_image: np.ndarray) -> np.ndarray:
+    """The same affine map for OpenCV, whose pixel (i, j) is the point (i + 0.5, j + 0.5) in COCO's origin."""
+    m = np.asarray(crop_from_image, float).copy()
+    m[:, 2] += m[:, :2] @ [0.5, 0.5] - 0.5
+    return m
+
+
+def apply_affine(points: np.ndarray, crop_from_image: np.ndarray) -> np.ndarray:
+    """Map (N, 2) points with a 2x3 affine map."""
+    p = np.asarray(points, float).reshape(-1, 2)
+    return p @ crop_from_image[:, :2].T + crop_from_image[:, 2]
+
+
+def warp(image: np.ndarray, crop_from_image: np.ndarray, size: int, *, fill: float) -> np.ndarray:
+    """Resample ``image`` into a ``size`` x ``size`` crop (bilinear, constant fill outside the image)."""
+    return cv2.warpAffine(
+        image,
+        index_matrix(crop_from_image),
+        (size, size),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_CONSTANT,
+        borderValue=(fill, fill, fill),
+    )
+
+
+def crop_rays(
+    crop_from_image: np.ndarray, size: int, camera: tuple[float, float, float, float], *, stride: int = STRIDE
+) -> np.ndarray:
+    """(2, S / stride, S / stride) viewing rays of the crop's output-cell centres, as the virtual camera that
+    films the crop sees them.
+
+    A similarity crop (scale s, rotation, flips) of a pinhole image is the image of a pinhole camera with
+    focal length s f, turned (or mirrored) about its optical axis, with the principal point where the map
+    puts the source's. Its rays are the source rays of the same points turned and flipped with the pixels,
+    so the parallax between a crossing's 3D label and its visible centre points the same way relative to
+    the crop's rays as it does in a real frame relative to the frame's rays.
+    """
+    fx, fy, cx, cy = camera
+    lin, t = crop_from_image[:, :2], crop_from_image[:, 2]
+    inv = np.linalg.inv(lin)
+    c = stride * (np.arange(size // stride, dtype=np.float64) + 0.5)
+    qx, qy = np.meshgrid(c - t[0], c - t[1], indexing="xy")
+    px = inv[0, 0] * qx + inv[0, 1] * qy
+    py = inv[1, 0] * qx + inv[1, 1] * qy
+    rx, ry = (px - cx) / fx, (py - cy) / fy  # rays in the source camera
+    turn = lin / np.sqrt(abs(np.linalg.det(lin)))  # rotation and flips of the crop, scale removed
+    return np.stack([turn[0, 0] * rx + turn[0, 1] * ry, turn[1, 0] * rx + turn[1, 1] * ry]).astype(np.float32)
+
+
+def random_affine(
+    rng: np.random.Generator,
+    *,
+    centre: np.ndarray,
+    target: np.ndarray,
+    cfg: AugmentConfig,
+) -> np.ndarray:
+    """A random similarity (scale, rotation, flips) taking ``centre`` in the image to ``target`` in the crop."""
+    lo, hi = cfg.scale
+    s = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+    a = np.radians(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg))
+    fx = -1.0 if rng.uniform() < cfg.flip_lr else 1.0
+    fy = -1.0 if rng.uniform() < cfg.flip_ud else 1.0
+    lin = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ np.diag([fx, fy])
+    return np.c_[lin, np.asarray(target, float) - lin @ np.asarray(centre, float)]
+
+
+def _inside(
+    points: np.ndarray, x0: float, y0: float, x1: float, y1: float, margin: float = 0.0
+) -> np.ndarray:
+    return (
+        (points[:, 0] >= x0 + margin)
+        & (points[:, 0] < x1 - margin)
+        & (points[:, 1] >= y0 + margin)
+        & (points[:, 1] < y1 - margin)
+    )
+
+
+def single_crop(src: Source, rng: np.random.Generator, *, size: int, cfg: AugmentConfig) -> Crop:
+    """A crop around a random point of one image, with random scale, rotation and flips."""
+    h, w = src.image.shape[:2]
+    centre = np.array([rng.uniform(0, w), rng.uniform(0, h)])
+    crop_from_image = random_affine(rng, centre=centre, target=np.array([size / 2, size / 2]), cfg=cfg)
+    fill = float(rng.uniform(0, 255))
+    out = warp(src.image, crop_from_image, size, fill=fill)
+    pos = apply_affine(src.positives, crop_from_image)
+    ign = apply_affine(src.ignore, crop_from_image)
+    keep = _inside(pos, 0, 0, size, size)
+    rays = crop_rays(crop_from_image, size, src.camera)
+    return Crop(out, pos[keep], ign[_inside(ign, -8, -8, size + 8, size + 8)], rays)
+
+
+def mosaic_crop(
+    pick: Callable[[], Source], rng: np.random.Generator, *, size: int, cfg: AugmentConfig
+) -> Crop:
+    """Four images in the four quadrants of one crop, split at a random point.
+
+    Args:
+        pick: Returns a random source image each call.
+        rng: The generator.
+        size: Crop side in pixels.
+        cfg: Augmentation settings.
+    """
+    xc, yc = rng.uniform(0.25, 0.75, 2) * size
+    canvas = np.empty((size, size, 3), np.uint8)
+    rays = np.empty((2, size // STRIDE, size // STRIDE), np.float32)
+    cell = STRIDE * (np.arange(size // STRIDE) + 0.5)
+    pos_all, ign_all = [], []
+    fill = float(rng.uniform(0, 255))
+    for x0, y0, x1, y1 in ((0, 0, xc, yc), (xc, 0, size, yc), (0, yc, xc, size), (xc, yc, size, size)):
+        src = pick()
+        h, w = src.image.shape[:2]
+        centre = np.array([rng.uniform(0, w), rng.uniform(0, h)])
+        crop_from_image = random_affine(
+            rng, centre=centre, target=np.array([(x0 + x1) / 2, (y0 + y1) / 2]), cfg=cfg
+        )
+        full = warp(src.image, crop_from_image, size, fill=fill)
+        i0, i1, j0, j1 = round(y0), round(y1), round(x0), round(x1)
+        canvas[i0:i1, j0:j1] = full[i0:i1, j0:j1]
+        rows = (cell >= i0) & (cell < i1)  # output cells whose centre lies in the pasted region
+        cols = (cell >= j0) & (cell < j1)
+        rays[:, rows[:, None] & cols[None, :]] = crop_rays(crop_from_image, size, src.camera)[
+            :, rows[:, None] & cols[None, :]
+        ]
+        x0, y0, x1, y1 = j0, i0, j1, i1  # the region actually pasted
+        pos = apply_affine(src.positives, crop_from_image)
+        inside = _inside(pos, x0, y0, x1, y1)
+        clear = _inside(pos, x0, y0, x1, y1, margin=SEAM_PX) | ~_inside(pos, 0, 0, size, size, margin=SEAM_PX)
+        pos_all.append(pos[inside & clear])
+        ign_all.append(pos[inside & ~clear])
+        ign = apply_affine(src.ignore, crop_from_image)
+        ign_all.append(ign[_inside(ign, x0 - 8, y0 - 8, x1 + 8, y1 + 8)])
+    return Crop(canvas, np.concatenate(pos_all).reshape(-1, 2), np.concatenate(ign_all).reshape(-1, 2), rays)
+
+
+def photometric(image: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:
+    """Random brightness, contrast, saturation, hue, gamma, blur and noise (pixels only)."""
+    img = image.astype(np.float32)
+    if cfg.hue_deg > 0 or cfg.saturation > 0:
+        hsv = cv2.cvtColor(image, cv2.COLOR_RGB2HSV_FULL).astype(np.float32)
+        hsv[..., 0] = (hsv[..., 0] + rng.uniform(-cfg.hue_deg, cfg.hue_deg) * 256 / 360) % 256
+        hsv[..., 1] *= 1 + rng.uniform(-cfg.saturation, cfg.saturation)
+        img = cv2.cvtColor(np.clip(hsv, 0, 255).astype(np.uint8), cv2.COLOR_HSV2RGB_FULL).astype(np.float32)
+    mean = img.mean()
+    img = (img - mean) * (1 + rng.uniform(-cfg.contrast, cfg.contrast)) + mean
+    img *= 1 + rng.uniform(-cfg.brightness, cfg.brightness)
+    img = 255.0 * (np.clip(img, 0, 255) / 255.0) ** np.exp(rng.uniform(-cfg.gamma, cfg.gamma))
+    if rng.uniform() < cfg.blur_probability:
+        img = cv2.GaussianBlur(img, (0, 0), max(1e-3, rng.uniform(*cfg.blur_sigma_px)))
+    if rng.uniform() < cfg.noise_probability:
+        img += rng.normal(0, rng.uniform(*cfg.noise_std), img.shape).astype(np.float32)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)

@@ -1,0 +1,193 @@
+"""Ship a trained model with the package: its ONNX file and a model card written from the run's own records."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.data import check_dataset, read_info
+from rebar_data.perception.evaluate import predict
+from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector
+from rebar_data.perception.metrics import oks_radius_px
+
+MAX_SHIPPED_BYTES = 5 * 1024 * 1024
+CARD_NAME = "MODEL_CARD.md"
+
+
+def _latency_ms(detector: Detector, *, repeats: int = 50) -> float:
+    from rebar_data.perception.bench import _frame
+
+    rgb = _frame()
+    for _ in range(5):
+        detector.detect(rgb)
+    t = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        detector.detect(rgb)
+        t.append((time.perf_counter() - t0) * 1e3)
+    return float(np.median(t))
+
+
+def _row(name: str, m: dict) -> str:
+    return (
+        f"| {name} | {int(m['n_gt'])} | {m['oks_ap50']:.4f} | {m['oks_ap']:.4f} | {m['pck1']:.3f} | {m['pck2']:.3f} | "
+        f"{m['pck5']:.3f} | {m['mean_px']:.2f} | {m['median_px']:.2f} | {m['precision']:.3f} | {m['recall']:.3f} | "
+        f"{m['recall_at_p99']:.3f} |"
+    )
+
+
+def write_card(
+    run_dir: Path,
+    path: Path,
+    *,
+    model: Path,
+    latency_ms: float,
+    extra_results: dict[str, dict] | None = None,
+) -> Path:
+    """The model card: what the model is, what it was trained on, how it scores and how to reproduce it."""
+    res = json.loads((run_dir / "results.json").read_text())
+    cfg = json.loads((run_dir / "config.json").read_text())
+    tc = cfg["train_config"]
+    sigma = res["oks_sigma"]
+    ds = res["dataset"]
+    rows = [_row(f"{ds.get('name')} {split}", m) for split, m in res["results"].items()]
+    rows += [_row(name, m) for name, m in (extra_results or {}).items()]
+    lines = [
+        "# Rebar-crossing keypoint detector",
+        "",
+        "A heatmap keypoint detector for rebar crossings (CenterNet-like: a heatmap at stride 4 with a",
+        "sub-cell offset per cell) on a depthwise-separable encoder-decoder, trained from scratch on the",
+        "project's synthetic data alone. Input: an RGB image of any size (uint8, H x W x 3). Output: (u, v, score)",
+        "per crossing, in the image's pixels with COCO's corner origin (the top-left corner of the top-left",
+        "pixel is (0, 0)).",
+        "",
+        "```python",
+        "from rebar_data.perception.infer import Detector",
+        "uvs = Detector.load().detect(rgb)          # (N, 3): u, v, score >= 0.5",
+        "```",
+        "",
+        "## Model",
+        f"- File: `{model.name}` (ONNX, {model.stat().st_size / 1024:.0f} KiB), "
+        f"{cfg['parameters'] / 1e3:.0f} k parameters; channels {tc['model']['channels']}, blocks {tc['model']['blocks']}.",
+        f"- Latency: {latency_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
+        "  (measured when shipped; `make bench` measures it again beside a YOLOv8n-pose-shaped network).",
+        "- Operating threshold: score 0.5.",
+        "",
+        "## Training",
+        f"- Data: `{ds.get('name')}` v{ds.get('version')} (train split; early stopping on val).",
+        f"- {res['epochs_run']} epochs run, best at epoch {res['best_epoch']}"
+        + (" (stopped early)" if res["stopped_early"] else "")
+        + f", {res['train_seconds_total'] / 60:.1f} minutes of training on this CPU.",
+        f"- Crops of {tc['crop_px']} px, batch {tc['batch_size']}, AdamW lr {tc['lr']:g} (warm-up, cosine), weight average;",
+        f"  mosaic for the first {tc['augment']['mosaic_epochs']} epochs then off (as the paper), scale "
+        f"{tc['augment']['scale']}, rotation +-{tc['augment']['rotation_deg']:g} deg, flips, colour, gamma, blur, noise.",
+        f"- Occluded crossings (visibility 1): {tc['occluded']} in the loss.",
+        "- Reproduce: `make train` (builds the default dataset, trains, and ships this file and card).",
+        "",
+        "## Metrics",
+        f"OKS sigma {sigma:g}, object area = the crossing's square box (side `box_size_px`), so OKS 0.5 is reached at",
+        f"{oks_radius_px(sigma, 25):.1f} px for a 25 px box and {oks_radius_px(sigma, 40):.1f} px for a 40 px box. PCK, errors,",
+        "precision and recall: Hungarian matching per image with a 5 px gate, predictions of score >= 0.5;",
+        "recall@P0.99 along the score-sorted predictions. Visible crossings only (visibility 2).",
+        "",
+        "| data | crossings | OKS AP@0.5 | AP@0.5:0.95 | PCK@1px | PCK@2px | PCK@5px | mean px | median px | P | R | R@P0.99 |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
+        *rows,
+        "",
+        "## Limits",
+        "- Trained on rendered images only; no real photographs were seen.",
+        "- The label is the 3D midpoint of the two bar axes, which lies inside the metal: from an oblique",
+        "  view it is offset from where the bar silhouettes cross, and the network has to learn that parallax.",
+        "",
+    ]
+    path.write_text("\n".join(lines))
+    return path
+
+
+def evaluation_rows(
+    detector: Detector,
+    run_dir: Path,
+    *,
+    evaluate_on: Sequence[str | Path] = (),
+    random_split: bool = True,
+    progress: bool = False,
+) -> dict[str, dict]:
+    """The card's rows beyond the run's own splits: the training dataset scored as a random frame split
+    would test it, and every split of each dataset in ``evaluate_on`` (datasets built with other configs).
+
+    Returns:
+        Row name -> metrics (as :func:`rebar_data.perception.metrics.summary` gives them).
+    """
+    from rebar_data.perception.evaluate import RANDOM_SPLIT_FRACTION, random_frames, score, score_dataset
+
+    res = json.loads((run_dir / "results.json").read_text())
+    rows: dict[str, dict] = {}
+    root = Path(res["dataset"].get("path") or "")
+    if random_split and (root / "tables/samples.parquet").exists():
+        samples, seen = random_frames(root)
+        preds = predict(detector, samples, progress=progress)
+        name = (
+            f"{res['dataset'].get('name')} random {RANDOM_SPLIT_FRACTION:.0%} of frames "
+            f"({seen} of {len(samples)} trained on)"
+        )
+        rows[name] = score(samples, preds, sigma=res["oks_sigma"])
+    for path in evaluate_on:
+        path = check_dataset(path)
+        info = read_info(path)
+        name = f"{info.get('name') or path.parent.name} v{info.get('version', '?')} (all splits)"
+        rows[name] = score_dataset(detector, path, progress=progress)
+    return rows
+
+
+def ship(
+    run_dir: str | Path,
+    *,
+    models_dir: Path = MODELS_DIR,
+    extra_results: dict[str, dict] | None = None,
+    evaluate_on: Sequence[str | Path] = (),
+    random_split: bool = True,
+    progress: bool = False,
+) -> Path:
+    """Copy a run's ``best.onnx`` into the package as the shipped model and write its card.
+
+    Args:
+        run_dir: A finished training run folder.
+        models_dir: Where shipped models live.
+        extra_results: More rows for the card's table, name -> metrics.
+        evaluate_on: Datasets built with other configs, scored over all their splits for the card.
+        random_split: Also score the training dataset on frames drawn at random, as a random split would.
+        progress: Show progress bars while scoring.
+
+    Returns:
+        The shipped model file.
+    """
+    run_dir = Path(run_dir)
+    src = run_dir / "best.onnx"
+    if not src.exists() or not (run_dir / "results.json").exists():
+        raise ConfigError(
+            f"{run_dir}: no best.onnx and results.json; accepted: a finished `rebar train` run folder"
+        )
+    if src.stat().st_size > MAX_SHIPPED_BYTES:
+        raise ConfigError(
+            f"{src}: {src.stat().st_size / 2**20:.1f} MiB is over the {MAX_SHIPPED_BYTES / 2**20:.0f} MiB a shipped model may take"
+        )
+    for path in evaluate_on:
+        check_dataset(path)  # a wrong path fails before anything is copied
+    models_dir.mkdir(parents=True, exist_ok=True)
+    dst = models_dir / SHIPPED_MODEL.name
+    shutil.copyfile(src, dst.with_name(dst.name + ".tmp"))
+    dst.with_name(dst.name + ".tmp").replace(dst)
+    detector = Detector.load(dst)
+    rows = evaluation_rows(
+        detector, run_dir, evaluate_on=evaluate_on, random_split=random_split, progress=progress
+    )
+    rows.update(extra_results or {})
+    latency = _latency_ms(detector)
+    write_card(run_dir, models_dir / CARD_NAME, model=dst, latency_ms=latency, extra_results=rows)
+    return dst

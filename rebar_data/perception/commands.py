@@ -1,0 +1,171 @@
+"""`rebar train` and `rebar detect`: train the crossing detector, and run it on a dataset split or on images."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+
+
+def run_train(args: argparse.Namespace) -> None:
+    from rebar_data.config import ConfigError, read_yaml
+    from rebar_data.perception.data import check_dataset, read_info
+    from rebar_data.perception.train import resolve_config, train
+
+    root = check_dataset(args.dataset)
+    if args.eval and not args.ship:
+        raise ConfigError("--eval scores the model for its card; accepted: --eval together with --ship")
+    for path in args.eval or ():
+        check_dataset(path)
+    config = resolve_config(read_yaml(args.config) if args.config else None, {})
+    out = (
+        Path(args.out)
+        if args.out
+        else Path("runs/train") / str(read_info(root).get("name") or root.parent.name)
+    )
+    result = train(
+        root, out, config=config, epochs=args.epochs, resume=not args.fresh, progress=not args.quiet
+    )
+    if args.ship:
+        from rebar_data.perception.card import ship
+
+        model = ship(out, evaluate_on=args.eval or (), progress=not args.quiet)
+        print(f"shipped {model}", file=sys.stderr)
+    print(
+        f"best epoch {result.best_epoch} of {result.epochs_run}"
+        + (" (stopped early)" if result.stopped_early else ""),
+        file=sys.stderr,
+    )
+    print(out)
+
+
+def run_detect(args: argparse.Namespace) -> None:
+    from rebar_data.config import ConfigError
+    from rebar_data.perception.infer import Detector
+
+    target = Path(args.input)
+    if not target.exists():
+        raise ConfigError(
+            f"{target}: no such dataset, image or folder; accepted: a dataset folder, an image or a folder of images"
+        )
+    detector = Detector.load(args.model, threads=args.threads)
+    if (target / "tables/samples.parquet").exists():
+        _detect_dataset(detector, target, args)
+    else:
+        _detect_images(detector, target, args)
+
+
+def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
+    from rebar_data.config import ConfigError
+    from rebar_data.perception.data import SPLITS, read_info
+    from rebar_data.perception.evaluate import LOW_THRESHOLD, load_splits, predict, score, write_predictions
+    from rebar_data.perception.metrics import DEFAULT_OKS_SIGMA, format_summary
+
+    out = Path(args.out)
+    if out.suffix != ".parquet":
+        raise ConfigError(
+            f"--out {out}: predictions on a dataset go to a .parquet file, such as pred.parquet"
+        )
+    samples = load_splits(root, SPLITS if args.split == "all" else (args.split,))
+    if not samples:
+        raise ConfigError(f"{root}: the {args.split} split has no images; accepted: a split with images")
+    threshold = args.threshold if args.threshold is not None else LOW_THRESHOLD
+    preds = predict(detector, samples, threshold=threshold, progress=not args.quiet)
+    write_predictions(out, [s.image_id for s in samples], preds)
+    sigma = float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))
+    metrics = score(samples, preds, sigma=sigma)
+    print(f"{args.split}: {format_summary(metrics)}", file=sys.stderr)
+    if args.metrics:
+        Path(args.metrics).write_text(
+            json.dumps({"split": args.split, "dataset": str(root), **metrics}, indent=2) + "\n"
+        )
+    print(out)
+
+
+def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
+    import cv2
+
+    from rebar_data.config import ConfigError
+    from rebar_data.perception.data import read_image
+    from rebar_data.perception.evaluate import write_predictions
+    from rebar_data.perception.metrics import OPERATING_THRESHOLD
+    from rebar_data.perception.plots import draw_overlay
+
+    files = (
+        sorted(p for p in target.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        if target.is_dir()
+        else [target]
+    )
+    if not files:
+        raise ConfigError(
+            f"{target}: holds no images ({', '.join(IMAGE_SUFFIXES)}); accepted: an image or a folder of them"
+        )
+    out = Path(args.out)
+    if out.suffix == ".parquet":
+        raise ConfigError(
+            f"--out {out}: for images, --out is a folder for the overlays and detections.parquet"
+        )
+    out.mkdir(parents=True, exist_ok=True)
+    threshold = args.threshold if args.threshold is not None else OPERATING_THRESHOLD
+    preds, ids = [], []
+    for f in files:
+        rgb = read_image(f)
+        det = detector.detect(rgb, threshold=threshold)
+        overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
+        cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
+        preds.append(det)
+        ids.append(f.stem)
+        print(f"{f.name}: {len(det)} crossings", file=sys.stderr)
+    write_predictions(out / "detections.parquet", ids, preds)
+    print(out)
+
+
+def register(sub: argparse._SubParsersAction) -> None:
+    t = sub.add_parser("train", help="train the crossing detector on a dataset (CPU; resumable)")
+    t.add_argument("dataset", help="dataset folder ROOT/<name>/v<version>/, as `rebar dataset build` prints")
+    t.add_argument(
+        "--out", help="run folder (default runs/train/<dataset name>); an existing run there resumes"
+    )
+    t.add_argument(
+        "--config", help="YAML of training settings (fields of TrainConfig: epochs, batch_size, ...)"
+    )
+    t.add_argument("--epochs", type=int, help="epochs (overrides the config)")
+    t.add_argument("--fresh", action="store_true", help="start afresh instead of resuming the run in --out")
+    t.add_argument(
+        "--ship", action="store_true", help="then copy the best model and its card into the package"
+    )
+    t.add_argument(
+        "--eval",
+        action="append",
+        metavar="DATASET",
+        help="with --ship: also score the model on every split of this dataset for its card (repeatable)",
+    )
+    t.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
+    t.set_defaults(func=run_train)
+
+    d = sub.add_parser(
+        "detect", help="detect crossings in a dataset split (to Parquet) or in images (overlays)"
+    )
+    d.add_argument("input", help="a dataset folder, an image, or a folder of images")
+    d.add_argument("--out", required=True, help="PRED.parquet for a dataset; a folder for images")
+    d.add_argument(
+        "--split",
+        default="test",
+        choices=("train", "val", "test", "all"),
+        help="dataset split, or all of them (default test)",
+    )
+    d.add_argument(
+        "--model", help="model file (.onnx, .pt) or training run folder (default: the shipped model)"
+    )
+    d.add_argument(
+        "--threshold",
+        type=float,
+        help="lowest score written (default 0.05 for a dataset, so curves are complete; 0.5 for images)",
+    )
+    d.add_argument("--metrics", help="also write the split's metrics to this JSON file (dataset input)")
+    d.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
+    d.add_argument("--quiet", action="store_true", help="no progress bar")
+    d.set_defaults(func=run_detect)

@@ -1,0 +1,84 @@
+"""Typed settings of the detector and its training run; a bad value is one ConfigError naming the field."""
+
+from __future__ import annotations
+
+from typing import Annotated, Literal
+
+from pydantic import Field
+
+from rebar_data.config import Fraction, NonNegative, Positive, Strict
+
+PositiveInt = Annotated[int, Field(gt=0)]
+NonNegativeInt = Annotated[int, Field(ge=0)]
+
+
+class ModelConfig(Strict):
+    """Architecture of the keypoint network (recorded in every checkpoint, so a file rebuilds its model).
+
+    ``channels`` are the widths at strides 2, 4, 8 and 16; ``blocks`` the depthwise-separable blocks at
+    strides 4, 8 and 16. The heatmap comes out at stride 4 with a sub-cell offset per cell.
+
+    ``ray_channels`` gives the network the viewing ray of each output cell ((u - cx) / fx, (v - cy) / fy):
+    the labelled crossing is the 3D midpoint between the two bar axes, which sits under the top bar, so
+    where it appears relative to the visible crossing depends on the viewing direction (parallax of
+    half a bar diameter); without the ray a convolutional network cannot tell where in the frame it is.
+    """
+
+    channels: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 32, 64, 128)
+    blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (1, 2, 4)
+    ray_channels: bool = True
+
+
+class AugmentConfig(Strict):
+    """Training-time augmentation. Geometric ones move the keypoints with the pixels, exactly.
+
+    Mosaic (four images in the quadrants of one crop) is on for the first ``mosaic_epochs`` epochs and
+    then off, as in the paper's Ultralytics training.
+    """
+
+    mosaic_epochs: NonNegativeInt = 10
+    mosaic_probability: Fraction = 0.5
+    scale: tuple[Positive, Positive] = (0.6, 1.5)
+    rotation_deg: NonNegative = 180.0
+    flip_lr: Fraction = 0.5
+    flip_ud: Fraction = 0.5
+    brightness: Fraction = 0.3
+    contrast: Fraction = 0.3
+    saturation: Fraction = 0.4
+    hue_deg: NonNegative = 10.0
+    gamma: Fraction = 0.3
+    blur_probability: Fraction = 0.3
+    blur_sigma_px: tuple[NonNegative, NonNegative] = (0.3, 1.5)
+    noise_probability: Fraction = 0.5
+    noise_std: tuple[NonNegative, NonNegative] = (1.0, 8.0)
+
+
+class TrainConfig(Strict):
+    """One training run.
+
+    The network trains on square crops (``crop_px``) of augmented images; it is fully convolutional,
+    so it then runs on whole frames. Early stopping watches the validation OKS AP@0.5:0.95 and stops
+    after ``patience`` epochs without improvement. ``loader_workers = 1`` makes the augmented batches in a
+    second process while the network trains; the batches are the same either way (each epoch's come
+    from a generator seeded by the seed and the epoch).
+    """
+
+    epochs: PositiveInt = 60
+    batch_size: PositiveInt = 16
+    crop_px: Annotated[int, Field(ge=32, multiple_of=16)] = 256
+    crops_per_image: PositiveInt = 2
+    lr: Positive = 3e-3
+    weight_decay: NonNegative = 1e-4
+    warmup_epochs: NonNegative = 1.0
+    patience: PositiveInt = 12
+    heatmap_sigma_cells: Positive = 1.0
+    offset_weight: Positive = 1.0
+    occluded: Literal["ignore", "negative"] = "ignore"
+    val_every: PositiveInt = 1
+    val_max_images: PositiveInt = 200
+    threads: PositiveInt = 2
+    seed: NonNegativeInt = 0
+    cache_images: bool = True
+    loader_workers: Literal[0, 1] = 1
+    model: ModelConfig = ModelConfig()
+    augment: AugmentConfig = AugmentConfig()

@@ -1,0 +1,126 @@
+"""Reads a dataset in the project's layout (the contract in DESIGN.md) into per-image keypoint records.
+
+Only the tables and images are read: ``tables/samples.parquet`` for the images of a split and
+``tables/keypoints.parquet`` for the crossings, with ``meta/info.json`` for the OKS sigma when it
+records one. Visible crossings (visibility 2) are what the detector learns and is scored on; occluded
+ones (visibility 1) are kept apart so training can leave them out of the loss.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pyarrow.parquet as pq
+
+from rebar_data.config import ConfigError
+
+SPLITS = ("train", "val", "test")
+_SAMPLE_COLUMNS = ("image_id", "split", "file_name", "width", "height", "fx", "fy", "cx", "cy")
+_KEYPOINT_COLUMNS = ("image_id", "u", "v", "visibility", "box_size_px")
+
+
+@dataclass
+class Sample:
+    """One image and its crossings, in pixels with COCO's corner origin.
+
+    Attributes:
+        image_id: The dataset's id of the image.
+        path: The image file.
+        width: Image width in pixels.
+        height: Image height in pixels.
+        visible: (N, 2) u, v of visible crossings.
+        box_size_px: (N,) detection-box side of each visible crossing (its OKS scale).
+        occluded: (M, 2) u, v of crossings inside the image but hidden.
+        occluded_box_size_px: (M,) their box sides.
+        camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin.
+    """
+
+    image_id: str
+    path: Path
+    width: int
+    height: int
+    visible: np.ndarray
+    box_size_px: np.ndarray
+    occluded: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    occluded_box_size_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    camera: tuple[float, float, float, float] | None = None
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An image file as RGB uint8 (H, W, 3)."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ConfigError(f"{path}: cannot be read as an image; accepted: a PNG or JPEG file")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def read_info(root: str | Path) -> dict:
+    """The dataset's ``meta/info.json`` (an empty dict when it has none)."""
+    p = Path(root) / "meta/info.json"
+    return json.loads(p.read_text()) if p.exists() else {}
+
+
+def check_dataset(root: str | Path) -> Path:
+    """Return ``root`` as a Path if it holds the two tables the detector reads, else raise ConfigError."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ConfigError(
+            f"{root}: no such dataset folder; accepted: a folder written by `rebar dataset build` "
+            "(ROOT/<name>/v<version>/)"
+        )
+    for t in ("tables/samples.parquet", "tables/keypoints.parquet"):
+        if not (root / t).exists():
+            raise ConfigError(
+                f"{root}: has no {t}; accepted: a dataset folder written by `rebar dataset build` "
+                "(ROOT/<name>/v<version>/)"
+            )
+    return root
+
+
+def load_split(root: str | Path, split: str) -> list[Sample]:
+    """Every image of ``split`` with its visible and occluded crossings, in the samples table's order."""
+    root = check_dataset(root)
+    if split not in SPLITS:
+        raise ConfigError(f"split = {split!r} is not accepted; accepted: one of {', '.join(SPLITS)}")
+    samples = pq.read_table(root / "tables/samples.parquet").to_pydict()
+    _require(samples, _SAMPLE_COLUMNS, root / "tables/samples.parquet")
+    kp = pq.read_table(root / "tables/keypoints.parquet").to_pydict()
+    _require(kp, _KEYPOINT_COLUMNS, root / "tables/keypoints.parquet")
+    ids = np.asarray(kp["image_id"]).astype(str)
+    uv = np.c_[np.asarray(kp["u"], float), np.asarray(kp["v"], float)]
+    vis = np.asarray(kp["visibility"], int)
+    box = np.asarray(kp["box_size_px"], float)
+    order = np.argsort(ids, kind="stable")
+    sorted_ids = ids[order]
+    out = []
+    for i, s in enumerate(samples["split"]):
+        if s != split:
+            continue
+        iid = samples["image_id"][i]
+        lo, hi = np.searchsorted(sorted_ids, iid, "left"), np.searchsorted(sorted_ids, iid, "right")
+        rows = order[lo:hi]
+        v = vis[rows]
+        out.append(
+            Sample(
+                image_id=iid,
+                path=root / samples["file_name"][i],
+                width=int(samples["width"][i]),
+                height=int(samples["height"][i]),
+                visible=uv[rows][v == 2],
+                box_size_px=box[rows][v == 2],
+                occluded=uv[rows][v == 1],
+                occluded_box_size_px=box[rows][v == 1],
+                camera=tuple(float(samples[k][i]) for k in ("fx", "fy", "cx", "cy")),
+            )
+        )
+    return out
+
+
+def _require(table: dict, columns: tuple[str, ...], path: Path) -> None:
+    missing = [c for c in columns if c not in table]
+    if missing:
+        raise ConfigError(f"{path}: lacks column {missing[0]}; accepted: a table with {', '.join(columns)}")

@@ -1,0 +1,200 @@
+"""Run the detector on an image: ``Detector.load(path).detect(rgb) -> (N, 3)`` u, v, score.
+
+ONNX Runtime runs ``.onnx`` files (the shipped model is one; several times faster than eager PyTorch on
+a CPU); ``.pt`` checkpoints run in PyTorch. Coordinates are in the input image's pixels with COCO's corner
+origin (the top-left corner of the top-left pixel is (0, 0)), as everywhere in the project.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.metrics import OPERATING_THRESHOLD
+from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
+from rebar_data.perception.targets import decode
+
+DEFAULT_FOCAL_PER_WIDTH = 525.0 / 640.0  # Kinect v1 colour camera, when neither caller nor model says
+MODELS_DIR = Path(__file__).parent / "models"
+SHIPPED_MODEL = MODELS_DIR / "rebar_keypoint.onnx"
+RUN_FILES = ("best.onnx", "best.pt", "last.pt")
+
+
+def resolve_model_path(path: str | Path | None) -> Path:
+    """The model file meant by ``path``: None is the shipped model, a training run folder its best model."""
+    if path is None:
+        if not SHIPPED_MODEL.exists():
+            raise ConfigError(
+                f"no shipped detector at {SHIPPED_MODEL}; accepted: train and ship one with `make train`, "
+                "or pass a model file (.onnx or .pt) or a training run folder"
+            )
+        return SHIPPED_MODEL
+    p = Path(path)
+    if p.is_dir():
+        for name in RUN_FILES:
+            if (p / name).exists():
+                return p / name
+        raise ConfigError(
+            f"{p}: holds none of {', '.join(RUN_FILES)}; accepted: a training run folder or a model file"
+        )
+    if not p.exists():
+        raise ConfigError(f"{p}: no such model file; accepted: a .onnx or .pt file written by `rebar train`")
+    if p.suffix not in (".onnx", ".pt"):
+        raise ConfigError(f"{p}: model files end in .onnx or .pt, not {p.suffix or 'nothing'}")
+    return p
+
+
+class Detector:
+    """A loaded keypoint detector.
+
+    Attributes:
+        path: The file it was loaded from (None when built from a network in memory).
+        meta: What the model file says about itself (training data, settings, scores).
+        backend: ``onnxruntime`` or ``torch``.
+    """
+
+    def __init__(
+        self,
+        run: Callable[[np.ndarray, np.ndarray], np.ndarray],
+        *,
+        meta: dict[str, Any],
+        backend: str,
+        path: Path | None,
+    ):
+        self._run = run
+        self.meta = meta
+        self.backend = backend
+        self.path = path
+        self._rays: dict[tuple, np.ndarray] = {}
+
+    @classmethod
+    def load(cls, path: str | Path | None = None, *, threads: int = 2) -> Detector:
+        """Load a detector.
+
+        Args:
+            path: A ``.onnx`` or ``.pt`` file, or a training run folder (its ``best.onnx``); None loads the
+                model shipped with the package.
+            threads: CPU threads for inference.
+        """
+        p = resolve_model_path(path)
+        if p.suffix == ".onnx":
+            return cls._load_onnx(p, threads)
+        from rebar_data.perception.export import load_checkpoint
+
+        net, meta, _ = load_checkpoint(p)
+        return cls.from_network(net, meta=meta, path=p)
+
+    @classmethod
+    def _load_onnx(cls, path: Path, threads: int) -> Detector:
+        import onnxruntime as ort
+
+        from rebar_data.perception.export import META_KEY
+
+        so = ort.SessionOptions()
+        so.intra_op_num_threads = threads
+        so.inter_op_num_threads = 1
+        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+        so.log_severity_level = 3
+        # threads sleep rather than spin between runs: on a 2-core machine shared with the simulator,
+        # spinning doubled the latency under load and cost nothing to drop when idle
+        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+        try:
+            sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        except Exception as e:
+            raise ConfigError(f"{path}: cannot be loaded as an ONNX model ({type(e).__name__})") from None
+        raw = sess.get_modelmeta().custom_metadata_map.get(META_KEY)
+        names = [i.name for i in sess.get_inputs()]
+
+        def run(image: np.ndarray, rays: np.ndarray) -> np.ndarray:
+            feed = {names[0]: image[None]}
+            if len(names) > 1:
+                feed[names[1]] = rays[None]
+            return sess.run(None, feed)[0][0]
+
+        return cls(run, meta=json.loads(raw) if raw else {}, backend="onnxruntime", path=path)
+
+    @classmethod
+    def from_network(
+        cls, net: Any, *, meta: dict[str, Any] | None = None, path: Path | None = None
+    ) -> Detector:
+        """Wrap a :class:`~rebar_data.perception.model.KeypointNet` (eager PyTorch, e.g. during training)."""
+        import torch
+
+        net = net.eval()
+
+        def run(image: np.ndarray, rays: np.ndarray) -> np.ndarray:
+            with torch.inference_mode():
+                x = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float()
+                return net(x, torch.from_numpy(rays)[None])[0].numpy()
+
+        return cls(run, meta=dict(meta or {}), backend="torch", path=path)
+
+    def default_camera(self, height: int, width: int) -> tuple[float, float, float, float]:
+        """Intrinsics assumed when the caller gives none: principal point at the image centre and the
+        training data's focal length for this image width."""
+        f = float(self.meta.get("focal_per_width", DEFAULT_FOCAL_PER_WIDTH)) * width
+        return f, f, width / 2.0, height / 2.0
+
+    def _ray_grid(self, height: int, width: int, camera: tuple[float, float, float, float]) -> np.ndarray:
+        key = (height, width, *camera)
+        if key not in self._rays:
+            if len(self._rays) > 8:
+                self._rays.clear()
+            self._rays[key] = ray_grid(height, width, camera)
+        return self._rays[key]
+
+    def raw(self, rgb: np.ndarray, *, camera: tuple[float, float, float, float] | None = None) -> np.ndarray:
+        """The network's (3, ceil(H/4), ceil(W/4)) output for an RGB image: heatmap logit and offsets."""
+        image = _check_image(rgb)
+        h, w = image.shape[:2]
+        camera = tuple(float(c) for c in camera) if camera is not None else self.default_camera(h, w)
+        ph, pw = -h % INPUT_MULTIPLE, -w % INPUT_MULTIPLE
+        if ph or pw:
+            image = np.pad(image, ((0, ph), (0, pw), (0, 0)))
+        out = self._run(image, self._ray_grid(h + ph, w + pw, camera))  # rays of the output cells
+        return out[:, : -(-h // STRIDE), : -(-w // STRIDE)]
+
+    def detect(
+        self,
+        rgb: np.ndarray,
+        *,
+        threshold: float = OPERATING_THRESHOLD,
+        camera: tuple[float, float, float, float] | None = None,
+        max_detections: int = 1000,
+    ) -> np.ndarray:
+        """Crossings in an RGB image.
+
+        Args:
+            rgb: (H, W, 3) uint8 RGB image, any size.
+            threshold: Lowest score returned; the default is the operating point the metrics report.
+            camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin; None assumes the principal
+                point at the centre and the training data's focal length for this width.
+            max_detections: Most crossings returned.
+
+        Returns:
+            (N, 3) float64 array of u, v, score, best first; u, v in the image's pixels (COCO corner origin).
+        """
+        if not 0.0 < threshold < 1.0:
+            raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
+        out = self.raw(rgb, camera=camera)
+        det = decode(out[0], out[1:], threshold=threshold, max_detections=max_detections)
+        h, w = rgb.shape[:2]
+        inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
+        return det[inside]
+
+
+def _check_image(rgb: np.ndarray) -> np.ndarray:
+    a = np.asarray(rgb)
+    if a.ndim != 3 or a.shape[2] != 3:
+        raise ConfigError(f"image of shape {a.shape} is not accepted; accepted: an (H, W, 3) RGB array")
+    if a.dtype != np.uint8:
+        if np.issubdtype(a.dtype, np.floating) and a.size and a.max() <= 1.0:
+            a = a * 255.0
+        a = np.clip(np.rint(a), 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(a)

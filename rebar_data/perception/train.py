@@ -1,0 +1,543 @@
+"""Train the crossing detector on a dataset in the project's layout, on the CPU.
+
+A run folder holds everything about one run:
+
+- ``config.json``: the resolved settings, the dataset and its OKS sigma;
+- ``last.pt`` (every epoch: weights, weight average, optimiser, random states, history, so an interrupted
+  run resumes where it stopped) and ``best.pt`` / ``best.onnx`` (the best validation epoch);
+- ``metrics.csv``: one row per epoch (losses, learning rate, validation metrics, time);
+- ``results.json``: the best model's metrics on the validation and test splits;
+- ``curves.png``, ``pr_curve.png``, ``predictions.png``.
+
+The weights evaluated and saved are an exponential moving average of the trained ones (as Ultralytics
+keeps), which is steadier from epoch to epoch than the raw weights.
+"""
+
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import math
+import sys
+import time
+from collections.abc import Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from rebar_data.config import ConfigError, format_validation_error
+from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
+from rebar_data.perception.config import TrainConfig
+from rebar_data.perception.data import Sample, check_dataset, load_split, read_image, read_info
+from rebar_data.perception.evaluate import predict, score, truth_of
+from rebar_data.perception.export import export_onnx, load_checkpoint, save_checkpoint
+from rebar_data.perception.infer import Detector
+from rebar_data.perception.loss import detection_loss
+from rebar_data.perception.metrics import (
+    DEFAULT_OKS_SIGMA,
+    OPERATING_THRESHOLD,
+    format_summary,
+    keypoint_ap,
+    pixel_metrics,
+)
+from rebar_data.perception.model import STRIDE, KeypointNet, count_parameters
+from rebar_data.perception.targets import encode
+
+EARLY_STOP_METRIC = "val_oks_ap"
+RESUMABLE_CHANGES = {"epochs", "patience", "val_every"}  # settings a resumed run may change
+
+
+class WeightAverage:
+    """Exponential moving average of a network's weights; the ramp lets it follow the fast early epochs."""
+
+    def __init__(self, net: torch.nn.Module, *, decay: float = 0.998, ramp_steps: float = 300.0):
+        self.net = copy.deepcopy(net).eval()
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+        self.decay, self.ramp_steps, self.updates = decay, ramp_steps, 0
+
+    @torch.no_grad()
+    def update(self, net: torch.nn.Module) -> None:
+        self.updates += 1
+        d = self.decay * (1 - math.exp(-self.updates / self.ramp_steps))
+        src = net.state_dict()
+        for k, v in self.net.state_dict().items():
+            if v.dtype.is_floating_point:
+                v.mul_(d).add_(src[k].detach(), alpha=1 - d)
+            else:
+                v.copy_(src[k])
+
+
+class TrainingImages:
+    """The training split's images (decoded once when caching) and their crossings."""
+
+    def __init__(self, samples: list[Sample], *, cache: bool, occluded: str, progress: bool):
+        self.samples = samples
+        self.ignore_occluded = occluded == "ignore"
+        self.images = (
+            [
+                read_image(s.path)
+                for s in tqdm(samples, desc="load images", unit="img", disable=not progress, leave=False)
+            ]
+            if cache
+            else None
+        )
+
+    def pick(self, rng: np.random.Generator) -> Source:
+        k = int(rng.integers(len(self.samples)))
+        s = self.samples[k]
+        image = self.images[k] if self.images is not None else read_image(s.path)
+        return Source(image, s.visible, s.occluded if self.ignore_occluded else np.zeros((0, 2)), s.camera)
+
+
+def make_batch(
+    data: TrainingImages, rng: np.random.Generator, cfg: TrainConfig, *, mosaic: bool
+) -> tuple[torch.Tensor, ...]:
+    """One augmented batch: images (B, 3, S, S), rays (B, 2, S, S) and the targets heat, heat weight,
+    offset, offset weight."""
+    size, aug = cfg.crop_px, cfg.augment
+    cells = size // STRIDE
+    imgs, rays, heats, hws, offs, ows = [], [], [], [], [], []
+    for _ in range(cfg.batch_size):
+        if mosaic and rng.uniform() < aug.mosaic_probability:
+            crop = mosaic_crop(lambda: data.pick(rng), rng, size=size, cfg=aug)
+        else:
+            crop = single_crop(data.pick(rng), rng, size=size, cfg=aug)
+        heat, hw, off, ow = encode(
+            crop.positives, crop.ignore, cells, cells, sigma_cells=cfg.heatmap_sigma_cells
+        )
+        imgs.append(photometric(crop.image, rng, aug))
+        rays.append(crop.rays)
+        heats.append(heat)
+        hws.append(hw)
+        offs.append(off)
+        ows.append(ow)
+    x = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).float()
+    return (x, *(torch.from_numpy(np.stack(a)) for a in (rays, heats, hws, offs, ows)))
+
+
+class BatchStream(torch.utils.data.IterableDataset):
+    """Every batch of epochs ``first`` to ``last``, each epoch's drawn from a generator seeded by (seed,
+    epoch) alone: the same batches whether they are made here or in a loader process, and after a resume.
+
+    It holds only the samples' labels and paths; the images are read (and cached) where it runs, so a
+    loader process keeps the one copy.
+    """
+
+    def __init__(self, samples: list[Sample], cfg: TrainConfig, *, first: int, last: int, steps: int):
+        super().__init__()
+        self.samples, self.cfg, self.first, self.last, self.steps = samples, cfg, first, last, steps
+
+    def __iter__(self):
+        data = TrainingImages(
+            self.samples, cache=self.cfg.cache_images, occluded=self.cfg.occluded, progress=False
+        )
+        for epoch in range(self.first, self.last + 1):
+            rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, epoch]))
+            mosaic = epoch <= self.cfg.augment.mosaic_epochs
+            for _ in range(self.steps):
+                yield make_batch(data, rng, self.cfg, mosaic=mosaic)
+
+
+def _loader_worker_init(_: int) -> None:
+    import cv2
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+
+
+def batch_stream(samples: list[Sample], cfg: TrainConfig, *, first: int, last: int, steps: int):
+    """An iterator over the batches of epochs ``first`` to ``last``. With ``loader_workers`` = 1 they are made
+    in a second process (started fresh, not forked: OpenCV's and OpenMP's thread pools do not survive a
+    fork) while the network trains on the previous ones."""
+    stream = BatchStream(samples, cfg, first=first, last=last, steps=steps)
+    if cfg.loader_workers == 0:
+        return iter(stream)
+    return iter(
+        torch.utils.data.DataLoader(
+            stream,
+            batch_size=None,
+            num_workers=1,
+            prefetch_factor=4,
+            worker_init_fn=_loader_worker_init,
+            multiprocessing_context="spawn",
+        )
+    )
+
+
+def learning_rate(step: int, *, steps_per_epoch: int, cfg: TrainConfig) -> float:
+    """Linear warm-up, then cosine decay to 2% of the peak at the last epoch."""
+    warm = cfg.warmup_epochs * steps_per_epoch
+    total = cfg.epochs * steps_per_epoch
+    if step < warm:
+        return cfg.lr * (step + 1) / warm
+    t = min(1.0, (step - warm) / max(1.0, total - warm))
+    return cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * t)))
+
+
+@dataclass
+class TrainResult:
+    """What a run produced.
+
+    Attributes:
+        out_dir: The run folder.
+        best_epoch: Epoch of the weights kept.
+        epochs_run: Epochs trained in total (over resumptions).
+        stopped_early: Whether early stopping ended the run.
+        history: One dict per epoch (the rows of metrics.csv).
+        results: Metrics of the best model per split.
+    """
+
+    out_dir: Path
+    best_epoch: int
+    epochs_run: int
+    stopped_early: bool
+    history: list[dict[str, Any]] = field(default_factory=list)
+    results: dict[str, dict[str, float]] = field(default_factory=dict)
+
+
+def resolve_config(config: TrainConfig | dict | None, overrides: dict[str, Any]) -> TrainConfig:
+    """Settings from a TrainConfig or dict with keyword overrides applied (None values are left out)."""
+    base = config.model_dump() if isinstance(config, TrainConfig) else dict(config or {})
+    base.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return TrainConfig.model_validate(base)
+    except Exception as e:
+        from pydantic import ValidationError
+
+        if isinstance(e, ValidationError):
+            raise ConfigError(format_validation_error(e, "train settings", base)) from None
+        raise
+
+
+def train(
+    dataset_path: str | Path,
+    out_dir: str | Path,
+    *,
+    config: TrainConfig | dict | None = None,
+    epochs: int | None = None,
+    batch_size: int | None = None,
+    resume: bool = True,
+    progress: bool = True,
+) -> TrainResult:
+    """Train (or resume training) a detector and write the run folder.
+
+    Args:
+        dataset_path: A dataset folder (``ROOT/<name>/v<version>/``) with train, val and test splits.
+        out_dir: The run folder (created; an existing run there resumes when ``resume``).
+        config: Settings; defaults are what ``make train`` uses.
+        epochs: Overrides ``config.epochs``.
+        batch_size: Overrides ``config.batch_size``.
+        resume: Continue from ``out_dir/last.pt`` if it exists (the settings must match, but for
+            epochs, patience and val_every); False starts afresh and overwrites the run.
+        progress: Show a progress bar per epoch and a summary line after it (on stderr).
+
+    Returns:
+        The run's outcome; the files are in ``out_dir``.
+    """
+    cfg = resolve_config(config, {"epochs": epochs, "batch_size": batch_size})
+    root = check_dataset(dataset_path)
+    out = Path(out_dir)
+    info = read_info(root)
+    sigma = float(info.get("oks_sigma", DEFAULT_OKS_SIGMA))
+    train_samples = load_split(root, "train")
+    if not train_samples:
+        raise ConfigError(f"{root}: the train split has no images; accepted: a dataset with training images")
+    val_samples = load_split(root, "val")
+    test_samples = load_split(root, "test")
+    out.mkdir(parents=True, exist_ok=True)
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(cfg.threads)
+    try:
+        return _run(
+            cfg,
+            root,
+            out,
+            info,
+            sigma,
+            train_samples,
+            val_samples,
+            test_samples,
+            resume=resume,
+            progress=progress,
+        )
+    finally:
+        torch.set_num_threads(threads_before)
+
+
+def _log(msg: str, progress: bool) -> None:
+    if progress:
+        tqdm.write(msg, file=sys.stderr)
+
+
+def _val_subset(samples: list[Sample], n: int) -> list[Sample]:
+    if len(samples) <= n:
+        return samples
+    return [samples[i] for i in np.linspace(0, len(samples) - 1, n).round().astype(int)]
+
+
+def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> None:
+    now = cfg.model_dump(mode="json")
+    for k in sorted(set(saved) | set(now)):
+        if k not in RESUMABLE_CHANGES and saved.get(k) != now.get(k):
+            raise ConfigError(
+                f"{path}: holds a run with {k} = {saved.get(k)!r}, not {now.get(k)!r}; accepted: the same "
+                "settings to resume, or a fresh start (--fresh) or another run folder"
+            )
+
+
+def _run(
+    cfg: TrainConfig,
+    root: Path,
+    out: Path,
+    info: dict,
+    sigma: float,
+    train_samples: list[Sample],
+    val_samples: list[Sample],
+    test_samples: list[Sample],
+    *,
+    resume: bool,
+    progress: bool,
+) -> TrainResult:
+    torch.manual_seed(cfg.seed)
+    net = KeypointNet(cfg.model)
+    avg = WeightAverage(net)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    state: dict[str, Any] = {
+        "epoch": 0,
+        "step": 0,
+        "best": -1.0,
+        "best_epoch": 0,
+        "stopped": False,
+        "history": [],
+    }
+    last = out / "last.pt"
+    if resume and last.exists():
+        _, _, payload = load_checkpoint(last)
+        _check_resumable(payload["train_config"], cfg, last)
+        net.load_state_dict(payload["state_dict"])
+        avg.net.load_state_dict(payload["average_state_dict"])
+        avg.updates = payload["average_updates"]
+        opt.load_state_dict(payload["optimizer"])
+        torch.set_rng_state(payload["torch_rng"])
+        state = payload["state"]
+        _log(f"resuming {out} after epoch {state['epoch']}", progress)
+    dataset_meta = {"path": str(root), "name": info.get("name"), "version": info.get("version")}
+    (out / "config.json").write_text(
+        json.dumps(
+            {
+                "train_config": cfg.model_dump(mode="json"),
+                "dataset": dataset_meta,
+                "oks_sigma": sigma,
+                "parameters": count_parameters(net),
+            },
+            indent=2,
+            sort_keys=True,
+        )
+        + "\n"
+    )
+    val_sub = _val_subset(val_samples, cfg.val_max_images)
+    val_images = [read_image(s.path) for s in val_sub] if cfg.cache_images else None
+    base_meta = {
+        "dataset": dataset_meta,
+        "oks_sigma": sigma,
+        "threshold": OPERATING_THRESHOLD,
+        "focal_per_width": float(np.median([s.camera[0] / s.width for s in train_samples])),
+        "train_config": cfg.model_dump(mode="json"),
+    }
+    steps_per_epoch = max(1, math.ceil(len(train_samples) * cfg.crops_per_image / cfg.batch_size))
+    started = time.perf_counter()
+    if not state["stopped"] and state["epoch"] < cfg.epochs:
+        batches = batch_stream(
+            train_samples, cfg, first=state["epoch"] + 1, last=cfg.epochs, steps=steps_per_epoch
+        )
+    for epoch in range(state["epoch"] + 1, cfg.epochs + 1):
+        if state["stopped"]:
+            break
+        row = _train_epoch(
+            net, avg, opt, batches, cfg, state, epoch=epoch, steps=steps_per_epoch, progress=progress
+        )
+        if val_sub and (epoch % cfg.val_every == 0 or epoch == cfg.epochs):
+            preds = predict(Detector.from_network(avg.net), val_sub, images=val_images)
+            m = score(val_sub, preds, sigma=sigma)
+            row.update({f"val_{k}": v for k, v in m.items() if k not in ("oks_sigma", "threshold")})
+            _log(
+                f"epoch {epoch}/{cfg.epochs}: loss {row['train_loss']:.4f}; val {format_summary(m)}", progress
+            )
+        else:
+            _log(f"epoch {epoch}/{cfg.epochs}: loss {row['train_loss']:.4f}", progress)
+        state["history"].append(row)
+        state["epoch"] = epoch
+        meta = {**base_meta, "epoch": epoch}
+        key = row.get(EARLY_STOP_METRIC)
+        if key is None and not val_sub:
+            key = -row["train_loss"]  # no validation split: keep the latest weights
+        if key is not None and np.isfinite(key) and key > state["best"]:
+            state["best"], state["best_epoch"] = float(key), epoch
+            save_checkpoint(out / "best.pt", avg.net, meta)
+        elif key is not None and epoch - state["best_epoch"] >= cfg.patience:
+            state["stopped"] = True
+            _log(f"early stop: no better {EARLY_STOP_METRIC} for {cfg.patience} epochs", progress)
+        save_checkpoint(
+            last,
+            net,
+            meta,
+            train_config=cfg.model_dump(mode="json"),
+            average_state_dict=avg.net.state_dict(),
+            average_updates=avg.updates,
+            optimizer=opt.state_dict(),
+            torch_rng=torch.get_rng_state(),
+            state=state,
+        )
+        _write_history(out / "metrics.csv", state["history"])
+    batches = None  # stops the loader process
+    train_s = time.perf_counter() - started
+    if not (out / "best.pt").exists():  # no epoch had a finite validation score: keep the latest weights
+        save_checkpoint(out / "best.pt", avg.net, {**base_meta, "epoch": state["epoch"]})
+    return _finish(
+        out, cfg, state, sigma, val_samples, test_samples, dataset_meta, train_s=train_s, progress=progress
+    )
+
+
+def _train_epoch(
+    net: KeypointNet,
+    avg: WeightAverage,
+    opt: torch.optim.Optimizer,
+    batches: Iterator[tuple[torch.Tensor, ...]],
+    cfg: TrainConfig,
+    state: dict[str, Any],
+    *,
+    epoch: int,
+    steps: int,
+    progress: bool,
+) -> dict[str, Any]:
+    mosaic = epoch <= cfg.augment.mosaic_epochs
+    net.train()
+    t0 = time.perf_counter()
+    sums = np.zeros(3)
+    bar = tqdm(
+        range(steps),
+        desc=f"epoch {epoch}/{cfg.epochs}",
+        unit="batch",
+        disable=not progress,
+        leave=False,
+        file=sys.stderr,
+    )
+    lr = cfg.lr
+    for _ in bar:
+        lr = learning_rate(state["step"], steps_per_epoch=steps, cfg=cfg)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        x, rays, heat, hw, off, ow = next(batches)
+        total, h, o = detection_loss(net(x, rays), heat, hw, off, ow, offset_weight_factor=cfg.offset_weight)
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
+        opt.step()
+        avg.update(net)
+        state["step"] += 1
+        sums += [total.item(), h.item(), o.item()]
+        bar.set_postfix(loss=f"{total.item():.3f}", mosaic=mosaic)
+    seconds = time.perf_counter() - t0
+    return {
+        "epoch": epoch,
+        "lr": lr,
+        "mosaic": int(mosaic),
+        "train_loss": sums[0] / steps,
+        "train_heat_loss": sums[1] / steps,
+        "train_offset_loss": sums[2] / steps,
+        "train_seconds": seconds,
+        "crops_per_second": steps * cfg.batch_size / seconds,
+    }
+
+
+def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
+    keys: list[str] = []
+    for row in history:
+        keys += [k for k in row if k not in keys]
+    tmp = path.with_name(path.name + ".tmp")
+    with tmp.open("w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=keys)
+        w.writeheader()
+        for row in history:
+            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
+    tmp.replace(path)
+
+
+def read_history(path: str | Path) -> list[dict[str, float]]:
+    """The rows of a run's metrics.csv as numbers."""
+    with Path(path).open() as f:
+        return [
+            {k: float(v) if v not in ("", None) else float("nan") for k, v in row.items()}
+            for row in csv.DictReader(f)
+        ]
+
+
+def _finish(
+    out: Path,
+    cfg: TrainConfig,
+    state: dict[str, Any],
+    sigma: float,
+    val_samples: list[Sample],
+    test_samples: list[Sample],
+    dataset_meta: dict,
+    *,
+    train_s: float,
+    progress: bool,
+) -> TrainResult:
+    """Export the best weights to ONNX, score them on val and test, and draw the plots."""
+    from rebar_data.perception import plots
+
+    net, meta, _ = load_checkpoint(out / "best.pt")
+    results: dict[str, dict[str, float]] = {}
+    detector = None
+    curves = {}
+    for split, samples in (("val", val_samples), ("test", test_samples)):
+        if not samples:
+            continue
+        if detector is None:
+            onnx_path = export_onnx(net, out / "best.onnx", meta)
+            detector = Detector.load(onnx_path, threads=cfg.threads)
+        preds = predict(detector, samples, progress=progress)
+        results[split] = score(samples, preds, sigma=sigma)
+        _log(
+            f"best model (epoch {state['best_epoch']}) on {split}: {format_summary(results[split])}", progress
+        )
+        curves[split] = (samples, preds)
+    if detector is None:
+        export_onnx(net, out / "best.onnx", meta)
+    meta = {**meta, "results": results}
+    save_checkpoint(out / "best.pt", net, meta)
+    export_onnx(net, out / "best.onnx", meta)
+    summary_doc = {
+        "best_epoch": state["best_epoch"],
+        "epochs_run": state["epoch"],
+        "stopped_early": state["stopped"],
+        "oks_sigma": sigma,
+        "threshold": OPERATING_THRESHOLD,
+        "dataset": dataset_meta,
+        "parameters": count_parameters(net),
+        "train_seconds_this_call": train_s,
+        "train_seconds_total": float(sum(r.get("train_seconds", 0.0) for r in state["history"])),
+        "results": results,
+    }
+    (out / "results.json").write_text(json.dumps(summary_doc, indent=2, sort_keys=True) + "\n")
+    if state["history"]:
+        plots.plot_history(state["history"], out / "curves.png", mosaic_epochs=cfg.augment.mosaic_epochs)
+    split = "test" if "test" in curves else ("val" if "val" in curves else None)
+    if split:
+        samples, preds = curves[split]
+        truths = [truth_of(s) for s in samples]
+        plots.plot_pr(
+            keypoint_ap(truths, preds, sigma=sigma),
+            pixel_metrics(truths, preds),
+            out / "pr_curve.png",
+            title=f"{split} split, OKS sigma {sigma:g}",
+        )
+        plots.plot_prediction_grid(samples, preds, out / "predictions.png")
+    return TrainResult(out, state["best_epoch"], state["epoch"], state["stopped"], state["history"], results)

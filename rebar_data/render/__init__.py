@@ -1,0 +1,1 @@
+"""Open3D offscreen rendering: RGB, exact depth and instance ids, sensor effects."""

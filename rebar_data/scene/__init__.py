@@ -1,0 +1,1 @@
+"""Scene randomizers: lighting, materials, surroundings, cameras and sensor effects."""

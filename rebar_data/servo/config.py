@@ -1,0 +1,242 @@
+"""Typed servo suite configs (``eval/<suite>.yaml``). Unknown keys and bad values are one clear ConfigError.
+
+A suite names its detector and frame source, the world (mesh placement, robot, camera mount), the
+controllers' settings, and its episodes: listed ones (``episodes``) and/or randomized ones
+(``random``). Every field has a default, so a suite holds only what it changes; the defaults are the
+set-up described in the README's servo section.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Annotated, Literal
+
+from pydantic import Field, model_validator
+
+from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, read_yaml, validate
+
+Vec3 = tuple[float, float, float]
+Range = tuple[float, float]
+Count = Annotated[int, Field(ge=1)]
+
+
+class WorldConfig(Strict):
+    """Where things are (world frame: z up, metres), after the paper's Webots set-up.
+
+    ``mesh_translation_m`` / ``mesh_rotation_deg`` place the mesh frame (for the tunnel segment: the
+    crown of its mid-surface, +z the outward normal); the default stands the segment upright, its convex
+    face towards the robot. ``flange_from_camera_m`` and ``flange_from_tcp_m`` are the fixed hand-eye
+    and tool offsets in the flange frame (axes parallel to the flange's, z along the tool).
+    """
+
+    mesh_config: str = "pipelines/paper-tunnel.yaml"
+    mesh_translation_m: Vec3 = (0.96, -1.5, 1.35)
+    mesh_rotation_deg: Vec3 = (90.0, 0.0, -90.0)
+    robot_base_m: Vec3 = (-0.138, -1.35, 1.18)
+    table_center_m: tuple[float, float] = (-0.5, -1.52)
+    table_size_m: Vec3 = (1.0, 1.18, 1.18)
+    flange_from_camera_m: Vec3 = (0.0, -0.08, 0.03)
+    flange_from_tcp_m: Vec3 = (0.0, 0.0, 0.3)
+    tool_mass_kg: NonNegative = 1.2
+    control_period_s: Positive = 0.032
+    physics_hz: Positive = 240.0
+    home_joints_rad: tuple[float, float, float, float, float, float] | None = None
+
+
+class CameraConfig(Strict):
+    """Kinect v1: 640x480 with square pixels; ``fov_x_deg`` sets fx = fy (57 deg gives 589.4 px)."""
+
+    fov_x_deg: Annotated[float, Field(gt=10, lt=150)] = 57.0
+    depth_noise: bool = True
+    depth_window_px: Annotated[int, Field(ge=1, le=31)] = 5
+
+
+class GainConfig(Strict):
+    """ViSP's adaptive gain: ``(at_zero - at_infinity) exp(-slope_at_zero x / (at_zero - at_infinity)) + at_infinity``
+    with x the infinity norm of the error (normalised image units for IBVS, metres for PBVS)."""
+
+    at_zero: Positive
+    at_infinity: Positive
+    slope_at_zero: Positive
+
+    @model_validator(mode="after")
+    def _order(self) -> GainConfig:
+        if self.at_infinity > self.at_zero:
+            raise ValueError(
+                f"at_infinity = {self.at_infinity} is above at_zero = {self.at_zero}; accepted: a gain that "
+                "falls (or stays) as the error grows"
+            )
+        return self
+
+
+class IbvsConfig(Strict):
+    """Point feature to ``desired_px`` (default: the principal point), optionally with log-depth to ``desired_depth_m``."""
+
+    gain: GainConfig = GainConfig(at_zero=12.0, at_infinity=4.0, slope_at_zero=60.0)
+    desired_px: tuple[float, float] | None = None
+    desired_depth_m: Positive = 0.55
+    depth_feature: bool = True
+    rotation: bool = False
+    converge_px: Positive = 0.5
+
+
+class PbvsConfig(Strict):
+    """3D target point (camera frame) to ``desired_m`` through a numerically calibrated Jacobian."""
+
+    gain: GainConfig = GainConfig(at_zero=12.0, at_infinity=5.0, slope_at_zero=150.0)
+    desired_m: Vec3 = (0.0, 0.0, 0.55)
+    converge_m: Positive = 0.001
+    perturbation_rad: Positive = 0.002
+    recalibrate_every: Count = 4
+
+
+class MotionConfig(Strict):
+    """Limits on the commanded motion (the UR5's own joint speed and position limits always hold)."""
+
+    camera_speed_m_s: Positive = 0.3
+    camera_rate_rad_s: Positive = 0.8
+    joint_margin_rad: NonNegative = 0.05
+    damping: NonNegative = 0.02
+    orientation_gain: NonNegative = 2.0
+
+
+class SafetyConfig(Strict):
+    """Visit limits. ``settle_frames`` consecutive frames below the convergence bar, with the tracked
+    point known to ``converge_sigma_px`` (1 sigma per axis), end a visit as converged. After
+    ``max_blind_frames`` frames without a detection of the target the arm holds still until it is seen
+    again; after ``max_lost_frames`` such frames the visit ends as ``lost``."""
+
+    max_iterations: Count = 150
+    max_blind_frames: Count = 8
+    max_lost_frames: Count = 20
+    divergence_factor: Positive = 2.5
+    settle_frames: Count = 3
+    converge_sigma_px: Positive = 0.3
+
+
+class TrackerSettings(Strict):
+    """The target tracker (see :mod:`rebar_data.servo.tracker`); ``detection_sigma_px`` is the detector's
+    pixel noise per axis (0.1 for the exact detector). The detector runs on every ``detect_every``-th
+    frame; KLT and the arm's motion carry the targets in between."""
+
+    detection_sigma_px: Positive = 0.1
+    klt_sigma_px: Positive = 0.03
+    klt_motion_fraction: NonNegative = 0.03
+    detect_every: Count = 1
+    gate_px: Positive = 25.0
+    drift_px: Positive = 3.0
+    window_px: Annotated[int, Field(ge=5, le=61)] = 21
+
+
+class TargetsConfig(Strict):
+    """How targets are chosen from the clustered detections of the first frames."""
+
+    cluster_radius_px: Positive = 12.0
+    row_tolerance_px: Positive = 30.0
+    margin_px: NonNegative = 40.0
+    acquire_frames: Count = 3
+    min_score: Fraction = 0.3
+
+
+class TcpConfig(Strict):
+    """After centring, move the tool centre point onto the crossing (``standoff_m`` short of it)."""
+
+    approach: bool = True
+    standoff_m: NonNegative = 0.0
+    max_iterations: Count = 120
+    tolerance_m: Positive = 0.0005
+
+
+class FaultsConfig(Strict):
+    drop_fraction: Fraction = 0.0
+    pixel_noise_px: NonNegative = 0.0
+    spurious_per_frame: NonNegative = 0.0
+
+
+class RecordingConfig(Strict):
+    """Rerun recordings: one ``.rrd`` per episode (``episodes``), the first only (``first``), or none."""
+
+    rrd: Literal["episodes", "first", "none"] = "episodes"
+    jpeg_quality: Annotated[int, Field(ge=10, le=100)] = 80
+    depth: bool = True
+
+
+class StartPose(Strict):
+    """A start pose by what the camera looks at: a point of the mesh given as (axial, arc) distances from
+    the crown in metres, the camera ``standoff_m`` from it along the mesh normal, then tilted about the
+    camera's x and y axes and rolled about its optical axis."""
+
+    look_at_m: tuple[float, float] = (0.0, 0.0)
+    standoff_m: Positive = 0.6
+    tilt_deg: tuple[float, float] = (0.0, 0.0)
+    roll_deg: float = 0.0
+
+
+class EpisodeSpec(Strict):
+    mode: Literal["ibvs", "pbvs"]
+    start: StartPose = StartPose()
+    targets: Count = 4
+    choice: Literal["nearest", "random"] = "nearest"
+
+
+class RandomEpisodes(Strict):
+    """``count`` episodes with start poses drawn uniformly from these ranges, modes taken in turn."""
+
+    count: Count
+    modes: list[Literal["ibvs", "pbvs"]] = Field(default_factory=lambda: ["ibvs", "pbvs"], min_length=1)
+    targets: Count = 2
+    choice: Literal["nearest", "random"] = "random"
+    axial_m: Range = (-0.25, 0.25)
+    arc_m: Range = (-0.15, 0.2)
+    standoff_m: Range = (0.5, 0.7)
+    tilt_deg: NonNegative = 6.0
+    roll_deg: NonNegative = 10.0
+
+
+class SuiteConfig(Strict):
+    name: str
+    seed: Annotated[int, Field(ge=0)] = 0
+    detector: Literal["shipped", "ground_truth"] = "shipped"
+    detector_path: str | None = None
+    frames: Literal["renderer", "raycast"] = "renderer"
+    shadows: bool = False
+    faults: FaultsConfig = FaultsConfig()
+    world: WorldConfig = WorldConfig()
+    camera: CameraConfig = CameraConfig()
+    ibvs: IbvsConfig = IbvsConfig()
+    pbvs: PbvsConfig = PbvsConfig()
+    motion: MotionConfig = MotionConfig()
+    safety: SafetyConfig = SafetyConfig()
+    tracker: TrackerSettings = TrackerSettings()
+    targets: TargetsConfig = TargetsConfig()
+    tcp: TcpConfig = TcpConfig()
+    recording: RecordingConfig = RecordingConfig()
+    episodes: list[EpisodeSpec] = Field(default_factory=list)
+    random: RandomEpisodes | None = None
+
+    @model_validator(mode="after")
+    def _has_episodes(self) -> SuiteConfig:
+        if not self.episodes and self.random is None:
+            raise ValueError("no episodes: accepted: a list under 'episodes', a 'random' section, or both")
+        return self
+
+
+def load_suite(path: str | Path) -> SuiteConfig:
+    """Read and check a suite file."""
+    return validate(SuiteConfig, read_yaml(path), str(path))
+
+
+def resolve_path(name: str, suite_path: str | Path | None) -> Path:
+    """A path from a suite: as given (relative to the working folder), else beside the suite's parent folder.
+
+    So ``pipelines/paper-tunnel.yaml`` in ``eval/ci.yaml`` works from the project root and elsewhere.
+    """
+    p = Path(name)
+    if p.is_absolute() or p.exists() or suite_path is None:
+        if not p.exists():
+            raise ConfigError(f"world.mesh_config = {name!r}: no such file; accepted: a pipeline YAML path")
+        return p
+    alt = Path(suite_path).resolve().parent.parent / p
+    if alt.exists():
+        return alt
+    raise ConfigError(f"world.mesh_config = {name!r}: no such file; accepted: a pipeline YAML path")

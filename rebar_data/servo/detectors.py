@@ -1,0 +1,151 @@
+"""Crossing detectors for the servo loop: the protocol, a ground-truth detector, faults, and the shipped model.
+
+Anything with ``detect(rgb) -> (N, 3)`` rows ``(u, v, score)`` in pixels drops into the loop. The
+shipped model is :class:`rebar_data.perception.infer.Detector`; :class:`GroundTruthDetector` projects
+the crossings that are really visible with the exact camera pose (for tests and for separating control
+from perception errors), and :class:`FaultyDetector` wraps either one with dropped frames, pixel noise
+and spurious detections.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Protocol
+
+import numpy as np
+
+from rebar_data.config import ConfigError
+from rebar_data.geometry.build import RebarMesh
+from rebar_data.servo.camera import CameraModel
+
+CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+
+
+class Detector(Protocol):
+    def detect(self, rgb: np.ndarray) -> np.ndarray:
+        """Detections (N, 3): u, v (pixels, COCO corner origin) and a score in [0, 1]."""
+        ...
+
+
+class GroundTruthDetector:
+    """Projects every crossing visible from the true camera pose (visibility by the dataset's ray test).
+
+    It ignores the image: ``pose_fn`` returns the simulator's true ``world_from_camera`` at the moment
+    of the frame, and ``cast_rays`` is the frame source's ray cast (so what hides a crossing in the
+    frame hides it here too). A crossing counts when the dataset's label rule gives it visibility 2 (the first
+    surface along the ray from the camera is one of its own bars, near the crossing) and it lies at
+    least ``margin_px`` inside the image.
+    """
+
+    def __init__(
+        self,
+        rm: RebarMesh,
+        camera: CameraModel,
+        cast_rays: CastRays,
+        pose_fn: Callable[[], np.ndarray],
+        *,
+        margin_px: float = 4.0,
+    ):
+        from rebar_data.labels.keypoints import CrossingParts
+
+        self._rm, self._camera, self._cast_rays, self._pose_fn = rm, camera, cast_rays, pose_fn
+        self._parts = CrossingParts.of(rm)
+        self._margin = margin_px
+        self.last_crossing_ids = np.zeros(0, np.int64)
+
+    def detect(self, rgb: np.ndarray) -> np.ndarray:
+        from rebar_data.labels.keypoints import label_frame
+
+        labels = label_frame(self._rm, self._parts, self._pose_fn(), self._camera, self._cast_rays)
+        c, m = self._camera, self._margin
+        keep = (labels.visibility == 2) & (labels.u >= m) & (labels.u < c.width - m)
+        keep &= (labels.v >= m) & (labels.v < c.height - m)
+        idx = np.nonzero(keep)[0]
+        self.last_crossing_ids = idx
+        return np.stack([labels.u[idx], labels.v[idx], np.ones(len(idx))], axis=1)
+
+
+@dataclass(frozen=True)
+class Faults:
+    """Detector faults: a share of frames with no detections, Gaussian pixel noise (per axis), spurious hits."""
+
+    drop_fraction: float = 0.0
+    pixel_noise_px: float = 0.0
+    spurious_per_frame: float = 0.0
+
+    @property
+    def active(self) -> bool:
+        return self.drop_fraction > 0 or self.pixel_noise_px > 0 or self.spurious_per_frame > 0
+
+
+class FaultyDetector:
+    """Wraps a detector with faults drawn from its own generator.
+
+    A dropped frame returns no detections; every detection moves by N(0, ``pixel_noise_px``) on each
+    axis; ``spurious_per_frame`` is the expected number of false detections per frame (Poisson), each at
+    a uniformly random pixel with a random score in [0.5, 1].
+    """
+
+    def __init__(self, inner: Detector, faults: Faults, rng: np.random.Generator, *, width: int, height: int):
+        self.inner, self.faults, self._rng = inner, faults, rng
+        self._size = (width, height)
+        self.dropped = False
+
+    def detect(self, rgb: np.ndarray) -> np.ndarray:
+        f, rng = self.faults, self._rng
+        det = np.asarray(self.inner.detect(rgb), float).reshape(-1, 3).copy()
+        self.dropped = bool(rng.random() < f.drop_fraction)
+        if self.dropped:
+            return np.zeros((0, 3))
+        if f.pixel_noise_px > 0:
+            det[:, :2] += rng.normal(0.0, f.pixel_noise_px, (len(det), 2))
+        n_spurious = rng.poisson(f.spurious_per_frame) if f.spurious_per_frame > 0 else 0
+        if n_spurious:
+            w, h = self._size
+            fake = np.stack(
+                [
+                    rng.uniform(0, w, n_spurious),
+                    rng.uniform(0, h, n_spurious),
+                    rng.uniform(0.5, 1.0, n_spurious),
+                ],
+                axis=1,
+            )
+            det = np.vstack([det, fake])
+        return det
+
+
+class _WithCamera:
+    """A detector that takes the camera's intrinsics, bound to this camera: ``detect(rgb)`` as the loop calls it."""
+
+    def __init__(self, inner, camera: CameraModel):
+        self.inner = inner
+        self._camera = (camera.fx, camera.fy, camera.cx, camera.cy)
+
+    def detect(self, rgb: np.ndarray) -> np.ndarray:
+        return self.inner.detect(rgb, camera=self._camera)
+
+
+def load_shipped_detector(path: str | Path | None = None, camera: CameraModel | None = None) -> Detector:
+    """The shipped crossing detector (``path`` None) or a given model, told the camera's intrinsics when it
+    takes them; one clear ConfigError when it is not available."""
+    try:
+        from rebar_data.perception.infer import Detector as ShippedDetector
+    except ImportError as e:
+        raise ConfigError(
+            f"detector = 'shipped' needs rebar_data.perception.infer, which cannot be imported ({e}); "
+            "accepted: detector: ground_truth until the detector is built"
+        ) from None
+    try:
+        det = ShippedDetector.load(path)
+    except FileNotFoundError as e:
+        where = path or "the shipped model"
+        raise ConfigError(
+            f"detector = 'shipped': no model at {where} ({e}); accepted: train one with `make train`, "
+            "give detector_path, or use detector: ground_truth"
+        ) from None
+    if camera is not None and "camera" in inspect.signature(det.detect).parameters:
+        return _WithCamera(det, camera)
+    return det

@@ -1,0 +1,132 @@
+"""Camera frames for the servo loop: the project's renderer (the detector's own domain) or a fast ray cast.
+
+Both sources return what the eye-in-hand Kinect would report: an RGB image and a metric depth image
+with the Kinect v1 noise model applied (:func:`rebar_data.servo.camera.kinect_depth`).
+
+- ``renderer``: :class:`rebar_data.render.renderer.Renderer` with the dataset's materials and lights, so
+  a trained detector sees images like those it was trained on.
+- ``raycast``: exact geometry from :class:`Raycaster`, shaded with a headlight and a key light. About
+  ten times cheaper; for tests and for suites whose detector does not look at pixels (``ground_truth``).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Protocol
+
+import numpy as np
+
+from rebar_data.config import ConfigError
+from rebar_data.geometry.build import RebarMesh
+from rebar_data.servo.camera import CameraModel, kinect_depth
+from rebar_data.servo.raycast import Raycaster
+
+
+@dataclass(frozen=True)
+class Frame:
+    """One camera frame: RGB (H, W, 3) uint8 and the sensor's metric z depth (H, W) float32, 0 = none."""
+
+    rgb: np.ndarray
+    depth_m: np.ndarray
+
+
+class FrameSource(Protocol):
+    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> Frame: ...
+
+    def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """First hit per world ray against everything the frames show: distance (inf: none), instance id."""
+        ...
+
+    def close(self) -> None: ...
+
+
+class RaycastFrames:
+    """Frames shaded from an exact ray cast: rebar in a rust colour, a uniform dark background."""
+
+    def __init__(self, rm: RebarMesh, camera: CameraModel, raycaster: Raycaster, *, depth_noise: bool = True):
+        self.camera = camera
+        self._raycaster = raycaster
+        self._dirs_camera = camera.ray_directions().astype(np.float32)
+        self._rays = np.empty((len(self._dirs_camera), 6), np.float32)
+        self._albedo = np.array([150.0, 95.0, 62.0], np.float32)
+        self._background = np.array([38.0, 40.0, 44.0], np.float32)
+        self._depth_noise = depth_noise
+
+    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> Frame:
+        cam = self.camera
+        R = world_from_camera[:3, :3].astype(np.float32)
+        rays = self._rays
+        rays[:, :3] = world_from_camera[:3, 3]
+        np.matmul(self._dirs_camera, R.T, out=rays[:, 3:])
+        t, normal = self._raycaster.cast_t_normal(rays)
+        hit = np.isfinite(t)
+        z = np.where(hit, t * self._dirs_camera[:, 2], 0.0)
+        # Lambertian shading: a headlight (the ray itself) and a key light from the upper left.
+        key = R @ np.array([-0.4, -0.6, 0.7], np.float32)
+        key /= np.linalg.norm(key)
+        facing = np.abs(np.einsum("ij,ij->i", normal, rays[:, 3:]))
+        keyed = np.abs(normal @ key)
+        shade = 0.25 + 0.45 * facing + 0.35 * keyed
+        rgb = np.where(hit[:, None], shade[:, None] * self._albedo, self._background)
+        rgb += rng.standard_normal(rgb.shape, dtype=np.float32) * 1.5
+        rgb = np.clip(rgb, 0, 255).astype(np.uint8).reshape(cam.height, cam.width, 3)
+        depth = kinect_depth(z.reshape(cam.height, cam.width), rng, noise=self._depth_noise)
+        return Frame(rgb, depth)
+
+    def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._raycaster.cast_rays(origins, dirs)
+
+    def close(self) -> None:
+        pass
+
+
+class RendererFrames:
+    """Frames from the project's renderer: one sampled scene (lights, materials, surroundings, distractors)
+    per run and one sampled sensor (exposure, noise, vignetting, JPEG) per episode, without the random
+    per-frame motion blur and defocus of the dataset (the servo camera's blur would follow its motion)."""
+
+    def __init__(
+        self,
+        rm: RebarMesh,
+        camera: CameraModel,
+        rng: np.random.Generator,
+        *,
+        shadows: bool = False,
+        depth_noise: bool = True,
+    ):
+        try:
+            from rebar_data.render.renderer import Renderer
+            from rebar_data.scene.cameras import Intrinsics
+            from rebar_data.scene.config import RenderConfig, SceneConfig, SensorConfig
+            from rebar_data.scene.sample import sample_scene, sample_sensor
+        except ImportError as e:
+            raise ConfigError(
+                f"frames = 'renderer' needs the project's renderer (rebar_data.render), which cannot be "
+                f"imported here ({e}); accepted: frames: raycast"
+            ) from None
+        self.camera = camera
+        intr = Intrinsics(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
+        self._renderer = Renderer(intr, RenderConfig(shadows=shadows))
+        self._renderer.set_mesh(rm)
+        self._scene_cfg = SceneConfig(
+            sensor=SensorConfig(motion_blur_probability=0.0, defocus_probability=0.0)
+        )
+        self._renderer.set_scene(sample_scene(self._scene_cfg, rng))
+        self._sample_sensor = sample_sensor
+        self.new_sensor(rng)
+        self._depth_noise = depth_noise
+
+    def new_sensor(self, rng: np.random.Generator) -> None:
+        """Draw the camera's sensor settings (done per episode)."""
+        self._sensor = self._sample_sensor(self._scene_cfg, rng)
+
+    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> Frame:
+        f = self._renderer.render(world_from_camera, self._sensor, rng)
+        depth = kinect_depth(np.asarray(f.depth_m), rng, noise=self._depth_noise)
+        return Frame(np.ascontiguousarray(f.rgb[..., :3]), depth)
+
+    def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        return self._renderer.cast_rays(origins, dirs)
+
+    def close(self) -> None:
+        self._renderer.close()

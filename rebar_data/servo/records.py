@@ -1,0 +1,76 @@
+"""The rows the servo run writes: one per control step (``steps.parquet``), one per target visit
+(``episodes.parquet``). "true" columns come from the simulator's ground truth, never from the detector."""
+
+from __future__ import annotations
+
+from dataclasses import asdict, dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class StepRow:
+    suite: str
+    episode: int
+    visit: int
+    mode: str
+    phase: str  # servo | approach | retract
+    iteration: int
+    time_s: float
+    feature_u: float
+    feature_v: float
+    desired_u: float
+    desired_v: float
+    error_px: float
+    error_m: float
+    depth_m: float
+    true_u: float
+    true_v: float
+    true_error_px: float
+    true_lateral_error_m: float
+    true_error_m: float
+    tracker: str
+    detections: int
+    dropped: bool
+    gain: float
+    twist: list[float]
+    q: list[float]
+    qdot: list[float]
+    camera_position_m: list[float]
+    tcp_position_m: list[float]
+
+
+@dataclass
+class VisitRow:
+    suite: str
+    episode: int
+    visit: int
+    target_id: int  # the true crossing the visit's target is (-1: no true crossing near it)
+    mode: str
+    detector: str
+    converged: bool
+    reason: str  # converged | diverged | lost | timeout | collision | no_target
+    iterations: int
+    initial_error_px: float
+    final_error_px: float
+    final_true_error_px: float
+    final_true_lateral_error_m: float
+    initial_error_m: float
+    final_error_m: float
+    final_true_error_m: float
+    final_true_depth_error_m: float
+    tcp_reached: bool
+    tcp_error_m: float
+    tcp_lateral_error_m: float
+    tcp_iterations: int
+    lost_frames: int
+    reseeds: int
+    max_joint_speed_ratio: float
+    max_joint_position_ratio: float
+    wall_s: float
+    sim_s: float
+    start_standoff_m: float
+    faults: str = field(default="none")
+
+    def to_dict(self) -> dict:
+        return {k: (float(v) if isinstance(v, np.floating) else v) for k, v in asdict(self).items()}

@@ -1,0 +1,225 @@
+"""Run a servo suite end to end and write its outputs (the ``rebar servo run`` contract).
+
+``DIR/episodes.parquet`` (one row per target visit), ``DIR/steps.parquet`` (one row per control step),
+``DIR/summary.json``, ``DIR/report.md`` with its plots, and ``DIR/episode_<k>.rrd`` Rerun recordings.
+Outputs are written to a temporary folder beside ``DIR`` and renamed into place at the end, so an
+interrupted run never leaves a folder that looks finished.
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import shutil
+import sys
+import tempfile
+import time
+from dataclasses import asdict
+from pathlib import Path
+
+import numpy as np
+import pyarrow as pa
+import pyarrow.parquet as pq
+
+from rebar_data.config import ConfigError
+from rebar_data.servo.camera import CameraModel
+from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
+from rebar_data.servo.detectors import GroundTruthDetector, load_shipped_detector
+from rebar_data.servo.episode import EpisodeResult, EpisodeRunner, Recorder, ServoContext, faulty
+from rebar_data.servo.frames import RaycastFrames, RendererFrames
+from rebar_data.servo.raycast import Raycaster
+from rebar_data.servo.world import ServoWorld, build_world_mesh, check_reachable
+
+RANDOM_EPISODE_OFFSET = 1000
+MAX_START_DRAWS = 50
+
+
+def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> ServoContext:
+    """World, camera, frame source and detector factory for a suite (a missing model fails first, fast)."""
+    camera = CameraModel.kinect(suite.camera.fov_x_deg)
+    shipped = load_shipped_detector(suite.detector_path, camera) if suite.detector == "shipped" else None
+    mesh_path = resolve_path(suite.world.mesh_config, suite_path)
+    rm = build_world_mesh(suite.world, mesh_path)
+    world = ServoWorld(suite.world, rm)
+    root_seq = np.random.SeedSequence(suite.seed)
+    scene_rng = np.random.default_rng(root_seq.spawn(1)[0])
+    if suite.frames == "renderer":
+        try:
+            frames = RendererFrames(
+                rm, camera, scene_rng, shadows=suite.shadows, depth_noise=suite.camera.depth_noise
+            )
+        except BaseException:
+            world.close()
+            raise
+    else:
+        frames = RaycastFrames(rm, camera, Raycaster(rm), depth_noise=suite.camera.depth_noise)
+    base = shipped or GroundTruthDetector(rm, camera, frames.cast_rays, world.world_from_camera)
+
+    def make_detector(rng: np.random.Generator):
+        return faulty(base, suite, rng, camera)
+
+    diameters = rm.config.realism.diameters_m or [rm.config.mesh.bar_diameter_m]
+    return ServoContext(
+        suite, world, rm, camera, frames, make_detector, float(max(diameters)), suite.detector
+    )
+
+
+def plan_episodes(
+    suite: SuiteConfig, ctx: ServoContext
+) -> list[tuple[int, EpisodeSpec, StartPose, np.ndarray]]:
+    """Every episode with its start pose and start joints: listed ones first, then the random ones.
+
+    Random start poses are drawn from the suite's ranges with the episode's own generator and redrawn
+    (up to 50 times) until the arm can reach them.
+    """
+    plan = []
+    for i, spec in enumerate(suite.episodes):
+        q = check_reachable(ctx.world, spec.start, f"episodes[{i}].start")
+        plan.append((i, spec, spec.start, q))
+    r = suite.random
+    if r is not None:
+        for j in range(r.count):
+            index = RANDOM_EPISODE_OFFSET + j
+            rng = np.random.default_rng(np.random.SeedSequence([suite.seed, index]))
+            spec = EpisodeSpec(mode=r.modes[j % len(r.modes)], targets=r.targets, choice=r.choice)
+            for _ in range(MAX_START_DRAWS):
+                start = StartPose(
+                    look_at_m=(float(rng.uniform(*r.axial_m)), float(rng.uniform(*r.arc_m))),
+                    standoff_m=float(rng.uniform(*r.standoff_m)),
+                    tilt_deg=(
+                        float(rng.uniform(-r.tilt_deg, r.tilt_deg)),
+                        float(rng.uniform(-r.tilt_deg, r.tilt_deg)),
+                    ),
+                    roll_deg=float(rng.uniform(-r.roll_deg, r.roll_deg)),
+                )
+                q, ok = ctx.world.solve_start(ctx.world.camera_pose_for(start))
+                if ok:
+                    break
+            else:
+                raise ConfigError(
+                    f"random: no reachable start pose in {MAX_START_DRAWS} draws for episode {j}; accepted: "
+                    "narrower axial_m / arc_m / standoff_m ranges"
+                )
+            plan.append((index, spec.model_copy(update={"start": start}), start, q))
+    return plan
+
+
+def run_suite(
+    suite_path: str | Path,
+    out: str | Path,
+    *,
+    recorder_factory=None,
+    progress: bool = True,
+    limit_episodes: int | None = None,
+) -> dict:
+    """Run every episode of a suite and write the outputs to ``out``; returns the summary."""
+    suite = load_suite(suite_path)
+    out = Path(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    ctx = build_context(suite, suite_path)
+    try:
+        summary = _run_episodes(suite, ctx, out, t0, recorder_factory, progress, limit_episodes)
+    finally:
+        ctx.close()  # the renderer is one per process: never leave it open
+    return summary
+
+
+def _run_episodes(suite, ctx, out: Path, t0: float, recorder_factory, progress: bool, limit_episodes) -> dict:
+    plan = plan_episodes(suite, ctx)
+    if limit_episodes is not None:
+        plan = plan[:limit_episodes]
+    with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.tmp-") as tmp:
+        tmpdir = Path(tmp) / "run"
+        tmpdir.mkdir()
+        if recorder_factory is None:
+            from rebar_data.servo.recording import recorder_for
+
+            def recorder_factory(k, index, spec, ctx=ctx, tmpdir=tmpdir):
+                return recorder_for(suite, ctx, tmpdir, k, index, spec)
+
+        results: list[EpisodeResult] = []
+        bar = _progress(len(plan), progress)
+        snap_modes: set[str] = set()
+        for k, (index, spec, start, q) in enumerate(plan):
+            rec = recorder_factory(k, index, spec) or Recorder()
+            seq = np.random.SeedSequence([suite.seed, index, 7])
+            runner = EpisodeRunner(ctx, spec, index, seq, rec, snapshots=spec.mode not in snap_modes)
+            snap_modes.add(spec.mode)
+            try:
+                results.append(runner.run(start, q))
+            finally:
+                rec.close()
+            bar(k, results[-1])
+        summary = write_outputs(suite, ctx, results, tmpdir, wall_s=time.perf_counter() - t0)
+        if out.exists():
+            shutil.rmtree(out)
+        tmpdir.rename(out)
+    return summary
+
+
+def _progress(total: int, enabled: bool):
+    def show(k: int, result: EpisodeResult) -> None:
+        if not enabled:
+            return
+        ok = sum(v.converged for v in result.visits)
+        print(
+            f"episode {k + 1}/{total}: {result.visits[0].mode if result.visits else '?'}, "
+            f"{ok}/{len(result.visits)} visits converged",
+            file=sys.stderr,
+            flush=True,
+        )
+
+    return show
+
+
+def write_outputs(
+    suite: SuiteConfig, ctx: ServoContext, results: list[EpisodeResult], out: Path, *, wall_s: float
+) -> dict:
+    from rebar_data.servo.report import summarize, write_report
+
+    visits = [v.to_dict() for r in results for v in r.visits]
+    steps = [asdict(s) for r in results for s in r.steps]
+    pq.write_table(pa.Table.from_pylist(visits), out / "episodes.parquet")
+    pq.write_table(pa.Table.from_pylist(steps) if steps else pa.table({}), out / "steps.parquet")
+    summary = summarize(visits)
+    summary.update(
+        {
+            "suite": suite.name,
+            "seed": suite.seed,
+            "detector": suite.detector,
+            "frames": suite.frames,
+            "faults": suite.faults.model_dump(),
+            "camera": {**asdict(ctx.camera), "fov_deg": ctx.camera.fov_deg},
+            "config": suite.model_dump(mode="json"),
+            "wall_s": wall_s,
+            "python": platform.python_version(),
+            "package_version": _package_version(),
+        }
+    )
+    (out / "summary.json").write_text(
+        json.dumps(summary, indent=2, sort_keys=True, default=_json_default) + "\n"
+    )
+    snapshots: dict[str, list] = {}
+    for r in results:
+        if r.snapshots and r.visits:
+            snapshots.setdefault(r.visits[0].mode, r.snapshots)
+    write_report(suite, visits, steps, out, summary, snapshots)
+    return summary
+
+
+def _json_default(x):
+    if isinstance(x, np.generic):
+        return x.item()
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    raise TypeError(f"not JSON serialisable: {type(x).__name__}")
+
+
+def _package_version() -> str:
+    try:
+        from importlib.metadata import version
+
+        return version("rebar-data")
+    except Exception:
+        return "unknown"

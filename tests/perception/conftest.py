@@ -1,0 +1,47 @@
+from __future__ import annotations
+
+import pytest
+import torch
+
+from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+
+TINY_MODEL = {"channels": (8, 8, 16, 16), "blocks": (0, 1, 1)}
+TINY_TRAIN = {
+    "batch_size": 4,
+    "crop_px": 64,
+    "crops_per_image": 1,
+    "lr": 5e-3,
+    "val_max_images": 4,
+    "threads": 1,
+    "loader_workers": 0,
+    "patience": 50,
+    "model": TINY_MODEL,
+    "augment": {"mosaic_epochs": 1},
+}
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+@pytest.fixture(scope="session")
+def drawn_dataset(tmp_path_factory):
+    """A small drawn dataset in the contract layout: 12 frames of 192x144 from 6 trajectories."""
+    spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=6, frames=2)
+    return write_synthetic_dataset(tmp_path_factory.mktemp("data"), spec, seed=11)
+
+
+@pytest.fixture(scope="session")
+def trained_run(drawn_dataset, tmp_path_factory):
+    """A tiny model trained for two epochs on the drawn dataset."""
+    from rebar_data.perception.train import train
+
+    before = torch.get_num_threads()
+    out = tmp_path_factory.mktemp("runs") / "tiny"
+    result = train(drawn_dataset, out, config={**TINY_TRAIN, "epochs": 2}, progress=False)
+    torch.set_num_threads(before)
+    return result

@@ -1,0 +1,20 @@
+from __future__ import annotations
+
+import pytest
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.card import CARD_NAME, ship
+from rebar_data.perception.infer import Detector
+
+
+def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
+    model = ship(trained_run.out_dir, models_dir=tmp_path)
+    assert model.name == "rebar_keypoint.onnx" and model.stat().st_size < 5 * 2**20
+    card = (tmp_path / CARD_NAME).read_text()
+    assert "OKS sigma 0.04" in card and "| drawn test |" in card and "make train" in card
+    assert Detector.load(model).meta["dataset"]["name"] == "drawn"
+
+
+def test_ship_refuses_an_unfinished_run(tmp_path):
+    with pytest.raises(ConfigError, match="finished"):
+        ship(tmp_path, models_dir=tmp_path / "models")

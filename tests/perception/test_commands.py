@@ -1,0 +1,92 @@
+from __future__ import annotations
+
+import shutil
+
+import pyarrow.parquet as pq
+import yaml
+
+from rebar_data.cli import main
+from rebar_data.perception.data import load_split
+
+from .conftest import TINY_TRAIN
+
+
+def test_detect_on_a_dataset_split_writes_one_row_per_prediction(
+    trained_run, drawn_dataset, tmp_path, capsys
+):
+    out = tmp_path / "pred.parquet"
+    metrics = tmp_path / "m.json"
+    rc = main(
+        [
+            "detect",
+            str(drawn_dataset),
+            "--split",
+            "test",
+            "--out",
+            str(out),
+            "--model",
+            str(trained_run.out_dir),
+            "--metrics",
+            str(metrics),
+            "--quiet",
+        ]
+    )
+    assert rc == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == str(out)
+    t = pq.read_table(out).to_pandas()
+    assert list(t.columns) == ["image_id", "u", "v", "score"]
+    assert set(t.image_id) <= {s.image_id for s in load_split(drawn_dataset, "test")}
+    assert (t.score >= 0.05).all() and metrics.exists()
+
+
+def test_detect_on_images_draws_overlays(trained_run, drawn_dataset, tmp_path):
+    images = tmp_path / "imgs"
+    images.mkdir()
+    for s in load_split(drawn_dataset, "val")[:2]:
+        shutil.copy(s.path, images / s.path.name)
+    rc = main(
+        [
+            "detect",
+            str(images),
+            "--out",
+            str(tmp_path / "overlays"),
+            "--model",
+            str(trained_run.out_dir / "best.onnx"),
+            "--threshold",
+            "0.01",
+        ]
+    )
+    assert rc == 0
+    pngs = sorted((tmp_path / "overlays").glob("*.png"))
+    assert len(pngs) == 2 and (tmp_path / "overlays/detections.parquet").exists()
+
+
+def test_train_command_runs_from_a_settings_file(drawn_dataset, tmp_path, capsys):
+    cfg = tmp_path / "train.yaml"
+    cfg.write_text(yaml.safe_dump({**TINY_TRAIN, "model": {"channels": [8, 8, 16, 16], "blocks": [0, 1, 1]}}))
+    rc = main(
+        [
+            "train",
+            str(drawn_dataset),
+            "--out",
+            str(tmp_path / "run"),
+            "--config",
+            str(cfg),
+            "--epochs",
+            "1",
+            "--quiet",
+        ]
+    )
+    assert rc == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == str(tmp_path / "run")
+    assert (tmp_path / "run/best.onnx").exists()
+
+
+def test_user_errors_are_one_line_and_exit_2(tmp_path, capsys):
+    assert main(["detect", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.parquet")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no such dataset, image or folder" in err[0]
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("epochs: -3\n")
+    (tmp_path / "ds").mkdir()
+    assert main(["train", str(tmp_path / "ds"), "--config", str(bad)]) == 2

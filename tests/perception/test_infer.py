@@ -1,0 +1,134 @@
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from rebar_data.config import ConfigError
+from rebar_data.perception import infer
+from rebar_data.perception.config import ModelConfig
+from rebar_data.perception.export import export_onnx, load_checkpoint, save_checkpoint
+from rebar_data.perception.infer import Detector
+from rebar_data.perception.model import KeypointNet
+
+from .conftest import TINY_MODEL
+
+
+@pytest.fixture
+def tiny_net():
+    torch.manual_seed(0)
+    net = KeypointNet(ModelConfig(**TINY_MODEL))
+    with torch.no_grad():  # give batch norm non-trivial statistics, so the export has something to get wrong
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+    return net.eval()
+
+
+def test_onnx_export_gives_the_same_output_as_pytorch(tiny_net, tmp_path):
+    rgb = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    path = export_onnx(tiny_net, tmp_path / "m.onnx", {"note": "test"})
+    onnx_det = Detector.load(path, threads=1)
+    torch_det = Detector.from_network(tiny_net)
+    camera = (100.0, 100.0, 64.0, 48.0)
+    np.testing.assert_allclose(onnx_det.raw(rgb, camera=camera), torch_det.raw(rgb, camera=camera), atol=1e-4)
+    assert onnx_det.meta["note"] == "test" and onnx_det.backend == "onnxruntime"
+
+
+def test_detect_pads_any_size_and_returns_points_inside(tiny_net):
+    det = Detector.from_network(tiny_net)
+    rgb = np.random.default_rng(1).integers(0, 256, (101, 131, 3), dtype=np.uint8)
+    assert det.raw(rgb).shape == (3, 26, 33)
+    out = det.detect(rgb, threshold=0.01)
+    assert out.ndim == 2 and out.shape[1] == 3
+    assert ((out[:, 0] >= 0) & (out[:, 0] < 131) & (out[:, 1] >= 0) & (out[:, 1] < 101)).all()
+    assert np.all(np.diff(out[:, 2]) <= 0)  # best first
+
+
+def test_checkpoint_round_trip(tiny_net, tmp_path):
+    save_checkpoint(tmp_path / "m.pt", tiny_net, {"epoch": 3})
+    net, meta, _ = load_checkpoint(tmp_path / "m.pt")
+    assert meta == {"epoch": 3} and net.cfg == tiny_net.cfg
+    x = torch.rand(1, 3, 32, 32) * 255
+    rays = torch.zeros(1, 2, 8, 8)
+    torch.testing.assert_close(net(x, rays), tiny_net(x, rays))
+    assert Detector.load(tmp_path / "m.pt").backend == "torch"
+
+
+def test_load_names_what_is_wrong(tmp_path, monkeypatch):
+    monkeypatch.setattr(infer, "SHIPPED_MODEL", tmp_path / "none.onnx")
+    with pytest.raises(ConfigError, match="no shipped detector"):
+        Detector.load()
+    with pytest.raises(ConfigError, match="no such model file"):
+        Detector.load(tmp_path / "missing.onnx")
+    (tmp_path / "weights.bin").write_bytes(b"x")
+    with pytest.raises(ConfigError, match=r"\.onnx or \.pt"):
+        Detector.load(tmp_path / "weights.bin")
+    with pytest.raises(ConfigError, match="holds none of"):
+        Detector.load(tmp_path)
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ConfigError, match="cannot be read"):
+        Detector.load(tmp_path / "bad.pt")
+
+
+def test_detect_rejects_what_is_not_an_rgb_image(tiny_net):
+    det = Detector.from_network(tiny_net)
+    with pytest.raises(ConfigError, match="RGB array"):
+        det.detect(np.zeros((32, 32), np.uint8))
+    with pytest.raises(ConfigError, match="threshold"):
+        det.detect(np.zeros((32, 32, 3), np.uint8), threshold=1.5)
+
+
+def _render_one_frame(tmp_path):
+    """One frame of a small tunnel piece, rendered and labelled as a dataset build would, with the servo
+    camera (640x480 Kinect v1): a scene and pose the shipped model has never seen."""
+    import yaml
+
+    from rebar_data.dataset.config import PipelineConfig
+    from rebar_data.dataset.plan import make_plan
+    from rebar_data.dataset.worker import FrameWorker
+    from rebar_data.geometry.build import build_rebar_mesh
+    from rebar_data.perception.data import read_image
+
+    smoke = yaml.safe_load((Path(__file__).parents[2] / "pipelines/smoke.yaml").read_text())
+    cfg = PipelineConfig.model_validate(
+        {
+            **smoke,
+            "seed": 424242,
+            "camera": {
+                "intrinsics": "kinect_v1",
+                "trajectories": [{"kind": "approach", "count": 1, "frames": 1, "edge_margin_m": 0.2}],
+            },
+            "render": {"texture_size_px": 256, "cache_dir": str(tmp_path / "textures")},
+        }
+    )
+    rm = build_rebar_mesh(cfg.mesh_config())
+    plan = make_plan(cfg, rm)
+    worker = FrameWorker(cfg, tmp_path, rm)
+    try:
+        sample = plan.samples[0]
+        labels = worker.run(plan.scenes[0], [sample])[0].labels
+    finally:
+        worker.close()
+    k = worker.intrinsics
+    visible = labels.visibility == 2
+    truth = np.c_[labels.u[visible], labels.v[visible]]
+    rgb = read_image(tmp_path / f"images/{sample.split}/{sample.image_id}.png")
+    return rgb, truth, labels.box_size_px[visible], (k.fx, k.fy, k.cx, k.cy)
+
+
+def test_shipped_model_detects_the_crossings_of_a_freshly_rendered_frame(tmp_path, monkeypatch):
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    from rebar_data.perception.metrics import Truth, pixel_metrics
+
+    monkeypatch.setenv("EGL_PLATFORM", "surfaceless")
+    rgb, truth, box, camera = _render_one_frame(tmp_path)
+    assert len(truth) >= 20
+    det = Detector.load(threads=1).detect(rgb, camera=camera)
+    px = pixel_metrics([Truth(truth, box)], [det])
+    assert px.recall >= 0.95 and px.precision >= 0.95, (px.recall, px.precision)
+    assert px.pck[2.0] >= 0.9 and px.median_px < 1.0, (px.pck, px.median_px)

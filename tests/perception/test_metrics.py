@@ -1,0 +1,186 @@
+from __future__ import annotations
+
+import contextlib
+import io
+
+import numpy as np
+import pytest
+
+from rebar_data.perception.metrics import (
+    DEFAULT_OKS_SIGMA,
+    Truth,
+    keypoint_ap,
+    oks_matrix,
+    oks_radius_px,
+    pixel_metrics,
+    summary,
+)
+
+
+def _scene(rng: np.random.Generator, n_images: int = 12):
+    """Random truths, and predictions that are the truths moved by up to a few px, with misses and extras."""
+    truths, preds = [], []
+    for _ in range(n_images):
+        n = int(rng.integers(0, 25))
+        uv = rng.uniform(0, 640, (n, 2))
+        box = rng.uniform(15, 45, n)
+        n_ign = int(rng.integers(0, 4))
+        truths.append(Truth(uv, box, rng.uniform(0, 640, (n_ign, 2)), rng.uniform(15, 45, n_ign)))
+        keep = rng.uniform(size=n) > 0.1
+        p = uv[keep] + rng.normal(0, rng.uniform(0.2, 3.0), (keep.sum(), 2))
+        extra = rng.uniform(0, 640, (int(rng.integers(0, 4)), 2))
+        near_ignored = truths[-1].ignore_uv + rng.normal(0, 0.5, truths[-1].ignore_uv.shape)
+        p = np.r_[p, extra, near_ignored]
+        preds.append(np.c_[p, rng.uniform(0.05, 1.0, len(p))])
+    return truths, preds
+
+
+def _cocoeval(truths, preds, sigma):
+    from pycocotools.coco import COCO
+    from pycocotools.cocoeval import COCOeval
+
+    images, anns, dets = [], [], []
+    for i, (t, p) in enumerate(zip(truths, preds, strict=True)):
+        images.append({"id": i + 1, "width": 640, "height": 640})
+        for (u, v), b, crowd in [
+            *zip(t.uv, t.box_size_px, [0] * len(t.uv), strict=True),
+            *zip(t.ignore_uv, t.ignore_box_size_px, [1] * len(t.ignore_uv), strict=True),
+        ]:
+            anns.append(
+                {
+                    "id": len(anns) + 1,
+                    "image_id": i + 1,
+                    "category_id": 1,
+                    "keypoints": [float(u), float(v), 2],
+                    "num_keypoints": 1,
+                    "area": float(b * b),
+                    "bbox": [float(u - b / 2), float(v - b / 2), float(b), float(b)],
+                    "iscrowd": crowd,
+                }
+            )
+        for u, v, s in p:
+            dets.append(
+                {"image_id": i + 1, "category_id": 1, "keypoints": [float(u), float(v), 1], "score": float(s)}
+            )
+    with contextlib.redirect_stdout(io.StringIO()):
+        gt = COCO()
+        gt.dataset = {
+            "images": images,
+            "annotations": anns,
+            "categories": [{"id": 1, "name": "intersection", "keypoints": ["intersection"]}],
+        }
+        gt.createIndex()
+        dt = gt.loadRes(dets)
+        ev = COCOeval(gt, dt, "keypoints")
+        ev.params.kpt_oks_sigmas = np.array([sigma])
+        ev.params.maxDets = [1000]
+        ev.params.areaRng = [[0, 1e10]]
+        ev.params.areaRngLbl = ["all"]
+        ev.evaluate()
+        ev.accumulate()
+    prec = ev.eval["precision"][:, :, 0, 0, 0]
+    return float(prec[prec > -1].mean()), float(prec[0].mean()), prec
+
+
+@pytest.mark.parametrize("sigma", [DEFAULT_OKS_SIGMA, 0.1])
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ap_equals_pycocotools_cocoeval(seed, sigma):
+    truths, preds = _scene(np.random.default_rng(seed))
+    ours = keypoint_ap(truths, preds, sigma=sigma)
+    ap, ap50, prec = _cocoeval(truths, preds, sigma)
+    assert ours.ap == pytest.approx(ap, abs=1e-12)
+    assert ours.ap50 == pytest.approx(ap50, abs=1e-12)
+    np.testing.assert_allclose(ours.precision, prec, atol=1e-12)
+    assert 0.2 < ours.ap < ours.ap50 < 1.0  # the scene is neither trivial nor hopeless
+
+
+def test_perfect_predictions_give_ap_one_and_pck_one():
+    rng = np.random.default_rng(3)
+    truths = [Truth(rng.uniform(0, 640, (20, 2)), np.full(20, 30.0)) for _ in range(4)]
+    preds = [np.c_[t.uv, np.full(len(t.uv), 0.9)] for t in truths]
+    m = summary(truths, preds)
+    assert m["oks_ap"] == pytest.approx(1.0)
+    assert m["oks_ap50"] == pytest.approx(1.0)
+    assert m["pck1"] == m["recall"] == m["precision"] == m["recall_at_p99"] == 1.0
+    assert m["mean_px"] == 0.0
+
+
+def test_shift_drops_ap_where_the_sigma_says():
+    """A shift just inside the OKS-0.5 radius passes at 0.5 and fails at 0.55; just outside fails at 0.5."""
+    box = 30.0
+    r50 = oks_radius_px(DEFAULT_OKS_SIGMA, box)
+    assert 2.0 < r50 < 5.0  # "a few pixels" for a typical box
+    uv = np.array([[100.0, 100.0], [300.0, 200.0], [500.0, 400.0]])
+    truths = [Truth(uv, np.full(3, box))]
+    inside = keypoint_ap(truths, [np.c_[uv + [r50 * 0.99, 0], np.ones(3)]])
+    outside = keypoint_ap(truths, [np.c_[uv + [0, r50 * 1.01], np.ones(3)]])
+    assert inside.ap50 == pytest.approx(1.0)
+    assert inside.precision[1].mean() == 0.0  # OKS 0.55
+    assert inside.ap == pytest.approx(0.1)
+    assert outside.ap50 == 0.0 and outside.ap == 0.0
+    np.testing.assert_allclose(oks_matrix(uv[:1] + [r50, 0], uv[:1], [box], DEFAULT_OKS_SIGMA), [[0.5]])
+
+
+def test_ap_falls_monotonically_with_shift():
+    uv = np.random.default_rng(4).uniform(50, 590, (30, 2))
+    truths = [Truth(uv, np.full(30, 25.0))]
+    aps = [keypoint_ap(truths, [np.c_[uv + [s, 0], np.ones(30)]]).ap for s in (0.0, 0.5, 1.0, 2.0, 3.0, 5.0)]
+    assert aps == sorted(aps, reverse=True)
+    assert aps[0] == pytest.approx(1.0) and aps[-1] == 0.0
+
+
+def test_pixel_metrics_count_only_confident_matches_for_pck():
+    uv = np.array([[10.0, 10.0], [100.0, 100.0], [200.0, 200.0], [300.0, 300.0]])
+    truths = [Truth(uv, np.full(4, 30.0))]
+    pred = np.array(
+        [
+            [10.5, 10.0, 0.9],  # 0.5 px
+            [101.5, 100.0, 0.9],  # 1.5 px
+            [203.0, 200.0, 0.9],  # 3 px
+            [300.0, 300.0, 0.3],  # exact but below the operating threshold
+            [400.0, 400.0, 0.8],  # false positive
+        ]
+    )
+    px = pixel_metrics(truths, [pred])
+    assert px.pck == {1.0: 0.25, 2.0: 0.5, 5.0: 0.75}
+    assert px.precision == pytest.approx(3 / 4)
+    assert px.recall == pytest.approx(3 / 4)
+    assert px.median_px == pytest.approx(1.5)
+    # precision stays >= 0.99 only until the false positive (score 0.8) comes in: 3 of 4 found
+    assert px.recall_at_p99 == pytest.approx(0.75)
+
+
+def test_ignored_crossings_neither_count_nor_penalise():
+    uv = np.array([[50.0, 50.0], [150.0, 50.0]])
+    ign = np.array([[250.0, 50.0]])
+    pred = np.array([[50.0, 50.0, 0.9], [150.0, 50.0, 0.8], [250.0, 50.0, 0.95]])
+    strict = summary([Truth(uv, np.full(2, 30.0))], [pred])
+    lenient = summary([Truth(uv, np.full(2, 30.0), ign, np.full(1, 30.0))], [pred])
+    assert strict["precision"] == pytest.approx(2 / 3) and strict["oks_ap"] < 1.0
+    assert lenient["precision"] == 1.0 and lenient["oks_ap"] == pytest.approx(1.0)
+
+
+def test_pixel_metrics_agree_with_a_plain_reimplementation_of_the_scorer():
+    from scipy.optimize import linear_sum_assignment
+
+    truths, preds = _scene(np.random.default_rng(5), n_images=8)
+    truths = [Truth(t.uv, t.box_size_px) for t in truths]
+    errs, scored, n_gt = [], [], 0
+    for t, p in zip(truths, preds, strict=True):
+        n_gt += len(t.uv)
+        tp = np.zeros(len(p), bool)
+        if len(t.uv) and len(p):
+            d = np.hypot(t.uv[:, None, 0] - p[None, :, 0], t.uv[:, None, 1] - p[None, :, 1])
+            r, c = linear_sum_assignment(np.where(d < 5, d, 1e6))
+            ok = d[r, c] < 5
+            tp[c[ok]] = True
+            errs += list(d[r, c][ok][p[c[ok], 2] >= 0.5])
+        scored += list(zip(p[:, 2], tp, strict=True))
+    scored.sort(key=lambda x: -x[0])
+    tps = np.cumsum([t for _, t in scored])
+    prec, rec = tps / np.arange(1, len(scored) + 1), tps / n_gt
+    px = pixel_metrics(truths, preds)
+    e = np.array(errs)
+    assert px.pck[2.0] == pytest.approx((e <= 2).sum() / n_gt)
+    assert px.median_px == pytest.approx(np.median(e))
+    assert px.recall_at_p99 == pytest.approx(rec[prec >= 0.99].max() if (prec >= 0.99).any() else 0.0)

@@ -1,0 +1,115 @@
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+import torch
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.config import TrainConfig
+from rebar_data.perception.data import load_split
+from rebar_data.perception.infer import Detector
+from rebar_data.perception.loss import detection_loss
+from rebar_data.perception.model import KeypointNet
+from rebar_data.perception.train import TrainingImages, make_batch, read_history, train
+
+from .conftest import TINY_TRAIN
+
+
+def test_loss_falls_when_a_tiny_model_trains_a_few_steps(drawn_dataset):
+    cfg = TrainConfig.model_validate({**TINY_TRAIN, "crop_px": 96})
+    data = TrainingImages(load_split(drawn_dataset, "train"), cache=True, occluded="ignore", progress=False)
+    rng = np.random.default_rng(0)
+    torch.manual_seed(0)
+    net = KeypointNet(cfg.model)
+    opt = torch.optim.AdamW(net.parameters(), lr=5e-3)
+    batches = [make_batch(data, rng, cfg, mosaic=False) for _ in range(2)]
+    losses = []
+    for step in range(30):
+        x, rays, *targets = batches[step % 2]
+        loss = detection_loss(net(x, rays), *targets)[0]
+        opt.zero_grad()
+        loss.backward()
+        opt.step()
+        losses.append(loss.item())
+    assert np.mean(losses[-4:]) < 0.5 * np.mean(losses[:2])
+
+
+def test_a_batch_holds_crops_rays_and_targets(drawn_dataset):
+    cfg = TrainConfig.model_validate(TINY_TRAIN)
+    data = TrainingImages(load_split(drawn_dataset, "train"), cache=False, occluded="ignore", progress=False)
+    x, rays, heat, hw, off, ow = make_batch(data, np.random.default_rng(1), cfg, mosaic=True)
+    assert x.shape == (4, 3, 64, 64) and rays.shape == (4, 2, 16, 16)
+    assert heat.shape == hw.shape == ow.shape == (4, 16, 16) and off.shape == (4, 2, 16, 16)
+    assert (heat == 1).sum() > 0 and x.min() >= 0 and x.max() <= 255
+
+
+def test_training_writes_the_run_and_its_model_detects(trained_run, drawn_dataset):
+    out = trained_run.out_dir
+    for f in (
+        "config.json",
+        "last.pt",
+        "best.pt",
+        "best.onnx",
+        "metrics.csv",
+        "results.json",
+        "curves.png",
+        "pr_curve.png",
+        "predictions.png",
+    ):
+        assert (out / f).is_file(), f
+    history = read_history(out / "metrics.csv")
+    assert [int(h["epoch"]) for h in history] == [1, 2]
+    assert all(np.isfinite(h["train_loss"]) for h in history)
+    assert {"val_oks_ap", "val_pck2", "val_recall_at_p99", "lr"} <= set(history[0])
+    results = json.loads((out / "results.json").read_text())
+    assert set(results["results"]) == {"val", "test"}
+    det = Detector.load(out)
+    assert det.path.name == "best.onnx" and det.meta["oks_sigma"] == results["oks_sigma"]
+    sample = load_split(drawn_dataset, "test")[0]
+    from rebar_data.perception.data import read_image
+
+    assert det.detect(read_image(sample.path), threshold=0.01).shape[1] == 3
+
+
+def test_training_resumes_where_it_stopped(drawn_dataset, tmp_path):
+    cfg = {**TINY_TRAIN, "epochs": 1}
+    first = train(drawn_dataset, tmp_path / "run", config=cfg, progress=False)
+    row1 = read_history(tmp_path / "run/metrics.csv")[0]
+    again = train(drawn_dataset, tmp_path / "run", config=cfg, epochs=2, progress=False)
+    history = read_history(tmp_path / "run/metrics.csv")
+    assert first.epochs_run == 1 and again.epochs_run == 2
+    assert [int(h["epoch"]) for h in history] == [1, 2]
+    assert history[0]["train_loss"] == row1["train_loss"]
+    with pytest.raises(ConfigError, match="crop_px"):
+        train(drawn_dataset, tmp_path / "run", config={**cfg, "crop_px": 96}, epochs=3, progress=False)
+    fresh = train(drawn_dataset, tmp_path / "run", config=cfg, resume=False, progress=False)
+    assert fresh.epochs_run == 1
+
+
+def test_bad_settings_and_datasets_are_one_clear_error(drawn_dataset, tmp_path):
+    with pytest.raises(ConfigError, match="crop_px"):
+        train(drawn_dataset, tmp_path / "r", config={"crop_px": 100})
+    with pytest.raises(ConfigError, match="no such dataset folder"):
+        train(tmp_path / "nowhere", tmp_path / "r")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ConfigError, match="tables/samples.parquet"):
+        train(tmp_path / "empty", tmp_path / "r")
+
+
+def test_batches_are_the_same_with_or_without_a_loader_process(drawn_dataset):
+    from rebar_data.perception.train import batch_stream
+
+    samples = load_split(drawn_dataset, "train")
+    here = TrainConfig.model_validate({**TINY_TRAIN, "loader_workers": 0})
+    there = TrainConfig.model_validate({**TINY_TRAIN, "loader_workers": 1})
+    a = list(batch_stream(samples, here, first=3, last=4, steps=2))
+    b = list(batch_stream(samples, there, first=3, last=4, steps=2))
+    assert len(a) == len(b) == 4
+    for x, y in zip(a, b, strict=True):
+        for s, t in zip(x, y, strict=True):
+            torch.testing.assert_close(s, t)
+    resumed = list(batch_stream(samples, here, first=4, last=4, steps=2))  # epoch 4 alone, as after a resume
+    torch.testing.assert_close(resumed[0][0], a[2][0])
+    assert not torch.equal(a[0][0], a[2][0])

@@ -1,0 +1,40 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rebar_data.servo.camera import CameraModel, depth_at, kinect_depth, kinect_depth_sigma_m
+
+
+def test_kinect_field_of_view_is_57_degrees_with_square_pixels():
+    cam = CameraModel.kinect()
+    assert cam.fx == cam.fy == pytest.approx(589.4, abs=0.05)
+    assert cam.fov_deg[0] == pytest.approx(57.0)
+    assert (cam.cx, cam.cy) == (320.0, 240.0)
+
+
+def test_projection_and_back_projection_round_trip():
+    cam = CameraModel.kinect()
+    P = np.array([[0.1, -0.05, 0.6], [-0.2, 0.15, 1.1]])
+    uv = cam.project(P)
+    np.testing.assert_allclose(uv[0], [cam.fx * 0.1 / 0.6 + 320, cam.fy * -0.05 / 0.6 + 240])
+    np.testing.assert_allclose(cam.back_project(uv, P[:, 2]), P, atol=1e-12)
+
+
+def test_kinect_depth_noise_range_and_quantisation():
+    rng = np.random.default_rng(0)
+    z = np.full((200, 200), 2.0)
+    out = kinect_depth(z, rng)
+    step = 2.0**2 / (580 * 0.075 * 8)  # one 1/8 px disparity step at 2 m
+    assert out.std() == pytest.approx(np.hypot(kinect_depth_sigma_m(2.0), step / np.sqrt(12)), rel=0.05)
+    assert abs(out.mean() - 2.0) < 0.002
+    steps = np.diff(np.unique(kinect_depth(np.linspace(3.0, 3.2, 500), rng, noise=False)))
+    assert steps.min() > 0.02  # quantised: ~z^2 / 346 at 3 m
+    assert np.all(kinect_depth(np.array([0.3, 5.0, 0.0]), rng) == 0)  # out of range: no reading
+
+
+def test_depth_at_uses_only_valid_pixels():
+    d = np.zeros((10, 10), np.float32)
+    d[4:7, 4:7] = 0.6
+    assert depth_at(d, np.array([5.5, 5.5])) == pytest.approx(0.6)
+    assert np.isnan(depth_at(d, np.array([0.5, 0.5]), window_px=3))

@@ -1,0 +1,171 @@
+"""End to end: `rebar servo run` and `rebar servo check` on a short suite and on eval/ci.yaml."""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+import yaml
+
+from rebar_data.cli import main
+
+from .conftest import suite_dict
+
+EPISODE_COLUMNS = [
+    "suite",
+    "episode",
+    "target_id",
+    "mode",
+    "converged",
+    "iterations",
+    "initial_error_px",
+    "final_error_px",
+    "final_true_error_px",
+    "final_true_lateral_error_m",
+    "initial_error_m",
+    "final_error_m",
+    "wall_s",
+]
+
+
+def _rerun() -> str:
+    return str(Path(sys.executable).parent / "rerun")
+
+
+def _goals(run: Path) -> None:
+    """The issue's goals, read from the simulator's ground truth (as the acceptance check does)."""
+    E = pq.read_table(run / "episodes.parquet").to_pandas()
+    for mode, px, m, it in (("ibvs", 1.0, 0.001, 30), ("pbvs", None, 0.002, 40)):
+        g = E[E["mode"] == mode]
+        assert len(g) and g["converged"].all(), mode
+        assert g["final_true_lateral_error_m"].max() <= m
+        assert np.median(g["iterations"]) <= it
+        if px is not None:
+            assert g["final_error_px"].max() <= px
+    assert (E.loc[E["mode"] == "pbvs", "final_true_error_m"] <= 0.002).all()
+
+
+def test_short_run_writes_every_output_and_readable_recordings(tmp_path, root, monkeypatch, capsys):
+    monkeypatch.chdir(root)
+    suite = suite_dict(
+        name="short",
+        recording={"rrd": "episodes", "jpeg_quality": 60},
+        episodes=[
+            {"mode": "ibvs", "start": {"look_at_m": [0.03, -0.02], "standoff_m": 0.6}, "targets": 1},
+            {"mode": "pbvs", "start": {"look_at_m": [-0.04, 0.03], "standoff_m": 0.58}, "targets": 1},
+        ],
+    )
+    path = tmp_path / "short.yaml"
+    path.write_text(yaml.safe_dump(suite))
+    out = tmp_path / "run"
+    assert main(["servo", "run", str(path), "--out", str(out), "--quiet"]) == 0
+    assert capsys.readouterr().out.strip().splitlines()[-1] == str(out)
+    for name in ("episodes.parquet", "steps.parquet", "summary.json", "report.md"):
+        assert (out / name).stat().st_size > 0, name
+    E = pq.read_table(out / "episodes.parquet")
+    assert set(EPISODE_COLUMNS) <= set(E.column_names)
+    S = pq.read_table(out / "steps.parquet").to_pandas()
+    assert {"servo", "approach", "retract"} == set(S["phase"])
+    V = E.to_pandas()
+    assert V["tcp_reached"].all() and (V["tcp_error_m"] < 0.002).all()  # the tool on the crossing
+    assert (V["max_joint_position_ratio"] <= 1.0).all() and (V["max_joint_speed_ratio"] <= 1.0 + 1e-6).all()
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["suite"] == "short" and summary["modes"]["ibvs"]["converged"] == 1
+    report = (out / "report.md").read_text()
+    assert "Table 1" in report and "Table 2" in report
+    for png in ("ibvs_convergence.png", "pbvs_convergence.png", "ibvs_views.png"):
+        assert (out / png).stat().st_size > 10_000
+    rrds = sorted(out.glob("*.rrd"))
+    assert len(rrds) == 2
+    for f in rrds:
+        r = subprocess.run([_rerun(), "rrd", "verify", str(f)], capture_output=True, text=True)
+        assert r.returncode == 0, r.stderr
+    from rerun.chunk import RrdReader
+
+    entities = {c.entity_path for c in RrdReader(rrds[0]).stream()}
+    for e in (
+        "/world/camera/image",
+        "/world/camera/image/depth",
+        "/world/camera/image/detections",
+        "/world/camera/image/track",
+        "/metrics/error_px",
+        "/joints/q/elbow",
+        "/world/mesh",
+        "/world/robot/link_3",
+    ):
+        assert e in entities, e
+    assert main(["servo", "check", str(out)]) == 0
+    _goals(out)
+
+
+def test_ci_suite_meets_the_goals_and_its_check(tmp_path, root, monkeypatch):
+    """eval/ci.yaml as CI runs it: the project's renderer, the full loop, the bars of eval/thresholds.yaml."""
+    monkeypatch.chdir(root)
+    out = tmp_path / "ci"
+    assert main(["servo", "run", "eval/ci.yaml", "--out", str(out), "--quiet"]) == 0
+    assert main(["servo", "check", str(out)]) == 0
+    _goals(out)
+
+
+def test_check_fails_on_a_regression(tmp_path, root, monkeypatch, capsys):
+    monkeypatch.chdir(root)
+    run = tmp_path / "run"
+    run.mkdir()
+    rows = [
+        {
+            "mode": "ibvs",
+            "converged": True,
+            "iterations": 20,
+            "final_error_px": 0.3,
+            "final_true_error_px": 0.3,
+            "final_true_lateral_error_m": 0.0004,
+            "final_true_error_m": 0.0004,
+            "tcp_reached": False,
+            "tcp_error_m": float("nan"),
+            "max_joint_position_ratio": 0.5,
+        },
+        {
+            "mode": "pbvs",
+            "converged": True,
+            "iterations": 25,
+            "final_error_px": 0.3,
+            "final_true_error_px": 0.3,
+            "final_true_lateral_error_m": 0.0004,
+            "final_true_error_m": 0.0031,
+            "tcp_reached": False,
+            "tcp_error_m": float("nan"),
+            "max_joint_position_ratio": 0.5,
+        },
+    ]
+    import pyarrow as pa
+
+    pq.write_table(pa.Table.from_pylist(rows), run / "episodes.parquet")
+    (run / "summary.json").write_text(json.dumps({"suite": "ci"}))
+    assert main(["servo", "check", str(run)]) == 1
+    out = capsys.readouterr().out
+    assert "REGRESSION ci pbvs: true_error_m" in out
+
+
+@pytest.mark.parametrize(
+    ("change", "words"),
+    [
+        ({"detector": "yolo"}, ["detector", "yolo"]),
+        ({"episodes": [], "random": None}, ["no episodes"]),
+        ({"ibvs": {"gain": {"at_zero": 1.0, "at_infinity": 2.0, "slope_at_zero": 1.0}}}, ["at_infinity"]),
+        ({"episods": []}, ["unknown key", "episods"]),
+    ],
+)
+def test_bad_suites_are_one_clear_error(tmp_path, capsys, change, words):
+    path = tmp_path / "bad.yaml"
+    data = suite_dict()
+    data.update(change)
+    path.write_text(yaml.safe_dump(data))
+    assert main(["servo", "run", str(path), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and all(w in err for w in words), err
+    assert not (tmp_path / "o").exists()
