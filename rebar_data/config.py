@@ -233,8 +233,12 @@ def _lookup(data: Any, path: list) -> Any:
     return data
 
 
+# values of the ``kind`` discriminators; pydantic puts the chosen one into error locations
+UNION_TAGS = {"planar", "tunnel_segment", "orbit_arc", "straight_pass", "approach", "random_look_at"}
+
+
 def _is_union_tag(x: object) -> bool:
-    return isinstance(x, str) and x in ("planar", "tunnel_segment")
+    return isinstance(x, str) and x in UNION_TAGS
 
 
 def load_mesh_config(path: str | Path) -> MeshConfig:

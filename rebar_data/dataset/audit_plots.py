@@ -72,7 +72,7 @@ def distribution_plots(S: pd.DataFrame, K: pd.DataFrame, out: Path) -> dict:
 def draw_keypoints(img: np.ndarray, g: pd.DataFrame) -> np.ndarray:
     """Visible keypoints as green crosses in their box, occluded ones as orange circles."""
     out = img.copy()
-    for kp in g.itertuples():
+    for kp in g[g.visibility > 0].itertuples():
         p = (int(round(kp.u * 4)), int(round(kp.v * 4)))  # 2 fractional bits for sub-pixel drawing
         if kp.visibility == 2:
             h = kp.box_size_px / 2

@@ -18,6 +18,7 @@ import sys
 import time
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Protocol
 
 from tqdm import tqdm
 
@@ -26,7 +27,7 @@ from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.config import PipelineConfig, load_pipeline
 from rebar_data.dataset.layout import DatasetInfo
-from rebar_data.dataset.plan import Plan, make_plan
+from rebar_data.dataset.plan import Plan, Sample, make_plan
 from rebar_data.dataset.worker import FrameRecord, FrameWorker, init_process, run_in_process
 from rebar_data.dataset.writers.coco import write_coco
 from rebar_data.dataset.writers.manifest import write_manifest
@@ -34,9 +35,41 @@ from rebar_data.dataset.writers.tables import keypoints_table, samples_table, wr
 from rebar_data.dataset.writers.yolo import write_data_yaml, write_yolo
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
 from rebar_data.scene.cameras import intrinsics_from_config
+from rebar_data.scene.sample import SceneSample
 
 PLAN_FILE = "plan.json"
 RECORDS = "records"
+
+Task = tuple[str, SceneSample, list[Sample]]
+"""One shard of work: a trajectory id, its scene and its samples (the frames of the trajectory)."""
+
+
+class TaskRunner(Protocol):
+    """Runs shards and yields ``(trajectory_id, records)`` as each one finishes, in any order.
+
+    A runner renders into ``staging`` (images, depth and instance maps, written via temporary names) and
+    returns the labels; the build saves the records of each finished shard and finalises, so every
+    backend that runs the same tasks ends with the same dataset.
+    """
+
+    label: str  # how the summary line names the workers, such as "2 workers"
+
+    def __call__(
+        self, cfg: PipelineConfig, rm: RebarMesh, staging: Path, tasks: list[Task]
+    ) -> Iterator[tuple[str, list[FrameRecord]]]: ...
+
+
+class LocalRunner:
+    """The local backend: this process with one worker, a spawn process pool with more."""
+
+    def __init__(self, workers: int):
+        self.workers = workers
+        self.label = f"{workers} workers"
+
+    def __call__(
+        self, cfg: PipelineConfig, rm: RebarMesh, staging: Path, tasks: list[Task]
+    ) -> Iterator[tuple[str, list[FrameRecord]]]:
+        return _run_tasks(cfg, rm, staging, tasks, self.workers)
 
 
 def git_commit() -> str:
@@ -132,11 +165,17 @@ def build_dataset(
     workers: int | None = None,
     force: bool = False,
     resume: bool = False,
+    runner: TaskRunner | None = None,
 ) -> Path:
-    """Build the dataset described by ``config`` under ``out_root`` and return its folder."""
+    """Build the dataset described by ``config`` under ``out_root`` and return its folder.
+
+    ``runner`` runs the shards (default: the local backend with ``workers`` processes); the plan, the
+    staging folder, resume and finalize are the same whatever runs them.
+    """
     cfg = load_pipeline(config)
     final = layout.dataset_dir(Path(out_root), cfg.name, cfg.version).resolve()
     workers = workers or os.cpu_count() or 1
+    runner = runner or LocalRunner(workers)
     staging = prepare_staging(cfg, final, force=force, resume=resume)
     t0 = time.perf_counter()
     rm = build_rebar_mesh(cfg.mesh_config())
@@ -155,11 +194,12 @@ def build_dataset(
         unit="img",
         file=sys.stderr,
     )
-    for tid, records in _run_tasks(cfg, rm, staging, tasks, workers):
+    for tid, records in runner(cfg, rm, staging, tasks):
         _save_records(staging, tid, records)
         done[tid] = records
         bar.update(len(records))
     bar.close()
+    _remove_stray_temp_files(staging)
     records = {r.image_id: r for recs in done.values() for r in recs}
     info = finalize(cfg, rm, plan, records, staging, final)
     dt = time.perf_counter() - t0
@@ -167,10 +207,16 @@ def build_dataset(
     print(
         f"{len(records)} images (train {c['train']['images']}, val {c['val']['images']}, test {c['test']['images']}), "
         f"{sum(c[s]['visible'] for s in layout.SPLITS)} visible keypoints, {dt:.1f} s "
-        f"({(len(records) - n_done) / max(dt, 1e-9):.2f} img/s with {workers} workers)",
+        f"({(len(records) - n_done) / max(dt, 1e-9):.2f} img/s with {runner.label})",
         file=sys.stderr,
     )
     return final
+
+
+def _remove_stray_temp_files(staging: Path) -> None:
+    """Remove half-written files of workers that were killed mid-write (a retried shard rewrites them)."""
+    for p in staging.rglob(".*.tmp"):
+        p.unlink(missing_ok=True)
 
 
 def _counts(plan: Plan, records: dict[str, FrameRecord]) -> dict:

@@ -19,7 +19,25 @@ def _dataset_path(p: str) -> Path:
 def run_build(args: argparse.Namespace) -> int:
     from rebar_data.dataset.build import build_dataset
 
-    out = build_dataset(args.config, args.out, workers=args.workers, force=args.force, resume=args.resume)
+    if args.backend == "ray":
+        from rebar_data.dataset.ray_backend import BackendError, build_dataset_ray
+
+        try:
+            out = build_dataset_ray(
+                args.config,
+                args.out,
+                address=args.address,
+                actors=args.workers,
+                force=args.force,
+                resume=args.resume,
+            )
+        except BackendError as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 1
+    else:
+        if args.address:
+            raise ConfigError(f"--address {args.address} is for the Ray backend; accepted: --backend ray")
+        out = build_dataset(args.config, args.out, workers=args.workers, force=args.force, resume=args.resume)
     print(out)
     return 0
 
@@ -62,9 +80,23 @@ def register(sub: argparse._SubParsersAction) -> None:
     b = dsub.add_parser("build", help="render and label a dataset; prints its folder last")
     b.add_argument("config", help="pipeline YAML, such as pipelines/paper-tunnel.yaml")
     b.add_argument("--out", required=True, help="root folder; the dataset goes to OUT/<name>/v<version>")
-    b.add_argument("--workers", type=int, default=None, help="worker processes (default: all cores)")
+    b.add_argument(
+        "--workers", type=int, default=None, help="worker processes or Ray actors (default: all cores)"
+    )
     b.add_argument("--force", action="store_true", help="rebuild a version that exists (replaced at the end)")
     b.add_argument("--resume", action="store_true", help="continue an interrupted build of the same config")
+    b.add_argument(
+        "--backend",
+        choices=["local", "ray"],
+        default="local",
+        help="local: a process pool on this machine; ray: actors on a Ray cluster (pip install -e '.[ray]')",
+    )
+    b.add_argument(
+        "--address",
+        default=None,
+        help="Ray cluster to join (from `ray start --head`, or auto); default: RAY_ADDRESS, else a local "
+        "cluster. --out must be on a filesystem every node shares",
+    )
     b.set_defaults(func=run_build)
     v = dsub.add_parser("validate", help="check every file against schemas/ and the manifest")
     v.add_argument("path")

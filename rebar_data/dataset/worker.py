@@ -98,6 +98,9 @@ _WORKER: FrameWorker | None = None
 def init_process(cfg: PipelineConfig, staging: Path, rm: RebarMesh | None) -> None:
     global _WORKER
     os.environ.setdefault("EGL_PLATFORM", "surfaceless")
+    # one rasteriser thread per worker process: the workers already use every core, and Mesa's llvmpipe
+    # would otherwise start a thread per core in each of them
+    os.environ.setdefault("LP_NUM_THREADS", "1")
     _WORKER = FrameWorker(cfg, staging, rm)
 
 

@@ -40,7 +40,7 @@ from rebar_data.scene.textures import TextureCache, ground_maps, rebar_fields, r
 __all__ = ["Frame", "RenderConfig", "Renderer"]
 
 NOTHING_ID = -1
-NEAR_M, FAR_M = 0.05, 30.0  # clipping planes: cameras work at 0.2-2 m; the ground reaches 20 m
+NEAR_M, FAR_M = 0.05, 10.0  # clipping planes: cameras work at 0.3-1 m and see the ground within 7 m
 
 
 @dataclass

@@ -180,7 +180,7 @@ class SunConfig(Strict):
     azimuth_deg: Range = (0.0, 360.0)
     elevation_deg: Range = (20.0, 85.0)
     illuminance_lux: PositiveRange = (20_000.0, 100_000.0)
-    temperature_k: Annotated[tuple[float, float], AfterValidator(_ordered)] = (4500.0, 6500.0)
+    temperature_k: PositiveRange = (4500.0, 6500.0)
 
     @field_validator("elevation_deg")
     @classmethod
@@ -204,7 +204,7 @@ class LampConfig(Strict):
     azimuth_deg: Range = (0.0, 360.0)
     elevation_deg: Range = (25.0, 85.0)
     illuminance_lux: PositiveRange = (5_000.0, 40_000.0)
-    temperature_k: Annotated[tuple[float, float], AfterValidator(_ordered)] = (2700.0, 6500.0)
+    temperature_k: PositiveRange = (2700.0, 6500.0)
     spot_cone_deg: Annotated[tuple[float, float], AfterValidator(_ordered)] = (40.0, 90.0)
     area_size_m: PositiveRange = (0.3, 1.2)
     area_grid: Annotated[int, Field(ge=1, le=4)] = 1
@@ -245,7 +245,12 @@ class ShadowConfig(Strict):
 
 
 class LightingConfig(Strict):
-    """The lighting kit. The default is the paper's three light sources (a sun and two lamps) plus ambient."""
+    """The lighting kit. The default is the paper's three light sources (a sun and two lamps) plus ambient.
+
+    ``exposure_lux`` is the illuminance at the mat's centre the camera is exposed for: every light is scaled
+    by one factor so their estimated sum there is this (as auto-exposure would), which keeps the 8-bit
+    linear image the renderer reads back well within range. Only the lights' ratios change the look.
+    """
 
     sun: SunConfig = SunConfig()
     lamps: LampConfig = LampConfig()
