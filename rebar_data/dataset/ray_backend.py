@@ -51,6 +51,7 @@ class RenderActor:
 
     def __init__(self, cfg: PipelineConfig, staging: str, worker_cls: type[FrameWorker] = FrameWorker):
         os.environ.setdefault("EGL_PLATFORM", "surfaceless")
+        os.environ.setdefault("LP_NUM_THREADS", "1")  # one rasteriser thread: an actor has one CPU
         self.worker = worker_cls(cfg, Path(staging))
 
     def run(self, task: Task) -> tuple[str, list[FrameRecord]]:

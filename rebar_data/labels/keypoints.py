@@ -2,10 +2,12 @@
 
 Visibility follows COCO and Ultralytics: 0 when the crossing projects outside the image (or behind the
 camera); 2 when the first hit along the ray from the camera centre to the crossing is one of the
-crossing's own parts (either bar, or its tie wire) within ``near_diameters`` bar diameters of the
-crossing, or lies beyond the crossing (the ray slipped through the gap between two bars that do not
-quite touch: nothing is in front); 1 otherwise, when something else, or the crossing's own bar far from
-it (seen along its length), is hit first.
+crossing's own parts near the crossing (its tie wire, or either bar within ``near_diameters`` bar
+diameters of the crossing measured along that bar), or lies beyond the crossing (the ray slipped through
+the gap between two bars that do not quite touch: nothing is in front); 1 otherwise, when something
+else, or the crossing's own bar far from it (seen along its length), is hit first. Measuring "near"
+along the bar keeps a crossing seen at a grazing angle across its bars visible (the ray runs a long way
+through the top bar there) while one hidden behind its own bar, seen along it, is occluded.
 
 Each keypoint also gets a square detection box centred on it, so the same labels serve detection
 and pose training. Its side is ``box_bar_diameters`` times the larger projected bar diameter at the
@@ -68,6 +70,29 @@ class FrameLabels:
     hit_instance: np.ndarray  # what the ray test hit first (-1 nothing), for the audit
 
 
+def along_bar_distance(
+    rm: RebarMesh, parts: CrossingParts, crossing: int, instance: int, point: np.ndarray
+) -> float:
+    """How far ``point``, on part ``instance``, is from the crossing along that part.
+
+    0 for the crossing's tie wire, the arc-length distance between the point's and the crossing's
+    positions along the bar for either of its bars, and infinity for any other part.
+    """
+    own = parts.own[crossing]
+    if instance < 0 or instance not in own:
+        return float("inf")
+    if instance == own[2]:
+        return 0.0
+    c = rm.crossings
+    bar, closest = (
+        (c.bar_a[crossing], c.point_a[crossing])
+        if instance == own[0]
+        else (c.bar_b[crossing], c.point_b[crossing])
+    )
+    curve = rm.bars[bar].curve
+    return abs(curve.project(point) - curve.project(closest))
+
+
 def label_frame(
     rm: RebarMesh,
     parts: CrossingParts,
@@ -91,12 +116,19 @@ def label_frame(
         dirs = delta / dist[:, None]
         t_hit, inst = cast_rays(np.tile(origin, (len(idx), 1)), dirs)
         inst = np.asarray(inst, np.int32)
-        own = np.any(inst[:, None] == parts.own[idx], axis=1)
-        hit_point = origin + dirs * np.where(np.isfinite(t_hit), t_hit, 0.0)[:, None]
         hit = np.isfinite(t_hit)
-        near = np.linalg.norm(hit_point - pts[idx], axis=1) <= rule.near_diameters * parts.diameter_max_m[idx]
+        hit_point = origin + dirs * np.where(hit, t_hit, 0.0)[:, None]
+        near = np.array(
+            [
+                hit[j]
+                and along_bar_distance(rm, parts, int(c), int(inst[j]), hit_point[j])
+                <= rule.near_diameters * parts.diameter_max_m[c]
+                for j, c in enumerate(idx)
+            ],
+            bool,
+        )
         beyond = ~hit | (t_hit >= dist - BEYOND_TOLERANCE_M)
-        vis[idx] = np.where((own & near & hit) | beyond, 2, 1)
+        vis[idx] = np.where(near | beyond, 2, 1)
         hit_instance[idx] = inst
     f = (k.fx + k.fy) / 2.0
     with np.errstate(divide="ignore", invalid="ignore"):
