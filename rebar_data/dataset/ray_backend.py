@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import logging
 import os
+import socket
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -58,9 +59,6 @@ class RenderActor:
         trajectory_id, scene, samples = task
         return trajectory_id, self.worker.run(scene, samples)
 
-    def pid(self) -> int:
-        return os.getpid()
-
 
 class RayRunner:
     """Runs build shards on Ray actors (see the module docstring).
@@ -90,6 +88,15 @@ class RayRunner:
         self.worker_cls = worker_cls
         self.label = "Ray actors"
 
+    def check_address(self) -> None:
+        """One clear ConfigError when the cluster to join does not answer (checked before any work)."""
+        address = self.address or os.environ.get("RAY_ADDRESS", "")
+        if address and not _answers(address):
+            raise ConfigError(
+                f"--address {address}: no Ray cluster answers there; accepted: the HOST:PORT that "
+                "`ray start --head` printed, or auto on a node of a running cluster"
+            )
+
     def _connect(self, ray) -> bool:
         """Join or start a cluster; True when this call started it (and so must shut it down)."""
         if ray.is_initialized():
@@ -99,6 +106,7 @@ class RayRunner:
             kwargs.update(num_cpus=self.actors or os.cpu_count() or 1, include_dashboard=False)
         else:
             kwargs["address"] = self.address
+            self.check_address()
         try:
             ray.init(**kwargs)
         except ConnectionError as e:
@@ -131,6 +139,19 @@ class RayRunner:
                 ray.kill(actor)
             if started:
                 ray.shutdown()
+
+
+def _answers(address: str, timeout_s: float = 5.0) -> bool:
+    """Whether a HOST:PORT address accepts a connection (Ray itself waits minutes for a missing head).
+    Other forms (auto, ray://...) are left to Ray."""
+    host, sep, port = address.rpartition(":")
+    if not sep or "/" in address or not port.isdigit():
+        return True
+    try:
+        with socket.create_connection((host, int(port)), timeout=timeout_s):
+            return True
+    except OSError:
+        return False
 
 
 def _dispatch(ray, pool: list, tasks: list[Task]) -> Iterator[tuple[str, list[FrameRecord]]]:
@@ -185,11 +206,6 @@ def build_dataset_ray(
 ) -> Path:
     """``build_dataset`` with its shards run on a Ray cluster; the same dataset, byte for byte, in its labels."""
     import_ray()
-    return build_dataset(
-        config,
-        out_root,
-        workers=actors,
-        force=force,
-        resume=resume,
-        runner=RayRunner(address=address, actors=actors),
-    )
+    runner = RayRunner(address=address, actors=actors)
+    runner.check_address()
+    return build_dataset(config, out_root, workers=actors, force=force, resume=resume, runner=runner)

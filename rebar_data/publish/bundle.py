@@ -1,0 +1,233 @@
+"""``rebar dataset publish``: a release bundle that others can load, cite and check without this toolkit.
+
+The bundle holds the ready-to-train Parquet shards (Hugging Face layout, images embedded), the dataset
+card (``README.md``), Croissant metadata (``croissant.json``), the YOLO and COCO views, the full source
+tables, the build's ``meta/info.json``, the audit report and ``SHA256SUMS``. Only a dataset that
+validates and passes its audit is published. Like a build, the bundle is written to a staging folder
+and renamed into place, so an interrupted publish never leaves a folder that looks finished.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import hashlib
+import json
+import os
+import shutil
+from pathlib import Path
+
+import pyarrow.parquet as pq
+import yaml
+
+from rebar_data.config import ConfigError
+from rebar_data.dataset import layout
+from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
+from rebar_data.publish.card import LICENSES, citation, dataset_card, license_url
+from rebar_data.publish.croissant import croissant_metadata
+from rebar_data.publish.rows import write_shards
+
+CARD = "README.md"
+CROISSANT = "croissant.json"
+CHECKSUMS = "SHA256SUMS"
+VIEW_DIRS = ("images", "labels", "annotations", "tables")
+MAP_DIRS = ("depth", "instances")
+IMAGE_DIRS = ("images", "depth", "instances")  # hard-linked when possible
+AUDIT_FILES = (
+    "report.json",
+    "report.md",
+    "contact_sheet.png",
+    "keypoints_per_image.png",
+    "visibility.png",
+    "coverage.png",
+)
+
+
+def publication_date() -> str:
+    """Today (UTC), or the date of ``SOURCE_DATE_EPOCH`` when set, so a release can be made reproducibly."""
+    epoch = os.environ.get("SOURCE_DATE_EPOCH")
+    when = dt.datetime.fromtimestamp(int(epoch), dt.UTC) if epoch else dt.datetime.now(dt.UTC)
+    return when.date().isoformat()
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _copy(src: Path, dst: Path, *, link: bool = False) -> None:
+    """Copy a file; ``link`` hard-links it when on the same filesystem (for the bulky image files, which a
+    build writes once via a temporary name and never rewrites in place)."""
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    if link:
+        try:
+            os.link(src, dst)
+            return
+        except OSError:
+            pass
+    shutil.copy2(src, dst)
+
+
+def _copy_tree(src: Path, dst: Path, *, link: bool = False) -> None:
+    for p in sorted(src.rglob("*")):
+        if p.is_file():
+            _copy(p, dst / p.relative_to(src), link=link)
+
+
+def check_source(dataset: Path, *, allow_failed_audit: bool) -> tuple[DatasetInfo, dict]:
+    """The dataset's info and audit report; refuses a dataset that does not validate or fails its audit.
+
+    A dataset without an audit report is audited first (which writes its ``audit/`` folder).
+    """
+    from rebar_data.dataset.audit import audit_dataset
+    from rebar_data.dataset.validate import validate_dataset
+
+    try:
+        info = DatasetInfo.read(dataset)
+    except DatasetFormatError as e:
+        raise ConfigError(str(e)) from None
+    failures = validate_dataset(dataset)
+    if failures:
+        raise ConfigError(
+            f"{dataset} does not validate ({len(failures)} failures, first: {failures[0]}); accepted: a "
+            "dataset that passes `rebar dataset validate`"
+        )
+    report = dataset / layout.AUDIT_DIR / "report.json"
+    if not report.exists():
+        audit_dataset(dataset)
+    audit = json.loads(report.read_text())
+    if not audit.get("passed") and not allow_failed_audit:
+        failed = [c["name"] for c in audit.get("checks", []) if not c["passed"]]
+        raise ConfigError(
+            f"{dataset} fails its audit ({', '.join(failed)}); accepted: a dataset that passes "
+            "`rebar dataset audit`, or --allow-failed-audit to publish it with the failures in its card"
+        )
+    return info, audit
+
+
+def _write_data_yaml(src: Path, bundle: Path) -> None:
+    """Ultralytics' dataset file without ``path``: Ultralytics then takes the folder of data.yaml."""
+    data = yaml.safe_load((src / layout.DATA_YAML).read_text())
+    data.pop("path", None)
+    text = (
+        "# Ultralytics YOLO pose dataset. No `path`: Ultralytics resolves train/val/test against the folder of\n"
+        "# this file when it is given by absolute path.\n" + yaml.safe_dump(data, sort_keys=False)
+    )
+    (bundle / layout.DATA_YAML).write_text(text)
+
+
+def _single_files(bundle: Path) -> dict[str, dict]:
+    """The single files Croissant lists, with their hashes, sizes, formats and descriptions."""
+    listed = {
+        "tables/samples.parquet": (
+            "application/x-parquet",
+            "one row per image: camera, scene and randomization",
+        ),
+        "tables/keypoints.parquet": ("application/x-parquet", "one row per crossing per image"),
+        "meta/info.json": (
+            "application/json",
+            "the generator's record of the build: provenance, counts, conventions",
+        ),
+        layout.DATA_YAML: ("application/x-yaml", "Ultralytics YOLO pose dataset file"),
+        CARD: ("text/markdown", "the dataset card"),
+    }
+    for p in sorted((bundle / "annotations").glob("*.json")):
+        listed[f"annotations/{p.name}"] = ("application/json", f"COCO keypoints of the {p.stem} split")
+    return {
+        rel: {
+            "sha256": _sha256(bundle / rel),
+            "bytes": (bundle / rel).stat().st_size,
+            "encodingFormat": fmt,
+            "description": what,
+        }
+        for rel, (fmt, what) in listed.items()
+    }
+
+
+def _table_meanings() -> dict[str, dict[str, str]]:
+    from rebar_data.dataset.validate import field_list
+
+    return {t: {f["name"]: f["meaning"] for f in field_list(t)} for t in ("samples", "keypoints")}
+
+
+def write_checksums(bundle: Path) -> int:
+    """``SHA256SUMS`` in ``sha256sum`` format over every other file; returns how many it lists."""
+    files = sorted(p for p in bundle.rglob("*") if p.is_file() and p.name != CHECKSUMS)
+    lines = [f"{_sha256(p)}  {p.relative_to(bundle).as_posix()}\n" for p in files]
+    (bundle / CHECKSUMS).write_text("".join(lines))
+    return len(lines)
+
+
+def publish_dataset(
+    dataset: str | Path,
+    out: str | Path,
+    *,
+    license_id: str = "cc-by-4.0",
+    maps: bool = False,
+    force: bool = False,
+    allow_failed_audit: bool = False,
+) -> Path:
+    """Write the release bundle of ``dataset`` to ``out`` and return ``out``.
+
+    Args:
+        license_id: a Hugging Face license id (see ``card.LICENSES``).
+        maps: also ship the depth and instance maps (as PNG files).
+        force: replace ``out`` when it exists.
+        allow_failed_audit: publish a dataset whose audit failed (the card says so).
+    """
+    src = Path(dataset).resolve()
+    out = Path(out).resolve()
+    if license_id not in LICENSES:
+        raise ConfigError(f"--license {license_id}: unknown; accepted: {', '.join(LICENSES)}")
+    if out == src or src in out.parents or out in src.parents:
+        raise ConfigError(f"--out {out}: inside or around the dataset; accepted: a folder outside {src}")
+    if out.exists() and any(out.iterdir()) and not force:
+        raise ConfigError(
+            f"{out} already exists and is not empty; accepted: --force to replace it, or a new folder"
+        )
+    info, audit = check_source(src, allow_failed_audit=allow_failed_audit)
+
+    staging = out.parent / f".{out.name}.partial"
+    if staging.exists():
+        shutil.rmtree(staging)
+    staging.mkdir(parents=True)
+    samples = pq.read_table(src / layout.SAMPLES)
+    keypoints = pq.read_table(src / layout.KEYPOINTS)
+    shards = write_shards(src, staging, samples, keypoints)
+    for d in VIEW_DIRS + (MAP_DIRS if maps else ()):
+        if (src / d).is_dir():
+            _copy_tree(src / d, staging / d, link=d in IMAGE_DIRS)
+    _copy(src / layout.INFO, staging / layout.INFO)
+    _write_data_yaml(src, staging)
+    for name in AUDIT_FILES:  # copies: an audit rewrites its files in place
+        if (src / layout.AUDIT_DIR / name).exists():
+            _copy(src / layout.AUDIT_DIR / name, staging / layout.AUDIT_DIR / name)
+
+    date = publication_date()
+    splits = list(dict.fromkeys(s.split for s in shards))
+    (staging / CARD).write_text(
+        dataset_card(info, audit=audit, license_id=license_id, date_published=date, splits=splits, maps=maps)
+    )
+    n_images = samples.num_rows
+    croissant = croissant_metadata(
+        staging,
+        info,
+        description=(
+            f"{n_images} synthetic images of rebar with exact keypoints at the bar intersections "
+            f"(visibility, box and 3D point), generated by {info.generator.get('name')} "
+            f"{info.generator.get('version')} from a recorded config and seed. {info.description}".strip()
+        ),
+        license_url=license_url(license_id),
+        cite_as=citation(info, date[:4]),
+        date_published=date,
+        files=_single_files(staging),
+        meanings=_table_meanings(),
+    )
+    (staging / CROISSANT).write_text(json.dumps(croissant, indent=2) + "\n")
+    write_checksums(staging)
+    if out.exists():
+        shutil.rmtree(out)
+    staging.rename(out)
+    return out
