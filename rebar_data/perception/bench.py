@@ -4,6 +4,7 @@ YOLOv8n-pose-shaped network on the same runtime."""
 
 from __future__ import annotations
 
+import os
 import tempfile
 import time
 import warnings
@@ -70,7 +71,11 @@ def run(repeats: int = 100) -> list[str]:
     torch.set_num_threads(THREADS)
     try:
         rgb = _frame()
-        lines = []
+        load = os.getloadavg()
+        lines = [
+            f"perception: load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} (1 / 5 / 15 min) on "
+            f"{os.cpu_count()} cores when the timing started"
+        ]
         if SHIPPED_MODEL.exists():
             det, what = Detector.load(None, threads=THREADS), "shipped detector"
         else:

@@ -50,7 +50,9 @@ class KeypointNet(nn.Module):
 
     The rays enter the decoder at stride 8 as a learned embedding added to the features, where the
     blocks that follow can combine them with what the encoder saw of the mat's orientation; feeding them
-    with the pixels instead would cost the most expensive layer (the stem) two more input channels.
+    with the pixels instead would cost the most expensive layer (the stem) two more input channels. With
+    ``global_context`` the stride-16 features averaged over the whole image give a per-channel scale and
+    shift of the stride-8 features (FiLM), so every crossing's head knows the frame's perspective.
 
     Channel 0 is the heatmap logit; channels 1 and 2 are the offset (x, y) of the crossing from the
     cell's centre, in cells.
@@ -81,6 +83,14 @@ class KeypointNet(nn.Module):
         nn.init.constant_(self.head[-1].bias, 0.0)
         with torch.no_grad():
             self.head[-1].bias[0] = -4.6  # start near p = 0.01, as CenterNet does, so early losses are sane
+        self.context = (
+            nn.Sequential(nn.Linear(c16, c16), nn.ReLU(inplace=True), nn.Linear(c16, 2 * c8))
+            if self.cfg.global_context
+            else None
+        )
+        if self.context is not None:  # start as the identity: scale 1, shift 0
+            nn.init.zeros_(self.context[-1].weight)
+            nn.init.zeros_(self.context[-1].bias)
 
     def forward(self, image: torch.Tensor, rays: torch.Tensor | None = None) -> torch.Tensor:
         x = self.stem(image * (1.0 / 64.0) - 2.0)
@@ -94,6 +104,9 @@ class KeypointNet(nn.Module):
             f8 = f8 + self.ray_embed(
                 F.avg_pool2d(rays, 2)
             )  # the mean of 2x2 cell centres is the stride-8 centre
+        if self.context is not None:
+            scale, shift = self.context(f16.mean(dim=(2, 3))).unsqueeze(-1).unsqueeze(-1).chunk(2, dim=1)
+            f8 = f8 * (1.0 + scale) + shift
         f8 = self.dec8(f8)
         f4 = self.dec4(f4 + F.interpolate(self.lat8(f8), scale_factor=2.0, mode="nearest"))
         return self.head(f4)
