@@ -29,6 +29,10 @@ REPROJECTION_MAX_PX = 1e-3
 DEPTH_MAX_M = 1e-6
 FORMAT_MAX_PX = 1e-6
 GEOMETRY_MAX_M = 1e-9
+SIGHT_MAX_M = (
+    1e-3  # sight points are on tangent lines: an arc departs by s^2 / 2R (0.13 mm at 30 mm, R 3.2 m)
+)
+SIGHT_SAMPLES = 2000  # sight points checked per dataset
 VISIBLE_ON_OWN_MIN = 0.99  # share of visible keypoints whose pixel (3x3) shows one of their parts
 OCCLUDED_OFF_OWN_MIN = 0.95  # share of occluded keypoints whose pixel shows something else
 INSTANCE_OFFSET = 3
@@ -143,7 +147,8 @@ def check_formats(ds: Path, S: pd.DataFrame, K: pd.DataFrame) -> Check:
 
 
 def check_geometry(info: DatasetInfo, K: pd.DataFrame):
-    """Rebuild the mesh from the recorded config; the table's 3D points must be its crossings."""
+    """Rebuild the mesh from the recorded config; the table's crossing points must be its crossings, and
+    every sight point must lie on one of its crossing's two bar centerlines."""
     from rebar_data.config import MeshConfig
     from rebar_data.geometry.build import build_rebar_mesh
 
@@ -152,19 +157,42 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame):
     rm = build_rebar_mesh(MeshConfig.model_validate(mesh_keys))
     first = K[K.image_id == K.image_id.iloc[0]].sort_values("crossing_id")
     ok_count = len(first) == len(rm.crossings)
-    err = (
-        float(np.abs(first[["x_world", "y_world", "z_world"]].to_numpy() - rm.crossings.point).max())
-        if ok_count
-        else float("inf")
-    )
+    err = sight_err = float("inf")
+    if ok_count:
+        err = float(
+            np.abs(first[["x_crossing", "y_crossing", "z_crossing"]].to_numpy() - rm.crossings.point).max()
+        )
+        # every sight point is on one of its crossing's two centerlines (their tangent lines: an arc departs
+        # from its tangent by micrometres over the few millimetres a sight point moves)
+        inview = K[np.isfinite(K.u)]
+        step = max(1, len(inview) // SIGHT_SAMPLES)
+        sight = inview[["x_world", "y_world", "z_world"]].to_numpy(float)[::step]
+        cid = inview.crossing_id.to_numpy()[::step]
+        c = rm.crossings
+        sight_err = max(
+            (
+                min(
+                    _centerline_distance(q, rm.bars[c.bar_a[i]]), _centerline_distance(q, rm.bars[c.bar_b[i]])
+                )
+                for q, i in zip(sight, cid, strict=True)
+            ),
+            default=0.0,
+        )
     check = Check(
         "geometry_m",
-        ok_count and err <= GEOMETRY_MAX_M,
-        err,
-        f"<= {GEOMETRY_MAX_M} m",
-        f"{len(rm.crossings)} crossings in the rebuilt mesh, {len(first)} rows per image",
+        ok_count and err <= GEOMETRY_MAX_M and sight_err <= SIGHT_MAX_M,
+        max(err, sight_err),
+        f"crossings <= {GEOMETRY_MAX_M} m, sight points <= {SIGHT_MAX_M} m off a centerline",
+        f"{len(rm.crossings)} crossings in the rebuilt mesh, {len(first)} rows per image; crossing points "
+        f"off by {err:.1e} m, sight points {sight_err:.1e} m from their bar's centerline",
     )
     return check, rm
+
+
+def _centerline_distance(q: np.ndarray, bar) -> float:
+    """Distance of ``q`` from ``bar``'s centerline (exact projection onto the line or arc)."""
+    curve = bar.curve
+    return float(np.linalg.norm(curve.point(curve.project(q)) - q))
 
 
 class _PixelAlong:
@@ -182,7 +210,7 @@ class _PixelAlong:
             k,
         )
 
-    def __call__(self, crossing: int, y: int, x: int) -> float:
+    def __call__(self, crossing: int, y: int, x: int, reference: np.ndarray) -> float:
         from rebar_data.labels.keypoints import along_bar_distance
 
         z = self.depth[y, x]
@@ -191,14 +219,15 @@ class _PixelAlong:
         fx, fy, cx, cy = self.k
         p_cam = np.array([(x + 0.5 - cx) / fx * z, (y + 0.5 - cy) / fy * z, z])
         point = self.T[:3, :3] @ p_cam + self.T[:3, 3]
-        return along_bar_distance(self.rm, self.parts, crossing, int(self.inst[y, x]), point)
+        return along_bar_distance(self.rm, self.parts, crossing, int(self.inst[y, x]), point, reference)
 
 
 def check_instances(ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm) -> list[Check]:
     """The rendered passes, independently of the labels' ray cast, must agree with each keypoint's
     visibility: a visible keypoint shows one of its own parts near the crossing in the 3x3 pixels around
     it; an occluded one shows something else, or its own bar far from the crossing. "Near" is measured
-    along the bar, as the labels do, from the pixel's surface point (depth pass, back-projected)."""
+    along the bar from the keypoint's sight point, as the labels do, to the pixel's surface point (depth
+    pass, back-projected)."""
     from rebar_data.labels.keypoints import CrossingParts, LabelRule
 
     parts = CrossingParts.of(rm)
@@ -218,15 +247,16 @@ def check_instances(ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm) -> list[Chec
 
         for kp in K[(K.image_id == row.image_id) & (K.visibility > 0)].itertuples():
             x, y, c = int(np.floor(kp.u)), int(np.floor(kp.v)), kp.crossing_id
+            sight = np.array([kp.x_world, kp.y_world, kp.z_world])
             if kp.visibility == 2:
                 window = [
                     (yy, xx)
                     for yy in range(max(y - 1, 0), min(y + 2, h))
                     for xx in range(max(x - 1, 0), min(x + 2, w))
                 ]
-                agree = any(along(c, yy, xx) <= near_m[c] + slack_m[c] for yy, xx in window)
+                agree = any(along(c, yy, xx, sight) <= near_m[c] + slack_m[c] for yy, xx in window)
             else:
-                agree = along(c, y, x) > near_m[c] - slack_m[c]
+                agree = along(c, y, x, sight) > near_m[c] - slack_m[c]
             hits[kp.visibility][0] += agree
             hits[kp.visibility][1] += 1
     out = []

@@ -11,7 +11,7 @@ import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-SCHEMA_VERSION = "1.0.0"
+SCHEMA_VERSION = "2.0.0"
 SPLITS = ("train", "val", "test")
 KEYPOINT_NAMES = ["intersection"]
 CATEGORY = "rebar_crossing"

@@ -272,8 +272,8 @@ def dataset_card(
         "- One rebar mesh per dataset (the configured element with its noise); the camera intrinsics are fixed.",
         "- Visibility is geometric: a crossing behind a thin wire counts as occluded; one under heavy blur or "
         "in deep shadow still counts as visible.",
-        "- Keypoints are 3D crossing points of the bar centerlines, inside the steel: the visible top of a "
-        "crossing is about one bar diameter nearer the camera, which projects a little apart at oblique views.",
+        "- Keypoints are where the image shows the bars crossing (the projected centerlines' crossing); the "
+        "crossing's fixed 3D point, inside the steel, is in x_crossing, y_crossing, z_crossing of the tables.",
         "- YOLO and COCO hold visible crossings only; the Parquet rows and tables hold occluded ones as well.",
         "- Images are duplicated in this bundle (embedded in the Parquet rows and as PNG files), so that each "
         "tool reads its own format without conversion.",

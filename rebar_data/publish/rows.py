@@ -37,10 +37,22 @@ KEYPOINT_FIELDS = [
         "COCO box [x, y, width, height] in pixels, the square clipped to the image",
     ),
     ("box_size_px", pa.float64(), "side of the unclipped square box; box_size_px ** 2 is the OKS area"),
-    ("depth_m", pa.float64(), "camera-frame z of the crossing in metres"),
-    ("x_world", pa.float64(), "crossing point in the world frame, metres"),
-    ("y_world", pa.float64(), "crossing point in the world frame, metres"),
-    ("z_world", pa.float64(), "crossing point in the world frame, metres"),
+    ("depth_m", pa.float64(), "camera-frame z of the sight point in metres"),
+    (
+        "x_world",
+        pa.float64(),
+        "sight point the keypoint projects from (on the nearer bar), world frame, metres",
+    ),
+    (
+        "y_world",
+        pa.float64(),
+        "sight point the keypoint projects from (on the nearer bar), world frame, metres",
+    ),
+    (
+        "z_world",
+        pa.float64(),
+        "sight point the keypoint projects from (on the nearer bar), world frame, metres",
+    ),
     ("tie_wire", pa.bool_(), "the crossing has a tie-wire loop"),
 ]
 KEYPOINT_TYPE = pa.struct([(n, t) for n, t, _ in KEYPOINT_FIELDS])

@@ -123,3 +123,73 @@ def test_grazing_view_finds_crossings_hidden_behind_nearer_bars(slab):
     assert np.all(lab.hit_instance[hidden] >= 0)
     seen = lab.visibility == 2
     assert np.all(np.any(lab.hit_instance[seen][:, None] == parts.own[seen], axis=1))
+
+
+def _oblique(tilt_deg: float) -> np.ndarray:
+    """Camera 0.6 m from the slab's centre, tilted ``tilt_deg`` from the normal about the world y axis."""
+    t = np.radians(tilt_deg)
+    fwd = np.array([np.sin(t), 0.0, -np.cos(t)])
+    right = np.array([0.0, -1.0, 0.0])
+    T = np.eye(4)
+    T[:3, :3] = np.stack([right, np.cross(fwd, right), fwd], axis=1)
+    T[:3, 3] = -0.6 * fwd
+    return T
+
+
+def _centerlines_crossing_px(rm, parts, i: int, T: np.ndarray) -> np.ndarray:
+    """Where the two projected centerlines of crossing ``i`` meet in the image (homogeneous lines)."""
+    k = K()
+    lines = []
+    for p, t in (
+        (rm.crossings.point_a[i], parts.tangent_a[i]),
+        (rm.crossings.point_b[i], parts.tangent_b[i]),
+    ):
+        ends = project(
+            np.stack([p - 0.02 * t, p + 0.02 * t]),
+            T,
+            fx=k.fx,
+            fy=k.fy,
+            cx=k.cx,
+            cy=k.cy,
+            width=k.width,
+            height=k.height,
+        )
+        lines.append(np.cross(np.r_[ends.u[0], ends.v[0], 1.0], np.r_[ends.u[1], ends.v[1], 1.0]))
+    x = np.cross(*lines)
+    return x[:2] / x[2]
+
+
+def test_labels_sit_where_the_projected_centerlines_cross(slab):
+    parts = CrossingParts.of(slab)
+    T = _oblique(35.0)
+    lab = label_frame(slab, parts, T, K(), _caster(slab))
+    seen = np.flatnonzero(lab.visibility == 2)
+    assert len(seen) > 20
+    mid = project(slab.crossings.point, T, fx=525.0, fy=525.0, cx=320.0, cy=240.0, width=640, height=480)
+    shift = []
+    for i in seen:
+        np.testing.assert_allclose(
+            [lab.u[i], lab.v[i]], _centerlines_crossing_px(slab, parts, i, T), atol=1e-6
+        )
+        shift.append(np.hypot(lab.u[i] - mid.u[i], lab.v[i] - mid.v[i]))
+    # the hidden midpoint projects px away at 35 degrees (bar radius * sin(angle) * f / z)
+    assert np.median(shift) > 1.0
+    # the sight point is on the nearer bar's centerline: the bar on top, seen from above
+    c = slab.crossings
+    for i in seen[:10]:
+        q = np.array([lab.point_world[i]])
+        on_a = abs(np.cross(q[0] - c.point_a[i], parts.tangent_a[i])).max()
+        on_b = abs(np.cross(q[0] - c.point_b[i], parts.tangent_b[i])).max()
+        nearer_a = c.point_a[i] @ c.normal[i] > c.point_b[i] @ c.normal[i]
+        assert (on_a if nearer_a else on_b) < 1e-9
+
+
+def test_seen_along_the_normal_the_label_is_the_crossing(slab):
+    parts = CrossingParts.of(slab)
+    c = slab.crossings
+    i = int(np.argmin(np.hypot(c.point[:, 0], c.point[:, 1])))
+    T = _look_down(0.6, *c.point[i, :2])
+    lab = label_frame(slab, parts, T, K(), _caster(slab))
+    mid = project(c.point[i : i + 1], T, fx=525.0, fy=525.0, cx=320.0, cy=240.0, width=640, height=480)
+    assert lab.visibility[i] == 2
+    assert np.hypot(lab.u[i] - mid.u[0], lab.v[i] - mid.v[0]) < 1e-6
