@@ -83,8 +83,7 @@ def crop_rays(
     A similarity crop (scale s, rotation, flips) of a pinhole image is the image of a pinhole camera with
     focal length s f, turned (or mirrored) about its optical axis, with the principal point where the map
     puts the source's. Its rays are the source rays of the same points turned and flipped with the pixels,
-    so the parallax between a crossing's 3D label and its visible centre points the same way relative to
-    the crop's rays as it does in a real frame relative to the frame's rays.
+    so what the rays say about the perspective at a cell holds in the crop as it does in a real frame.
     """
     fx, fy, cx, cy = camera
     lin, t = crop_from_image[:, :2], crop_from_image[:, 2]

@@ -51,6 +51,7 @@ def write_card(
     latency_ms: float,
     extra_results: dict[str, dict] | None = None,
     load_average: float | None = None,
+    score_bias: float = 0.0,
 ) -> Path:
     """The model card: what the model is, what it was trained on, how it scores and how to reproduce it."""
     res = json.loads((run_dir / "results.json").read_text())
@@ -75,11 +76,11 @@ def write_card(
         "uvs = Detector.load().detect(rgb, camera=(fx, fy, cx, cy))   # (N, 3): u, v, score >= 0.5",
         "```",
         "",
-        "The label it learned is the projection of the 3D crossing point (the midpoint of the two bar axes,",
-        "inside the metal), not the point where the bar silhouettes cross; the two differ by up to a few",
-        "pixels in oblique and off-centre views. The network gets each output cell's viewing ray as a second",
-        "input to learn that parallax, so pass the camera's intrinsics (without them it assumes the principal",
-        "point at the centre and the training camera's focal length for the image's width).",
+        "The label it learned is where the image shows the bars crossing: the pixel where the two projected",
+        "bar centerlines cross (the dataset's sight point; the crossing's 3D midpoint, inside the steel, lies",
+        "a bar radius deeper). The network gets each output cell's viewing ray as a second input, so pass the",
+        "camera's intrinsics (without them it assumes the principal point at the centre and the training",
+        "camera's focal length for the image's width).",
         "",
         "## Model",
         f"- File: `{model.name}` (ONNX, {model.stat().st_size / 1024:.0f} KiB), "
@@ -87,7 +88,8 @@ def write_card(
         f"- Latency: {latency_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
         f"  (median, measured when shipped{load}; `rebar bench --only detector` measures it again beside a",
         "  YOLOv8n-pose-shaped network).",
-        "- Operating threshold: score 0.5.",
+        f"- Operating threshold: score 0.5, placed at the best F1 on the val split (a logit shift of {score_bias:+.2f}",
+        "  stored in the file; it changes no ranking, so AP and recall at a precision do not depend on it).",
         "",
         "## Training",
         f"- Data: `{ds.get('name')}` v{ds.get('version')}, its train split (early stopping and the choice of",
@@ -231,5 +233,6 @@ def ship(
         latency_ms=latency,
         extra_results=rows,
         load_average=load,
+        score_bias=detector.score_bias,
     )
     return dst

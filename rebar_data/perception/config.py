@@ -18,16 +18,11 @@ class ModelConfig(Strict):
     ``channels`` are the widths at strides 2, 4, 8 and 16; ``blocks`` the depthwise-separable blocks at
     strides 4, 8 and 16. The heatmap comes out at stride 4 with a sub-cell offset per cell.
 
-    ``ray_channels`` gives the network the viewing ray of each output cell ((u - cx) / fx, (v - cy) / fy):
-    the labelled crossing is the 3D midpoint between the two bar axes, which sits under the top bar, so
-    where it appears relative to the visible crossing depends on the viewing direction (parallax of
-    half a bar diameter); without the ray a convolutional network cannot tell where in the frame it is.
-
-    ``global_context`` scales and shifts the stride-8 features by a vector pooled from the whole image.
-    The parallax also depends on the mat's normal in the camera frame (the camera's tilt), which no
-    crossing shows locally: it is one vector for a flat mat, read from the perspective of the whole grid
-    (how the bar spacing shrinks across the frame), far beyond a crossing's receptive field. On the
-    paper-tunnel data the label lies a median 3.7 px from where the projected bar axes cross.
+    ``ray_channels`` gives the network the viewing ray of each output cell ((u - cx) / fx, (v - cy) / fy),
+    so it knows where in the frame a cell is (lens effects, the perspective of the bars there); a
+    convolutional network cannot tell otherwise. ``global_context`` scales and shifts the stride-8
+    features by a vector pooled from the whole image (the frame's exposure, blur and how large the
+    grid appears). Both cost well under a millisecond a frame.
     """
 
     channels: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 32, 64, 128)
@@ -40,11 +35,10 @@ class AugmentConfig(Strict):
     """Training-time augmentation. Geometric ones move the keypoints with the pixels, exactly.
 
     Mosaic (four images in the quadrants of one crop) is on for the first ``mosaic_epochs`` epochs and
-    then off, as in the paper's Ultralytics training. It is off by default: a mosaic shows four frames'
-    perspectives in one crop, while the network reads one perspective per image (``global_context``).
+    then off, as in the paper's Ultralytics training.
     """
 
-    mosaic_epochs: NonNegativeInt = 0
+    mosaic_epochs: NonNegativeInt = 3
     mosaic_probability: Fraction = 0.5
     scale: tuple[Positive, Positive] = (0.7, 1.4)
     rotation_deg: NonNegative = 180.0

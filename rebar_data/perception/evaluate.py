@@ -12,10 +12,12 @@ from tqdm import tqdm
 
 from rebar_data.perception.data import SPLITS, Sample, load_split, read_image, read_info
 from rebar_data.perception.infer import Detector
-from rebar_data.perception.metrics import DEFAULT_OKS_SIGMA, Truth, summary
+from rebar_data.perception.metrics import DEFAULT_OKS_SIGMA, Truth, pixel_metrics, summary
 
 LOW_THRESHOLD = 0.05  # predictions kept for scoring: enough of the tail for AP and precision-recall curves
 RANDOM_SPLIT_FRACTION = 0.2  # the paper's frame-level 80:20 split
+CALIBRATION_FLOOR = 0.01  # lowest raw score looked at when choosing the operating point
+MAX_SCORE_BIAS = 4.0
 
 
 def truth_of(sample: Sample, *, ignore_occluded: bool = False) -> Truth:
@@ -113,3 +115,23 @@ def score_dataset(
     samples = load_splits(root, splits)
     sigma = float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))
     return score(samples, predict(detector, samples, progress=progress), sigma=sigma)
+
+
+def calibrate_score_bias(samples: Sequence[Sample], predictions: Sequence[np.ndarray]) -> float:
+    """The logit shift that puts score 0.5 at the best operating point on these samples.
+
+    The operating point is the raw score that maximises F1 (precision and recall with the 5 px gate)
+    along the score-sorted predictions; shifting every logit by the returned bias maps it to 0.5, so a
+    caller's default threshold is that point. Ranking, AP and recall at any precision are unchanged.
+    Choose it on the validation split, never on the split that is reported.
+    """
+    px = pixel_metrics([truth_of(s) for s in samples], predictions, threshold=0.5)
+    if not len(px.curve_score) or px.n_gt == 0:
+        return 0.0
+    p, r = px.curve_precision, px.curve_recall
+    f1 = np.where(p + r > 0, 2 * p * r / np.maximum(p + r, 1e-12), 0.0)
+    best = int(np.argmax(f1))
+    s = np.clip(px.curve_score, 1e-6, 1 - 1e-6)
+    logit = np.log(s / (1 - s))
+    cut = logit[best] if best + 1 == len(logit) else 0.5 * (logit[best] + logit[best + 1])
+    return float(np.clip(-cut, -MAX_SCORE_BIAS, MAX_SCORE_BIAS))

@@ -56,6 +56,8 @@ class Detector:
         path: The file it was loaded from (None when built from a network in memory).
         meta: What the model file says about itself (training data, settings, scores).
         backend: ``onnxruntime`` or ``torch``.
+        score_bias: Logit shift applied to the heatmap before scores are read (``meta["score_bias"]``,
+            chosen on the validation split so that score 0.5 is the operating point; 0 when absent).
     """
 
     def __init__(
@@ -68,6 +70,7 @@ class Detector:
     ):
         self._run = run
         self.meta = meta
+        self.score_bias = float(meta.get("score_bias", 0.0))
         self.backend = backend
         self.path = path
         self._rays: dict[tuple, np.ndarray] = {}
@@ -183,7 +186,7 @@ class Detector:
         if not 0.0 < threshold < 1.0:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
         out = self.raw(rgb, camera=camera)
-        det = decode(out[0], out[1:], threshold=threshold, max_detections=max_detections)
+        det = decode(out[0] + self.score_bias, out[1:], threshold=threshold, max_detections=max_detections)
         h, w = rgb.shape[:2]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
         return det[inside]

@@ -49,7 +49,7 @@ class KeypointNet(nn.Module):
     viewing rays of the output cells' centres (N, 2, H/4, W/4) -> logits (N, 3, H/4, W/4).
 
     The rays enter the decoder at stride 8 as a learned embedding added to the features, where the
-    blocks that follow can combine them with what the encoder saw of the mat's orientation; feeding them
+    blocks that follow can combine them with what the encoder saw of the bars' perspective; feeding them
     with the pixels instead would cost the most expensive layer (the stem) two more input channels. With
     ``global_context`` the stride-16 features averaged over the whole image give a per-channel scale and
     shift of the stride-8 features (FiLM), so every crossing's head knows the frame's perspective.

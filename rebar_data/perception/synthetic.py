@@ -291,6 +291,7 @@ def draw_frame(
             )
         mask = layer.max(axis=2) > 0
         img[mask] = layer[mask]
+    crossings_world = _sight_points(crossings_world, d, world_from_camera[:3, 3])
     uv, z = _project(crossings_world, world_from_camera, f, cx, cy)
     inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
     occluded = np.zeros(len(uv), bool)
@@ -319,6 +320,19 @@ def draw_frame(
             }
         )
     return img, records
+
+
+def _sight_points(crossings_world: np.ndarray, d: float, camera_centre: np.ndarray) -> np.ndarray:
+    """Where each crossing is seen, as the dataset labels it (``labels.keypoints.sight_points``): on the
+    top bar's axis (along x, d/2 above the crossing), where the camera ray that meets the bottom bar's
+    axis (along y, d/2 below) passes."""
+    c = np.asarray(camera_centre, float)
+    top = crossings_world + [0.0, 0.0, d / 2]
+    bottom = crossings_world - [0.0, 0.0, d / 2]
+    t_top, t_bottom = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
+    n = np.cross(t_bottom, bottom - c)  # the plane through the camera and the bottom bar's axis
+    s = np.einsum("ij,ij->i", n, c - top) / (n @ t_top)
+    return top + s[:, None] * t_top
 
 
 def _draw_shadow(

@@ -34,7 +34,13 @@ from rebar_data.config import ConfigError, format_validation_error
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.data import Sample, check_dataset, load_split, read_image, read_info
-from rebar_data.perception.evaluate import predict, score, truth_of
+from rebar_data.perception.evaluate import (
+    CALIBRATION_FLOOR,
+    calibrate_score_bias,
+    predict,
+    score,
+    truth_of,
+)
 from rebar_data.perception.export import export_onnx, load_checkpoint, save_checkpoint
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.loss import detection_loss
@@ -496,6 +502,13 @@ def _finish(
     from rebar_data.perception import plots
 
     net, meta, _ = load_checkpoint(out / "best.pt")
+    meta = {k: v for k, v in meta.items() if k not in ("score_bias", "results")}
+    if val_samples:  # the operating point, chosen on val with the raw scores
+        raw = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)
+        meta["score_bias"] = calibrate_score_bias(
+            val_samples, predict(raw, val_samples, threshold=CALIBRATION_FLOOR, progress=progress)
+        )
+        _log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)", progress)
     results: dict[str, dict[str, float]] = {}
     detector = None
     curves = {}

@@ -184,3 +184,18 @@ def test_pixel_metrics_agree_with_a_plain_reimplementation_of_the_scorer():
     assert px.pck[2.0] == pytest.approx((e <= 2).sum() / n_gt)
     assert px.median_px == pytest.approx(np.median(e))
     assert px.recall_at_p99 == pytest.approx(rec[prec >= 0.99].max() if (prec >= 0.99).any() else 0.0)
+
+
+def test_score_bias_puts_score_one_half_at_the_best_f1():
+    from rebar_data.perception.data import Sample
+    from rebar_data.perception.evaluate import calibrate_score_bias
+
+    gt = np.array([[10.0, 10.0], [50.0, 10.0], [90.0, 10.0], [130.0, 10.0]])
+    sample = Sample("a", None, 200, 40, gt, np.full(4, 30.0))
+    # four hits scored 0.3-0.2, then two misses lower: the best F1 keeps the four hits, cut below 0.2
+    pred = np.array(
+        [[10.5, 10, 0.3], [50, 10.5, 0.28], [90, 10, 0.25], [130, 10, 0.2], [170, 30, 0.1], [5, 35, 0.05]]
+    )
+    b = calibrate_score_bias([sample], [pred])
+    scores = 1 / (1 + np.exp(-(np.log(pred[:, 2] / (1 - pred[:, 2])) + b)))
+    assert (scores[:4] >= 0.5).all() and (scores[4:] < 0.5).all()
