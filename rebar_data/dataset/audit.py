@@ -148,7 +148,8 @@ def check_formats(ds: Path, S: pd.DataFrame, K: pd.DataFrame) -> Check:
 
 def check_geometry(info: DatasetInfo, K: pd.DataFrame):
     """Rebuild the mesh from the recorded config; the table's crossing points must be its crossings, and
-    every sight point must lie on one of its crossing's two bar centerlines."""
+    every sight point must lie on one of its crossing's two bar centerlines (or be the crossing's point,
+    in a grazing view)."""
     from rebar_data.config import MeshConfig
     from rebar_data.geometry.build import build_rebar_mesh
 
@@ -172,7 +173,9 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame):
         sight_err = max(
             (
                 min(
-                    _centerline_distance(q, rm.bars[c.bar_a[i]]), _centerline_distance(q, rm.bars[c.bar_b[i]])
+                    _centerline_distance(q, rm.bars[c.bar_a[i]]),
+                    _centerline_distance(q, rm.bars[c.bar_b[i]]),
+                    float(np.linalg.norm(q - c.point[i])),  # grazing views fall back to the crossing
                 )
                 for q, i in zip(sight, cid, strict=True)
             ),

@@ -97,6 +97,10 @@ class FrameLabels:
 
 
 SIGHT_MIN_SINE = 1e-6  # below this the camera's ray runs along a bar: the crossing's point is used
+# a sight point farther than this (in bar diameters) from its crossing marks a view in which the two
+# projected bars run nearly parallel and overlap over a long stretch (grazing views at image corners,
+# 0.3% of the paper-tunnel's visible keypoints): no pixel is where they cross, and the crossing's point is used
+SIGHT_MAX_OFFSET_DIAMETERS = 3.0
 
 
 def sight_points(rm: RebarMesh, parts: CrossingParts, camera_centre: np.ndarray) -> np.ndarray:
@@ -108,7 +112,8 @@ def sight_points(rm: RebarMesh, parts: CrossingParts, camera_centre: np.ndarray)
     15 mm, 0.14 mm at 30 mm in a grazing view, 0.1 px or less in the image). With ``c`` the camera centre, the plane
     through ``c`` and line a meets line b at ``q_b``, the plane through ``c`` and line b meets line a at
     ``q_a``; both lie on one ray. Where the geometry degenerates (a ray along a bar) the crossing's own
-    point is returned.
+    point is returned, as it is where the sight point lies more than ``SIGHT_MAX_OFFSET_DIAMETERS`` bar
+    diameters from the crossing.
     """
     c = rm.crossings
     centre = np.asarray(camera_centre, float)
@@ -126,6 +131,8 @@ def sight_points(rm: RebarMesh, parts: CrossingParts, camera_centre: np.ndarray)
     nearer_a = np.linalg.norm(q_a - centre, axis=1) <= np.linalg.norm(q_b - centre, axis=1)
     q = np.where(nearer_a[:, None], q_a, q_b)
     ok &= np.isfinite(q).all(axis=1)
+    with np.errstate(invalid="ignore"):
+        ok &= np.linalg.norm(q - c.point, axis=1) <= SIGHT_MAX_OFFSET_DIAMETERS * parts.diameter_max_m
     return np.where(ok[:, None], q, c.point)
 
 

@@ -193,3 +193,16 @@ def test_seen_along_the_normal_the_label_is_the_crossing(slab):
     mid = project(c.point[i : i + 1], T, fx=525.0, fy=525.0, cx=320.0, cy=240.0, width=640, height=480)
     assert lab.visibility[i] == 2
     assert np.hypot(lab.u[i] - mid.u[0], lab.v[i] - mid.v[0]) < 1e-6
+
+
+def test_sight_points_stay_near_their_crossing_in_grazing_views(slab):
+    from rebar_data.labels.keypoints import SIGHT_MAX_OFFSET_DIAMETERS, sight_points
+
+    parts = CrossingParts.of(slab)
+    c = slab.crossings
+    # a camera almost in the mat's plane: the projected bars of some crossings run nearly parallel
+    q = sight_points(slab, parts, np.array([-0.9, 0.05, 0.02]))
+    off = np.linalg.norm(q - c.point, axis=1)
+    assert (off <= SIGHT_MAX_OFFSET_DIAMETERS * parts.diameter_max_m + 1e-12).all()
+    fallback = off == 0.0
+    assert fallback.any() and (~fallback).any()  # some fall back to the crossing's point, others do not

@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.labels.keypoints import CrossingParts, sight_points
 from rebar_data.servo.config import StartPose
 from rebar_data.servo.detectors import Faults, FaultyDetector, GroundTruthDetector, load_shipped_detector
 
@@ -26,15 +25,14 @@ def test_ground_truth_detector_projects_the_visible_crossings(servo_ctx):
     gt = GroundTruthDetector(ctx.rm, ctx.camera, ctx.frames.cast_rays, world.world_from_camera)
     det = gt.detect(np.zeros((480, 640, 3), np.uint8))
     assert 20 <= len(det) <= 60  # a 100 mm grid seen from 0.6 m with a 57 x 44 degree view
-    # each detection is the exact projection of its crossing's sight point (the labels' definition)
+    # each detection is the exact projection of its crossing's own point (the tying target)
     T = np.linalg.inv(world.world_from_camera())
-    sight = sight_points(ctx.rm, CrossingParts.of(ctx.rm), world.world_from_camera()[:3, 3])
-    p = sight[gt.last_crossing_ids] @ T[:3, :3].T + T[:3, 3]
+    p = ctx.rm.crossings.point[gt.last_crossing_ids] @ T[:3, :3].T + T[:3, 3]
     np.testing.assert_allclose(det[:, :2], ctx.camera.project(p), atol=1e-6)
-    # and a look at the rendered depth confirms the nearer bar's surface is there, a bar radius in front
+    # and a look at the rendered depth confirms a bar surface is there, about a bar diameter in front
     frame = ctx.frames.render(world.world_from_camera(), np.random.default_rng(0))
     for (u, v, _), z in zip(det[:5], p[:5, 2], strict=True):
-        assert frame.depth_m[int(v), int(u)] == pytest.approx(z - 0.006, abs=0.003)
+        assert frame.depth_m[int(v), int(u)] == pytest.approx(z - 0.012, abs=0.004)
 
 
 def test_faults_drop_noise_and_spurious_hits():
