@@ -73,7 +73,8 @@ def write_card(
         "",
         "```python",
         "from rebar_data.perception.infer import Detector",
-        "uvs = Detector.load().detect(rgb, camera=(fx, fy, cx, cy))   # (N, 3): u, v, score >= 0.5",
+        "",  # the block as `ruff format` (which formats code in Markdown) leaves it
+        "uvs = Detector.load().detect(rgb, camera=(fx, fy, cx, cy))  # (N, 3): u, v, score >= 0.5",
         "```",
         "",
         "The label it learned is where the image shows the bars crossing: the pixel where the two projected",
