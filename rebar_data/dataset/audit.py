@@ -199,7 +199,8 @@ def _centerline_distance(q: np.ndarray, bar) -> float:
 
 
 class _PixelAlong:
-    """Distance along its bar from a crossing to the surface point seen at a pixel (inf: not its part)."""
+    """Distance along its bar from a crossing's sight point to the surface point seen at a pixel (inf: not
+    its part)."""
 
     def __init__(
         self, rm, parts, inst: np.ndarray, depth: np.ndarray, world_from_camera: np.ndarray, k: tuple
@@ -213,7 +214,7 @@ class _PixelAlong:
             k,
         )
 
-    def __call__(self, crossing: int, y: int, x: int, reference: np.ndarray) -> float:
+    def __call__(self, crossing: int, y: int, x: int, sight: np.ndarray) -> float:
         from rebar_data.labels.keypoints import along_bar_distance
 
         z = self.depth[y, x]
@@ -222,7 +223,7 @@ class _PixelAlong:
         fx, fy, cx, cy = self.k
         p_cam = np.array([(x + 0.5 - cx) / fx * z, (y + 0.5 - cy) / fy * z, z])
         point = self.T[:3, :3] @ p_cam + self.T[:3, 3]
-        return along_bar_distance(self.rm, self.parts, crossing, int(self.inst[y, x]), point, reference)
+        return along_bar_distance(self.rm, self.parts, crossing, int(self.inst[y, x]), point, sight)
 
 
 def check_instances(ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm) -> list[Check]:

@@ -9,7 +9,8 @@ from pathlib import Path
 from rebar_data.config import ConfigError
 
 
-def _dataset_path(p: str) -> Path:
+def dataset_folder(p: str) -> Path:
+    """The folder ``p`` as a Path; a ConfigError naming it when it is not a folder (every dataset command)."""
     path = Path(p)
     if not path.is_dir():
         raise ConfigError(f"{p}: no such folder; accepted: a dataset folder such as data/smoke/v0.1.0")
@@ -45,7 +46,7 @@ def run_build(args: argparse.Namespace) -> int:
 def run_validate(args: argparse.Namespace) -> int:
     from rebar_data.dataset.validate import validate_dataset
 
-    failures = validate_dataset(_dataset_path(args.path))
+    failures = validate_dataset(dataset_folder(args.path))
     for line in failures:
         print(line)
     if failures:
@@ -59,7 +60,7 @@ def run_audit(args: argparse.Namespace) -> int:
     from rebar_data.dataset.audit import audit_dataset
     from rebar_data.dataset.layout import DatasetFormatError
 
-    path = _dataset_path(args.path)
+    path = dataset_folder(args.path)
     try:
         checks, _ = audit_dataset(path)
     except DatasetFormatError as e:

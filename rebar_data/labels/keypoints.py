@@ -103,21 +103,22 @@ SIGHT_MIN_SINE = 1e-6  # below this the camera's ray runs along a bar: the cross
 SIGHT_MAX_OFFSET_DIAMETERS = 3.0
 
 
-def sight_points(rm: RebarMesh, parts: CrossingParts, camera_centre: np.ndarray) -> np.ndarray:
-    """(N, 3) for every crossing, the point on the nearer bar's centerline where the camera's ray that
-    meets both centerlines passes; it projects to where the two projected centerlines cross.
+def sight_points_on_lines(
+    point_a: np.ndarray,
+    tangent_a: np.ndarray,
+    point_b: np.ndarray,
+    tangent_b: np.ndarray,
+    camera_centre: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """For pairs of lines (N, 3 points and unit tangents), the point on the nearer line of the camera ray
+    that meets both, and whether it is well defined (N,).
 
-    Each centerline is its tangent line at the crossing: an arc of radius R departs from it by s^2 / 2R
-    where the sight point is s along it (with the paper's 3.2 m and 12 mm bars: 35 um at a typical
-    15 mm, 0.14 mm at 30 mm in a grazing view, 0.1 px or less in the image). With ``c`` the camera centre, the plane
-    through ``c`` and line a meets line b at ``q_b``, the plane through ``c`` and line b meets line a at
-    ``q_a``; both lie on one ray. Where the geometry degenerates (a ray along a bar) the crossing's own
-    point is returned, as it is where the sight point lies more than ``SIGHT_MAX_OFFSET_DIAMETERS`` bar
-    diameters from the crossing.
+    With ``c`` the camera centre, the plane through ``c`` and line a meets line b at ``q_b``, the plane
+    through ``c`` and line b meets line a at ``q_a``; both lie on one ray, which projects to where the
+    two projected lines cross. Not defined where a ray runs along a line.
     """
-    c = rm.crossings
     centre = np.asarray(camera_centre, float)
-    pa, pb, ta, tb = c.point_a, c.point_b, parts.tangent_a, parts.tangent_b
+    pa, pb, ta, tb = (np.asarray(x, float) for x in (point_a, point_b, tangent_a, tangent_b))
     n_a = np.cross(ta, pa - centre)  # normal of the plane through the camera and line a
     n_b = np.cross(tb, pb - centre)
     den_b = np.einsum("ij,ij->i", n_a, tb)
@@ -130,7 +131,22 @@ def sight_points(rm: RebarMesh, parts: CrossingParts, camera_centre: np.ndarray)
         q_a = pa + (np.einsum("ij,ij->i", n_b, centre - pa) / den_a)[:, None] * ta
     nearer_a = np.linalg.norm(q_a - centre, axis=1) <= np.linalg.norm(q_b - centre, axis=1)
     q = np.where(nearer_a[:, None], q_a, q_b)
-    ok &= np.isfinite(q).all(axis=1)
+    return q, ok & np.isfinite(q).all(axis=1)
+
+
+def sight_points(rm: RebarMesh, parts: CrossingParts, camera_centre: np.ndarray) -> np.ndarray:
+    """(N, 3) for every crossing, the point on the nearer bar's centerline where the camera's ray that
+    meets both centerlines passes; it projects to where the two projected centerlines cross.
+
+    Each centerline is its tangent line at the crossing (:func:`sight_points_on_lines`): an arc of
+    radius R departs from it by s^2 / 2R where the sight point is s along it (with the paper's 3.2 m and
+    12 mm bars: 35 um at a typical 15 mm, 0.14 mm at 30 mm in a grazing view, 0.1 px or less in the
+    image). Where the geometry degenerates (a ray along a bar) the crossing's own point is returned, as
+    it is where the sight point lies more than ``SIGHT_MAX_OFFSET_DIAMETERS`` bar diameters from the
+    crossing.
+    """
+    c = rm.crossings
+    q, ok = sight_points_on_lines(c.point_a, parts.tangent_a, c.point_b, parts.tangent_b, camera_centre)
     with np.errstate(invalid="ignore"):
         ok &= np.linalg.norm(q - c.point, axis=1) <= SIGHT_MAX_OFFSET_DIAMETERS * parts.diameter_max_m
     return np.where(ok[:, None], q, c.point)
@@ -142,14 +158,13 @@ def along_bar_distance(
     crossing: int,
     instance: int,
     point: np.ndarray,
-    reference: np.ndarray | None = None,
+    sight: np.ndarray,
 ) -> float:
-    """How far ``point``, on part ``instance``, is from the crossing along that part.
+    """How far ``point``, on part ``instance``, is from the crossing's sight point along that part.
 
-    0 for the crossing's tie wire, the arc-length distance between the point's and the crossing's
-    positions along the bar for either of its bars, and infinity for any other part. With ``reference``
-    (the label's sight point) the distance is from that point's position along the bar instead of the
-    crossing's: at a grazing view the sight point runs several diameters along the nearer bar.
+    0 for the crossing's tie wire, the arc-length distance between the point's and the sight point's
+    positions along the bar for either of its bars, and infinity for any other part. Measured from the
+    sight point rather than the crossing: at a grazing view it runs several diameters along the nearer bar.
     """
     own = parts.own[crossing]
     if instance < 0 or instance not in own:
@@ -157,14 +172,8 @@ def along_bar_distance(
     if instance == own[2]:
         return 0.0
     c = rm.crossings
-    bar, closest = (
-        (c.bar_a[crossing], c.point_a[crossing])
-        if instance == own[0]
-        else (c.bar_b[crossing], c.point_b[crossing])
-    )
-    curve = rm.bars[bar].curve
-    start = closest if reference is None else reference
-    return abs(curve.project(point) - curve.project(start))
+    curve = rm.bars[c.bar_a[crossing] if instance == own[0] else c.bar_b[crossing]].curve
+    return abs(curve.project(point) - curve.project(sight))
 
 
 def label_frame(

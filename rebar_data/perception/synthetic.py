@@ -323,16 +323,19 @@ def draw_frame(
 
 
 def _sight_points(crossings_world: np.ndarray, d: float, camera_centre: np.ndarray) -> np.ndarray:
-    """Where each crossing is seen, as the dataset labels it (``labels.keypoints.sight_points``): on the
-    top bar's axis (along x, d/2 above the crossing), where the camera ray that meets the bottom bar's
-    axis (along y, d/2 below) passes."""
-    c = np.asarray(camera_centre, float)
-    top = crossings_world + [0.0, 0.0, d / 2]
-    bottom = crossings_world - [0.0, 0.0, d / 2]
-    t_top, t_bottom = np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])
-    n = np.cross(t_bottom, bottom - c)  # the plane through the camera and the bottom bar's axis
-    s = np.einsum("ij,ij->i", n, c - top) / (n @ t_top)
-    return top + s[:, None] * t_top
+    """Where each crossing is seen, as the dataset labels it: the sight point of the top bar's axis
+    (along x, d/2 above the crossing) and the bottom bar's (along y, d/2 below)."""
+    from rebar_data.labels.keypoints import sight_points_on_lines
+
+    n = len(crossings_world)
+    q, _ = sight_points_on_lines(
+        crossings_world + [0.0, 0.0, d / 2],
+        np.tile([1.0, 0.0, 0.0], (n, 1)),
+        crossings_world - [0.0, 0.0, d / 2],
+        np.tile([0.0, 1.0, 0.0], (n, 1)),
+        camera_centre,
+    )
+    return q
 
 
 def _draw_shadow(

@@ -503,32 +503,26 @@ def _finish(
 
     net, meta, _ = load_checkpoint(out / "best.pt")
     meta = {k: v for k, v in meta.items() if k not in ("score_bias", "results")}
+    detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)
     if val_samples:  # the operating point, chosen on val with the raw scores
-        raw = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)
-        meta["score_bias"] = calibrate_score_bias(
-            val_samples, predict(raw, val_samples, threshold=CALIBRATION_FLOOR, progress=progress)
+        meta["score_bias"] = detector.score_bias = calibrate_score_bias(
+            val_samples, predict(detector, val_samples, threshold=CALIBRATION_FLOOR, progress=progress)
         )
         _log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)", progress)
     results: dict[str, dict[str, float]] = {}
-    detector = None
     curves = {}
     for split, samples in (("val", val_samples), ("test", test_samples)):
         if not samples:
             continue
-        if detector is None:
-            onnx_path = export_onnx(net, out / "best.onnx", meta)
-            detector = Detector.load(onnx_path, threads=cfg.threads)
         preds = predict(detector, samples, progress=progress)
         results[split] = score(samples, preds, sigma=sigma)
         _log(
             f"best model (epoch {state['best_epoch']}) on {split}: {format_summary(results[split])}", progress
         )
         curves[split] = (samples, preds)
-    if detector is None:
-        export_onnx(net, out / "best.onnx", meta)
     meta = {**meta, "results": results}
     save_checkpoint(out / "best.pt", net, meta)
-    export_onnx(net, out / "best.onnx", meta)
+    export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
     summary_doc = {
         "best_epoch": state["best_epoch"],
         "epochs_run": state["epoch"],

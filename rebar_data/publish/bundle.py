@@ -10,7 +10,6 @@ and renamed into place, so an interrupted publish never leaves a folder that loo
 from __future__ import annotations
 
 import datetime as dt
-import hashlib
 import json
 import os
 import shutil
@@ -22,6 +21,7 @@ import yaml
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
+from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.publish.card import LICENSES, citation, dataset_card, license_url
 from rebar_data.publish.croissant import croissant_metadata
 from rebar_data.publish.rows import write_shards
@@ -47,14 +47,6 @@ def publication_date() -> str:
     epoch = os.environ.get("SOURCE_DATE_EPOCH")
     when = dt.datetime.fromtimestamp(int(epoch), dt.UTC) if epoch else dt.datetime.now(dt.UTC)
     return when.date().isoformat()
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _copy(src: Path, dst: Path, *, link: bool = False) -> None:
@@ -137,7 +129,7 @@ def _single_files(bundle: Path) -> dict[str, dict]:
         listed[f"annotations/{p.name}"] = ("application/json", f"COCO keypoints of the {p.stem} split")
     return {
         rel: {
-            "sha256": _sha256(bundle / rel),
+            "sha256": sha256_file(bundle / rel),
             "bytes": (bundle / rel).stat().st_size,
             "encodingFormat": fmt,
             "description": what,
@@ -155,7 +147,7 @@ def _table_meanings() -> dict[str, dict[str, str]]:
 def write_checksums(bundle: Path) -> int:
     """``SHA256SUMS`` in ``sha256sum`` format over every other file; returns how many it lists."""
     files = sorted(p for p in bundle.rglob("*") if p.is_file() and p.name != CHECKSUMS)
-    lines = [f"{_sha256(p)}  {p.relative_to(bundle).as_posix()}\n" for p in files]
+    lines = [f"{sha256_file(p)}  {p.relative_to(bundle).as_posix()}\n" for p in files]
     (bundle / CHECKSUMS).write_text("".join(lines))
     return len(lines)
 

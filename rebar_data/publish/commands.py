@@ -5,23 +5,15 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from pathlib import Path
 
-from rebar_data.config import ConfigError
-
-
-def _folder(p: str) -> Path:
-    path = Path(p)
-    if not path.is_dir():
-        raise ConfigError(f"{p}: no such folder; accepted: a dataset folder such as data/smoke/v0.1.0")
-    return path
+from rebar_data.dataset.commands import dataset_folder
 
 
 def run_publish(args: argparse.Namespace) -> int:
     from rebar_data.publish.bundle import publish_dataset
 
     out = publish_dataset(
-        _folder(args.path),
+        dataset_folder(args.path),
         args.out,
         license_id=args.license,
         maps=args.maps,
@@ -35,7 +27,7 @@ def run_publish(args: argparse.Namespace) -> int:
 def run_diff(args: argparse.Namespace) -> int:
     from rebar_data.publish.diff import diff_datasets
 
-    d = diff_datasets(_folder(args.old), _folder(args.new))
+    d = diff_datasets(dataset_folder(args.old), dataset_folder(args.new))
     print(json.dumps(d.to_dict(), indent=2, sort_keys=True, default=str) if args.json else d.report())
     if args.check and not d.declared_enough:
         print(
