@@ -96,6 +96,15 @@ def run(repeats: int = 100) -> list[str]:
             f"median {med:.1f} ms, p90 {np.percentile(ours, 90):.1f} ms a frame ({1e3 / med:.0f} Hz; "
             f"{n} crossings found; budget {BUDGET_MS:g} ms: {'met' if med <= BUDGET_MS else 'MISSED'})"
         )
+        if det.refiner is not None:  # what the second stage costs on this frame's crossings
+            refiner, det.refiner = det.refiner, None
+            first = float(np.median(_time_ms(lambda: det.detect(rgb), repeats=repeats)))
+            det.refiner = refiner
+            lines.append(
+                f"perception: of which the first stage (heatmap network and peaks) {first:.1f} ms and the "
+                f"second (refining {n} crossings) {med - first:.1f} ms, {1e3 * (med - first) / max(n, 1):.0f} us "
+                "a crossing"
+            )
         net = KeypointNet(ModelConfig()).eval()
         x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float()
         rays = torch.from_numpy(ray_grid(*FRAME_HW, (525.0, 525.0, 320.0, 240.0)))[None]  # output cells

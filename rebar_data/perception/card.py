@@ -14,7 +14,7 @@ import numpy as np
 from rebar_data.config import ConfigError
 from rebar_data.perception.data import check_dataset, read_info
 from rebar_data.perception.evaluate import predict
-from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector
+from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector, refiner_path
 from rebar_data.perception.metrics import oks_radius_px
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
@@ -52,6 +52,7 @@ def write_card(
     extra_results: dict[str, dict] | None = None,
     load_average: float | None = None,
     score_bias: float = 0.0,
+    refiner: Path | None = None,
 ) -> Path:
     """The model card: what the model is, what it was trained on, how it scores and how to reproduce it."""
     res = json.loads((run_dir / "results.json").read_text())
@@ -60,14 +61,26 @@ def write_card(
     sigma = res["oks_sigma"]
     ds = res["dataset"]
     rows = [_row(f"{ds.get('name')} {split}", m) for split, m in sorted(res["results"].items(), reverse=True)]
+    rows += [
+        _row(f"{ds.get('name')} {split}, first stage alone", m)
+        for split, m in sorted(res.get("results_first_stage", {}).items())
+    ]
     rows += [_row(name, m) for name, m in (extra_results or {}).items()]
     load = f", load average {load_average:.1f} on this 2-core machine" if load_average is not None else ""
+    refine = tc.get("refine") if refiner is not None else None
     lines = [
         "# Rebar-crossing keypoint detector",
         "",
         "A heatmap keypoint detector for rebar crossings (CenterNet-like: a heatmap at stride 4 with a",
         "sub-cell offset per cell) on a depthwise-separable encoder-decoder, trained from scratch on the",
-        "project's synthetic data alone. Input: an RGB image of any size (uint8, H x W x 3) and, optionally,",
+        "project's synthetic data alone"
+        + (
+            f", with a second stage that moves each detection to the crossing its full-resolution "
+            f"{refine['patch_px']} px patch shows."
+            if refine
+            else "."
+        ),
+        "Input: an RGB image of any size (uint8, H x W x 3) and, optionally,",
         "its intrinsics. Output: (u, v, score) per crossing, in the image's pixels with COCO's corner origin",
         "(the top-left corner of the top-left pixel is (0, 0)).",
         "",
@@ -86,6 +99,17 @@ def write_card(
         "## Model",
         f"- File: `{model.name}` (ONNX, {model.stat().st_size / 1024:.0f} KiB), "
         f"{cfg['parameters'] / 1e3:.0f} k parameters; channels {tc['model']['channels']}, blocks {tc['model']['blocks']}.",
+        *(
+            [
+                f"- Second stage: `{refiner.name}` (ONNX, {refiner.stat().st_size / 1024:.0f} KiB, "
+                f"{res.get('refiner_parameters', 0) / 1e3:.0f} k parameters), beside the first; a",
+                f"  {refine['patch_px']} px patch around each detection, plain convolutions to 1/8 and two fully",
+                "  connected layers regress the crossing's offset from the patch centre. `Detector.load` loads both;",
+                "  set `detector.refiner = None` for the first stage alone.",
+            ]
+            if refine
+            else []
+        ),
         f"- Latency: {latency_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
         f"  (median, measured when shipped{load}; `rebar bench --only detector` measures it again beside a",
         "  YOLOv8n-pose-shaped network).",
@@ -109,6 +133,19 @@ def write_card(
         f"  scale {tc['augment']['scale']},",
         f"  rotation +-{tc['augment']['rotation_deg']:g} deg and flips (the viewing rays turn with the crop), colour,",
         "  gamma, blur, noise.",
+        *(
+            [
+                f"- Second stage: {refine['epochs']} epochs over the training split's visible crossings "
+                f"({res.get('refine_seconds', 0.0) / 60:.1f} minutes, in the total above),",
+                f"  each an {refine['patch_px']} px patch centred with a random error (Gaussian sigma "
+                f"{refine['jitter_px']:g} px, or for {refine['jitter_uniform_fraction']:.0%} uniform up to "
+                f"{refine['jitter_uniform_px']:g} px),",
+                "  turned, flipped, scaled and recoloured like the crops; smooth-L1 loss on the offset. It learns",
+                "  from the labels alone, not from the first stage's outputs.",
+            ]
+            if refine
+            else []
+        ),
         f"- Occluded crossings (visibility 1): {tc['occluded']} in the loss.",
         "- Reproduce: `make train` (builds the default dataset and the planar-slab set when missing, trains,",
         "  and ships this file and card); the settings below are `TrainConfig`'s defaults.",
@@ -131,6 +168,14 @@ def write_card(
         "  80:20 split draws its test set. Most of them were trained on (and the rest are a few centimetres of",
         "  camera motion from frames that were), so the gap to the test row is what a random split hides.",
         "- `(all splits)` rows: datasets built with other configs (`pipelines/*.yaml`), never trained on.",
+        *(
+            [
+                "- `first stage alone`: the heatmap network's positions without the second stage (the same",
+                "  detections and scores), to show what the second stage adds.",
+            ]
+            if refine
+            else []
+        ),
         "",
         "## Limits",
         "- Trained on rendered images only; no real photographs were seen.",
@@ -210,16 +255,25 @@ def ship(
         raise ConfigError(
             f"{run_dir}: no best.onnx and results.json; accepted: a finished `rebar train` run folder"
         )
-    if src.stat().st_size > MAX_SHIPPED_BYTES:
+    size = sum(p.stat().st_size for p in (src, refiner_path(src)) if p.exists())
+    if size > MAX_SHIPPED_BYTES:
         raise ConfigError(
-            f"{src}: {src.stat().st_size / 2**20:.1f} MiB is over the {MAX_SHIPPED_BYTES / 2**20:.0f} MiB a shipped model may take"
+            f"{src}: {size / 2**20:.1f} MiB (with its second stage) is over the "
+            f"{MAX_SHIPPED_BYTES / 2**20:.0f} MiB a shipped model may take"
         )
     for path in evaluate_on:
         check_dataset(path)  # a wrong path fails before anything is copied
     models_dir.mkdir(parents=True, exist_ok=True)
     dst = models_dir / SHIPPED_MODEL.name
-    shutil.copyfile(src, dst.with_name(dst.name + ".tmp"))
-    dst.with_name(dst.name + ".tmp").replace(dst)
+    pairs = [(src, dst)]
+    if refiner_path(src).exists():
+        pairs.append((refiner_path(src), refiner_path(dst)))
+    else:
+        refiner_path(dst).unlink(missing_ok=True)  # a one-stage model: no stale second stage beside it
+    for a, b in pairs:
+        shutil.copyfile(a, b.with_name(b.name + ".tmp"))
+    for _, b in reversed(pairs):  # the second stage lands first, so the first never names a missing file
+        b.with_name(b.name + ".tmp").replace(b)
     detector = Detector.load(dst)
     rows = evaluation_rows(
         detector, run_dir, evaluate_on=evaluate_on, random_split=random_split, progress=progress
@@ -235,5 +289,6 @@ def ship(
         extra_results=rows,
         load_average=load,
         score_bias=detector.score_bias,
+        refiner=refiner_path(dst) if detector.refiner is not None else None,
     )
     return dst

@@ -17,6 +17,7 @@ import numpy as np
 from rebar_data.config import ConfigError
 from rebar_data.perception.metrics import OPERATING_THRESHOLD
 from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
+from rebar_data.perception.refine import Refiner
 from rebar_data.perception.targets import decode
 
 DEFAULT_FOCAL_PER_WIDTH = 525.0 / 640.0  # Kinect v1 colour camera, when neither caller nor model says
@@ -58,6 +59,9 @@ class Detector:
         backend: ``onnxruntime`` or ``torch``.
         score_bias: Logit shift applied to the heatmap before scores are read (``meta["score_bias"]``,
             chosen on the validation split so that score 0.5 is the operating point; 0 when absent).
+        refiner: The second stage, which moves each detection to the crossing its full-resolution patch
+            shows (:mod:`rebar_data.perception.refine`); loaded with the model when the file names one.
+            Set it to None to get the heatmap network's positions alone.
     """
 
     def __init__(
@@ -74,6 +78,7 @@ class Detector:
         self.backend = backend
         self.path = path
         self._rays: dict[tuple, np.ndarray] = {}
+        self.refiner: Refiner | None = None
 
     @classmethod
     def load(cls, path: str | Path | None = None, *, threads: int = 2) -> Detector:
@@ -90,27 +95,15 @@ class Detector:
         from rebar_data.perception.export import load_checkpoint
 
         net, meta, _ = load_checkpoint(p)
-        return cls.from_network(net, meta=meta, path=p)
+        det = cls.from_network(net, meta=meta, path=p)
+        det.refiner = _load_refiner(p, det.meta, threads)
+        return det
 
     @classmethod
     def _load_onnx(cls, path: Path, threads: int) -> Detector:
-        import onnxruntime as ort
-
         from rebar_data.perception.export import META_KEY
 
-        so = ort.SessionOptions()
-        so.intra_op_num_threads = threads
-        so.inter_op_num_threads = 1
-        so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-        so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-        so.log_severity_level = 3
-        # threads sleep rather than spin between runs: on a 2-core machine shared with the simulator,
-        # spinning doubled the latency under load and cost nothing to drop when idle
-        so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-        try:
-            sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-        except Exception as e:
-            raise ConfigError(f"{path}: cannot be loaded as an ONNX model ({type(e).__name__})") from None
+        sess = onnx_session(path, threads)
         raw = sess.get_modelmeta().custom_metadata_map.get(META_KEY)
         names = [i.name for i in sess.get_inputs()]
 
@@ -120,7 +113,9 @@ class Detector:
                 feed[names[1]] = rays[None]
             return sess.run(None, feed)[0][0]
 
-        return cls(run, meta=json.loads(raw) if raw else {}, backend="onnxruntime", path=path)
+        det = cls(run, meta=json.loads(raw) if raw else {}, backend="onnxruntime", path=path)
+        det.refiner = _load_refiner(path, det.meta, threads)
+        return det
 
     @classmethod
     def from_network(
@@ -187,9 +182,62 @@ class Detector:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
         out = self.raw(rgb, camera=camera)
         det = decode(out[0] + self.score_bias, out[1:], threshold=threshold, max_detections=max_detections)
+        if self.refiner is not None and len(det):
+            det[:, :2] = self.refiner.refine(_check_image(rgb), det[:, :2])
         h, w = rgb.shape[:2]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
         return det[inside]
+
+
+def onnx_session(path: Path, threads: int):
+    """An ONNX Runtime CPU session for one of the project's model files, set up for low latency."""
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.log_severity_level = 3
+    # threads sleep rather than spin between runs: on a 2-core machine shared with the simulator,
+    # spinning doubled the latency under load and cost nothing to drop when idle
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    try:
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    except Exception as e:
+        raise ConfigError(f"{path}: cannot be loaded as an ONNX model ({type(e).__name__})") from None
+
+
+def refiner_path(model: Path) -> Path:
+    """Where a model file's second stage lives: beside it, ``<stem>.refine.onnx`` (or ``.refine.pt``)."""
+    return model.with_name(f"{model.stem}.refine{model.suffix}")
+
+
+def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | None:
+    """The refiner a model file names in its meta (None when it names none)."""
+    entry = meta.get("refiner")
+    if not entry:
+        return None
+    path = refiner_path(model)
+    if not path.exists():
+        raise ConfigError(
+            f"{model}: its second stage {path.name} is missing beside it; accepted: the two files together, "
+            "as `rebar train` writes them (best.onnx and best.refine.onnx)"
+        )
+    iterations = int(entry.get("iterations", 1))
+    if path.suffix == ".onnx":
+        from rebar_data.dataset.writers.manifest import sha256_file
+
+        if entry.get("sha256") and sha256_file(path) != entry["sha256"]:
+            raise ConfigError(
+                f"{path}: is not the second stage {model.name} was exported with (its SHA-256 differs); "
+                "accepted: the two files from the same `rebar train` run"
+            )
+        return Refiner.load_onnx(path, threads=threads, iterations=iterations)
+    from rebar_data.perception.refine_train import load
+
+    net, _, _ = load(path)
+    return Refiner.from_network(net, iterations=iterations)
 
 
 def _check_image(rgb: np.ndarray) -> np.ndarray:

@@ -31,6 +31,7 @@ import torch
 from tqdm import tqdm
 
 from rebar_data.config import ConfigError, format_validation_error
+from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.data import Sample, check_dataset, load_split, read_image, read_info
@@ -52,10 +53,13 @@ from rebar_data.perception.metrics import (
     pixel_metrics,
 )
 from rebar_data.perception.model import STRIDE, KeypointNet, count_parameters
+from rebar_data.perception.refine_train import PatchNet, train_refiner
+from rebar_data.perception.refine_train import export_onnx as export_refiner
+from rebar_data.perception.refine_train import save as save_refiner
 from rebar_data.perception.targets import encode
 
 EARLY_STOP_METRIC = "val_oks_ap"
-RESUMABLE_CHANGES = {"epochs", "patience", "val_every"}  # settings a resumed run may change
+RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "refine"}  # settings a resumed run may change
 
 
 class WeightAverage:
@@ -403,11 +407,26 @@ def _run(
         )
         _write_history(out / "metrics.csv", state["history"])
     batches = None  # stops the loader process
-    train_s = time.perf_counter() - started
     if not (out / "best.pt").exists():  # no epoch had a finite validation score: keep the latest weights
         save_checkpoint(out / "best.pt", avg.net, {**base_meta, "epoch": state["epoch"]})
+    refiner, refine_history = None, []
+    if cfg.refine.enabled:
+        refiner, refine_history = train_refiner(
+            train_samples, out, cfg.refine, cfg.augment, seed=cfg.seed, progress=progress
+        )
+    train_s = time.perf_counter() - started
     return _finish(
-        out, cfg, state, sigma, val_samples, test_samples, dataset_meta, train_s=train_s, progress=progress
+        out,
+        cfg,
+        state,
+        sigma,
+        val_samples,
+        test_samples,
+        dataset_meta,
+        refiner=refiner,
+        refine_history=refine_history,
+        train_s=train_s,
+        progress=progress,
     )
 
 
@@ -495,14 +514,25 @@ def _finish(
     test_samples: list[Sample],
     dataset_meta: dict,
     *,
+    refiner: PatchNet | None,
+    refine_history: list[dict[str, float]],
     train_s: float,
     progress: bool,
 ) -> TrainResult:
-    """Export the best weights to ONNX, score them on val and test, and draw the plots."""
+    """Export the best weights (and the refiner) to ONNX, score them on val and test, draw the plots."""
     from rebar_data.perception import plots
 
     net, meta, _ = load_checkpoint(out / "best.pt")
-    meta = {k: v for k, v in meta.items() if k not in ("score_bias", "results")}
+    meta = {k: v for k, v in meta.items() if k not in ("score_bias", "results", "refiner")}
+    for stale in (out / "best.refine.onnx", out / "best.refine.pt"):
+        stale.unlink(missing_ok=True)
+    if refiner is not None:
+        save_refiner(out / "best.refine.pt", refiner, cfg.refine)
+        meta["refiner"] = {
+            "patch_px": cfg.refine.patch_px,
+            "iterations": cfg.refine.iterations,
+            "sha256": sha256_file(export_refiner(refiner, out / "best.refine.onnx")),
+        }
     detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)
     if val_samples:  # the operating point, chosen on val with the raw scores
         meta["score_bias"] = detector.score_bias = calibrate_score_bias(
@@ -520,6 +550,12 @@ def _finish(
             f"best model (epoch {state['best_epoch']}) on {split}: {format_summary(results[split])}", progress
         )
         curves[split] = (samples, preds)
+    first_stage: dict[str, dict[str, float]] = {}
+    if detector.refiner is not None and test_samples:  # what the second stage adds, on the reported split
+        refiner_module, detector.refiner = detector.refiner, None
+        first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
+        detector.refiner = refiner_module
+        _log(f"first stage alone on test: {format_summary(first_stage['test'])}", progress)
     meta = {**meta, "results": results}
     save_checkpoint(out / "best.pt", net, meta)
     export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
@@ -532,8 +568,15 @@ def _finish(
         "dataset": dataset_meta,
         "parameters": count_parameters(net),
         "train_seconds_this_call": train_s,
-        "train_seconds_total": float(sum(r.get("train_seconds", 0.0) for r in state["history"])),
+        "train_seconds_total": float(
+            sum(r.get("train_seconds", 0.0) for r in state["history"])
+            + sum(r.get("seconds", 0.0) for r in refine_history)
+        ),
+        "refiner_parameters": count_parameters(refiner) if refiner is not None else 0,
+        "refine_seconds": float(sum(r.get("seconds", 0.0) for r in refine_history)),
+        "refine_history": refine_history,
         "results": results,
+        "results_first_stage": first_stage,
     }
     (out / "results.json").write_text(json.dumps(summary_doc, indent=2, sort_keys=True) + "\n")
     if state["history"]:

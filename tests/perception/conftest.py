@@ -17,6 +17,14 @@ TINY_TRAIN = {
     "patience": 50,
     "model": TINY_MODEL,
     "augment": {"mosaic_epochs": 1},
+    "refine": {
+        "patch_px": 16,
+        "widths": (4, 4, 8, 8),
+        "hidden": 8,
+        "epochs": 1,
+        "batch_size": 32,
+        "threads": 1,
+    },
 }
 
 

@@ -10,9 +10,12 @@ from rebar_data.perception.infer import Detector
 def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     model = ship(trained_run.out_dir, models_dir=tmp_path)
     assert model.name == "rebar_keypoint.onnx" and model.stat().st_size < 5 * 2**20
+    assert (tmp_path / "rebar_keypoint.refine.onnx").is_file()  # the second stage travels with it
     card = (tmp_path / CARD_NAME).read_text()
     assert "OKS sigma 0.04" in card and "| drawn test |" in card and "make train" in card
-    assert Detector.load(model).meta["dataset"]["name"] == "drawn"
+    assert "| drawn test, first stage alone |" in card and "rebar_keypoint.refine.onnx" in card
+    det = Detector.load(model)
+    assert det.meta["dataset"]["name"] == "drawn" and det.refiner is not None
 
 
 def test_ship_refuses_an_unfinished_run(tmp_path):

@@ -1,0 +1,94 @@
+"""The detector's second stage at inference: each crossing found by the heatmap network is moved to where
+a small network, looking at the full-resolution patch around it, places the crossing.
+
+Why a second stage: the heatmap network sees the image at stride 4 (its finest features are a quarter
+of the image's resolution), which keeps a whole frame within a few milliseconds, but a 2 px error is
+half an output cell. Close-ups of rusty bars, where a crossing is a 30 px patch of texture, are where its
+errors concentrate. The refiner sees a ``patch_px`` square at full resolution centred on the first
+stage's estimate and regresses the crossing's offset from the patch centre, in pixels; a frame's
+detections go through it as one batch. How it is trained: :mod:`rebar_data.perception.refine_train`.
+
+This module needs no PyTorch for ONNX files, so the servo's detector loads without it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.augment import index_matrix
+
+
+def patch_map(centre: np.ndarray, size: int) -> np.ndarray:
+    """The 2x3 map from image pixels to a ``size`` patch centred on ``centre`` (COCO corner origin)."""
+    return np.array([[1.0, 0.0, size / 2 - centre[0]], [0.0, 1.0, size / 2 - centre[1]]])
+
+
+def cut(image: np.ndarray, patch_from_image: np.ndarray, size: int) -> np.ndarray:
+    """Resample one patch (bilinear; mirrored beyond the image's border, so no edge looks like a bar)."""
+    return cv2.warpAffine(
+        image,
+        index_matrix(patch_from_image),
+        (size, size),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REFLECT,
+    )
+
+
+def patches(image: np.ndarray, centres: np.ndarray, size: int) -> np.ndarray:
+    """(N, size, size, 3) uint8 patches of ``image`` centred on each (u, v) of ``centres``."""
+    centres = np.asarray(centres, float).reshape(-1, 2)
+    out = np.empty((len(centres), size, size, 3), np.uint8)
+    for k, c in enumerate(centres):
+        out[k] = cut(image, patch_map(c, size), size)
+    return out
+
+
+class Refiner:
+    """A loaded refiner: ``refine(image, uv) -> uv`` moves each point to the crossing the patch shows."""
+
+    def __init__(self, run: Callable[[np.ndarray], np.ndarray], *, patch_px: int, iterations: int):
+        self._run = run
+        self.patch_px = patch_px
+        self.iterations = iterations
+
+    @classmethod
+    def from_network(cls, net, *, iterations: int = 1) -> Refiner:
+        """Wrap a :class:`~rebar_data.perception.refine_train.PatchNet` (eager PyTorch)."""
+        import torch
+
+        net = net.eval()
+
+        def run(x: np.ndarray) -> np.ndarray:
+            with torch.inference_mode():
+                return net(torch.from_numpy(x).permute(0, 3, 1, 2).float()).numpy()
+
+        return cls(run, patch_px=net.patch_px, iterations=iterations)
+
+    @classmethod
+    def load_onnx(cls, path: Path, *, threads: int, iterations: int = 1) -> Refiner:
+        from rebar_data.perception.infer import onnx_session
+
+        sess = onnx_session(path, threads)
+        name = sess.get_inputs()[0].name
+        size = sess.get_inputs()[0].shape[1]
+        if not isinstance(size, int):
+            raise ConfigError(f"{path}: is not a refiner file (its patch size is not fixed)")
+
+        def run(x: np.ndarray) -> np.ndarray:
+            return sess.run(None, {name: x})[0]
+
+        return cls(run, patch_px=size, iterations=iterations)
+
+    def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """(N, 2) refined positions of the (N, 2) points ``uv`` in ``image`` (pixels, COCO corner origin)."""
+        uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
+        if not len(uv):
+            return uv
+        for _ in range(self.iterations):
+            uv += self._run(patches(image, uv, self.patch_px)).astype(np.float64)
+        return uv

@@ -1,0 +1,130 @@
+from __future__ import annotations
+
+import json
+import shutil
+
+import numpy as np
+import pytest
+import torch
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.config import AugmentConfig, RefineConfig
+from rebar_data.perception.data import load_split, read_image
+from rebar_data.perception.infer import Detector
+from rebar_data.perception.refine import Refiner, patches
+from rebar_data.perception.refine_train import build, export_onnx, train_refiner, training_patch
+
+from .conftest import TINY_TRAIN
+
+STILL = AugmentConfig(  # geometry only: no colour, blur or noise, so pixels can be compared
+    brightness=0,
+    contrast=0,
+    saturation=0,
+    hue_deg=0,
+    gamma=0,
+    blur_probability=0,
+    noise_probability=0,
+)
+
+
+def _blob(h: int, w: int, centre: np.ndarray, sigma: float = 2.0) -> np.ndarray:
+    """A Gaussian spot at ``centre`` (COCO corner origin: pixel (i, j) is the point (j + 0.5, i + 0.5))."""
+    y, x = np.mgrid[0:h, 0:w] + 0.5
+    g = np.exp(-((x - centre[0]) ** 2 + (y - centre[1]) ** 2) / (2 * sigma**2))
+    return np.repeat((255 * g).astype(np.uint8)[..., None], 3, axis=2)
+
+
+def _centroid(img: np.ndarray) -> np.ndarray:
+    g = img[..., 0].astype(float)
+    y, x = np.mgrid[0 : g.shape[0], 0 : g.shape[1]] + 0.5
+    return np.array([(g * x).sum(), (g * y).sum()]) / g.sum()
+
+
+def test_a_patch_is_centred_on_the_point_in_coco_pixels():
+    ramp = np.repeat(np.tile(np.arange(64, dtype=np.uint8), (48, 1))[..., None], 3, axis=2)
+    p = patches(ramp, np.array([[10.0, 20.0], [30.5, 5.0]]), 4)
+    assert p.shape == (2, 4, 4, 3)
+    # the point (10, 20) is the corner between pixels 9 and 10: the 4 px patch spans pixels 8 to 11
+    np.testing.assert_array_equal(p[0, 0, :, 0], [8, 9, 10, 11])
+    spot = _blob(48, 64, np.array([23.3, 17.8]))
+    np.testing.assert_allclose(_centroid(patches(spot, np.array([[23.3, 17.8]]), 24)[0]), [12, 12], atol=0.05)
+
+
+def test_a_training_patch_moves_its_offset_with_the_pixels():
+    crossing = np.array([41.7, 30.2])
+    image = _blob(64, 80, crossing)
+    cfg = RefineConfig(patch_px=32, jitter_px=2.0, jitter_uniform_px=4.0)
+    rng = np.random.default_rng(3)
+    offsets = []
+    for _ in range(20):  # random errors, turns, flips and scales: the spot is where the offset says
+        x, y = training_patch(image, crossing, rng, cfg, STILL)
+        np.testing.assert_allclose(_centroid(x), 16 + y, atol=0.15)
+        offsets.append(y)
+    assert np.std(offsets) > 0.5  # the centre really was off the crossing
+
+
+def test_the_refiner_learns_to_move_points_onto_crossings(drawn_dataset, tmp_path):
+    samples = load_split(drawn_dataset, "train")
+    cfg = RefineConfig(
+        patch_px=16, widths=(8, 8, 16, 16), hidden=16, epochs=6, batch_size=32, lr=3e-3, threads=1
+    )
+    torch.manual_seed(0)
+    net, history = train_refiner(samples, tmp_path, cfg, STILL, seed=0)
+    assert len(history) == 6 and (tmp_path / "refine_last.pt").is_file()
+    assert history[-1]["loss"] < 0.7 * history[0]["loss"]
+    # points 1.5 px off the crossings of images it never saw come closer
+    test = load_split(drawn_dataset, "test")
+    rng = np.random.default_rng(0)
+    before, after = [], []
+    refiner = Refiner.from_network(net)
+    for s in test:
+        start = s.visible + rng.normal(0, 1.5, s.visible.shape)
+        moved = refiner.refine(read_image(s.path), start)
+        before += list(np.linalg.norm(start - s.visible, axis=1))
+        after += list(np.linalg.norm(moved - s.visible, axis=1))
+    assert np.median(after) < 0.8 * np.median(before)
+    # a finished stage is kept, not retrained
+    again, history_again = train_refiner(samples, tmp_path, cfg, STILL, seed=0)
+    assert history_again == history
+    torch.testing.assert_close(again.state_dict(), net.state_dict())
+
+
+def test_onnx_refiner_gives_what_pytorch_gives(tmp_path):
+    torch.manual_seed(1)
+    net = build(RefineConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8)).eval()
+    with torch.no_grad():
+        for m in net.modules():
+            if isinstance(m, torch.nn.BatchNorm2d):
+                m.running_mean.uniform_(-0.5, 0.5)
+                m.running_var.uniform_(0.5, 2.0)
+    image = np.random.default_rng(0).integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    points = np.array([[10.0, 12.0], [25.5, 30.25], [0.5, 39.0]])
+    onnx_refiner = Refiner.load_onnx(export_onnx(net, tmp_path / "r.onnx"), threads=1)
+    assert onnx_refiner.patch_px == 16
+    np.testing.assert_allclose(
+        onnx_refiner.refine(image, points), Refiner.from_network(net).refine(image, points), atol=1e-4
+    )
+    assert onnx_refiner.refine(image, np.zeros((0, 2))).shape == (0, 2)
+
+
+def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_run, drawn_dataset, tmp_path):
+    out = trained_run.out_dir
+    assert (out / "best.refine.onnx").is_file() and (out / "best.refine.pt").is_file()
+    det = Detector.load(out)
+    assert det.refiner is not None and det.meta["refiner"]["patch_px"] == TINY_TRAIN["refine"]["patch_px"]
+    results = json.loads((out / "results.json").read_text())
+    assert "test" in results["results_first_stage"] and results["refiner_parameters"] > 0
+    rgb = read_image(load_split(drawn_dataset, "test")[0].path)
+    both = det.detect(rgb, threshold=0.01)
+    det.refiner = None
+    first = det.detect(rgb, threshold=0.01)
+    np.testing.assert_array_equal(both[:, 2], first[:, 2])  # same detections and scores, moved
+    assert Detector.load(out / "best.pt").refiner is not None
+    lone = tmp_path / "lone"
+    lone.mkdir()
+    shutil.copy(out / "best.onnx", lone / "best.onnx")
+    with pytest.raises(ConfigError, match="best.refine.onnx is missing"):
+        Detector.load(lone / "best.onnx")
+    (lone / "best.refine.onnx").write_bytes((out / "best.refine.onnx").read_bytes()[:-1] + b"\0")
+    with pytest.raises(ConfigError, match="SHA-256"):
+        Detector.load(lone / "best.onnx")
