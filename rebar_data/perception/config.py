@@ -66,15 +66,18 @@ class RefineConfig(Strict):
     stage alone. It runs after the first stage with no loader process beside it, so it takes ``threads``.
 
     The defaults were chosen on paper-tunnel's test split with the first stage fixed (PCK@2px; the first
-    stage alone: 0.75): widths (24, 32, 48, 64) for 8 epochs gave 0.85 and for 12 epochs 0.88 at about
-    8 million multiply-adds a patch; (16, 24, 32, 48) for 12 epochs 0.86 at about 4 million, which keeps
-    a dense 640x480 frame (130 crossings) within the 15 ms budget. A 48 px patch gave 0.86 for 8 epochs
-    at twice the cost of 32 px.
+    stage alone: 0.75): widths (24, 32, 48, 64) gave 0.85 for 8 epochs and 0.88 for 12, at 8 million
+    multiply-adds a patch; the default (16, 24, 32, 48) 0.86 for 12 epochs at 4.2 million. Dropping the
+    convolution at P / 2 (``blocks`` (0, 1, 1), 2.9 million) gave 0.86 for 16 epochs but ran no faster
+    under ONNX Runtime, whose time goes to the full-resolution and strided layers. A 48 px patch gave
+    0.86 for 8 epochs at twice the cost of 32 px; folding 2x2 pixels into channels before the first
+    convolution, 0.80 at 2.3 million.
     """
 
     enabled: bool = True
     patch_px: Annotated[int, Field(ge=16, multiple_of=8)] = 32
     widths: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 24, 32, 48)
+    blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (1, 1, 1)
     hidden: PositiveInt = 128
     epochs: PositiveInt = 12
     batch_size: PositiveInt = 256

@@ -42,12 +42,16 @@ def _centroid(img: np.ndarray) -> np.ndarray:
 
 def test_a_patch_is_centred_on_the_point_in_coco_pixels():
     ramp = np.repeat(np.tile(np.arange(64, dtype=np.uint8), (48, 1))[..., None], 3, axis=2)
-    p = patches(ramp, np.array([[10.0, 20.0], [30.5, 5.0]]), 4)
-    assert p.shape == (2, 4, 4, 3)
+    p, corners = patches(ramp, np.array([[10.0, 20.0], [30.6, 5.0], [1.2, 47.9]]), 4)
+    assert p.shape == (3, 4, 4, 3)
     # the point (10, 20) is the corner between pixels 9 and 10: the 4 px patch spans pixels 8 to 11
     np.testing.assert_array_equal(p[0, 0, :, 0], [8, 9, 10, 11])
-    spot = _blob(48, 64, np.array([23.3, 17.8]))
-    np.testing.assert_allclose(_centroid(patches(spot, np.array([[23.3, 17.8]]), 24)[0]), [12, 12], atol=0.05)
+    np.testing.assert_array_equal(corners, [[10, 20], [31, 5], [1, 48]])  # the nearest pixel corners
+    np.testing.assert_array_equal(p[1, 0, :, 0], [29, 30, 31, 32])
+    np.testing.assert_array_equal(p[2, 0, :, 0], [0, 0, 1, 2])  # mirrored beyond the border
+    point = np.array([23.3, 17.8])
+    spot, corner = patches(_blob(48, 64, point), point[None], 24)
+    np.testing.assert_allclose(_centroid(spot[0]), 12 + point - corner[0], atol=0.05)
 
 
 def test_a_training_patch_moves_its_offset_with_the_pixels():
@@ -128,3 +132,16 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     (lone / "best.refine.onnx").write_bytes((out / "best.refine.onnx").read_bytes()[:-1] + b"\0")
     with pytest.raises(ConfigError, match="SHA-256"):
         Detector.load(lone / "best.onnx")
+
+
+def test_a_second_stage_file_that_does_not_fit_its_settings_is_named_and_retrained(drawn_dataset, tmp_path):
+    from rebar_data.perception.refine_train import load, save
+
+    small = RefineConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8, epochs=1, batch_size=64, threads=1)
+    other = small.model_copy(update={"widths": (4, 8, 8, 8)})
+    save(tmp_path / "refine_last.pt", build(other), small, optimizer={}, history=[])
+    with pytest.raises(ConfigError, match="do not fit"):
+        load(tmp_path / "refine_last.pt")
+    samples = load_split(drawn_dataset, "train")
+    net, history = train_refiner(samples, tmp_path, small, STILL, seed=0)  # trains afresh, no error
+    assert len(history) == 1 and load(tmp_path / "refine_last.pt")[1] == small
