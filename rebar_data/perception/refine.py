@@ -20,19 +20,6 @@ import cv2
 import numpy as np
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.augment import index_matrix
-
-
-def cut(image: np.ndarray, patch_from_image: np.ndarray, size: int) -> np.ndarray:
-    """Resample one training patch through a 2x3 map from image to patch pixels (bilinear; mirrored
-    beyond the image's border, so no edge looks like a bar)."""
-    return cv2.warpAffine(
-        image,
-        index_matrix(patch_from_image),
-        (size, size),
-        flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REFLECT,
-    )
 
 
 def patches(image: np.ndarray, centres: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:

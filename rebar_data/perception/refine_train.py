@@ -17,6 +17,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -24,10 +25,9 @@ from torch import nn
 from tqdm import tqdm
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.augment import apply_affine, photometric, random_affine
+from rebar_data.perception.augment import apply_affine, index_matrix, photometric, random_affine
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image
-from rebar_data.perception.refine import cut
 
 FORMAT = "rebar-keypoint-refiner"
 FORMAT_VERSION = 1
@@ -86,6 +86,18 @@ class PatchExportWrapper(nn.Module):
 def build(cfg: RefineConfig) -> PatchNet:
     """The refiner network these settings describe."""
     return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks)
+
+
+def cut(image: np.ndarray, patch_from_image: np.ndarray, size: int) -> np.ndarray:
+    """Resample one training patch through a 2x3 map from image to patch pixels (bilinear; mirrored
+    beyond the image's border, so no edge looks like a bar)."""
+    return cv2.warpAffine(
+        image,
+        index_matrix(patch_from_image),
+        (size, size),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REFLECT,
+    )
 
 
 def training_patch(
