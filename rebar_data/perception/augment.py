@@ -62,15 +62,16 @@ def apply_affine(points: np.ndarray, crop_from_image: np.ndarray) -> np.ndarray:
     return p @ crop_from_image[:, :2].T + crop_from_image[:, 2]
 
 
-def warp(image: np.ndarray, crop_from_image: np.ndarray, size: int, *, fill: float) -> np.ndarray:
-    """Resample ``image`` into a ``size`` x ``size`` crop (bilinear, constant fill outside the image)."""
+def warp(image: np.ndarray, crop_from_image: np.ndarray, size: int, *, fill: float | None) -> np.ndarray:
+    """Resample ``image`` into a ``size`` x ``size`` crop (bilinear). Outside the image: the constant
+    ``fill``, or with None the image mirrored at its border (so no edge looks like a bar)."""
     return cv2.warpAffine(
         image,
         index_matrix(crop_from_image),
         (size, size),
         flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_CONSTANT,
-        borderValue=(fill, fill, fill),
+        borderMode=cv2.BORDER_REFLECT if fill is None else cv2.BORDER_CONSTANT,
+        borderValue=(0, 0, 0) if fill is None else (fill, fill, fill),
     )
 
 

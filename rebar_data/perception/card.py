@@ -8,9 +8,8 @@ import shutil
 from collections.abc import Sequence
 from pathlib import Path
 
-import numpy as np
-
 from rebar_data.config import ConfigError
+from rebar_data.perception.bench import DetectorLatency, detector_latency
 from rebar_data.perception.data import check_dataset, read_info
 from rebar_data.perception.evaluate import predict
 from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector, refiner_path
@@ -18,16 +17,6 @@ from rebar_data.perception.metrics import oks_radius_px
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
 CARD_NAME = "MODEL_CARD.md"
-
-
-def _latency_ms(detector: Detector, *, repeats: int = 50) -> tuple[float, int]:
-    """Median end-to-end latency on the benchmark's drawn 640x480 frame, and how many crossings it finds."""
-    from rebar_data.perception.bench import _frame, _time_ms
-
-    rgb = _frame()
-    return float(np.median(_time_ms(lambda: detector.detect(rgb), repeats=repeats))), len(
-        detector.detect(rgb)
-    )
 
 
 def _row(name: str, m: dict) -> str:
@@ -43,13 +32,11 @@ def write_card(
     path: Path,
     *,
     model: Path,
-    latency_ms: float,
+    latency: DetectorLatency,
     extra_results: dict[str, dict] | None = None,
     load_average: float | None = None,
     score_bias: float = 0.0,
     refiner: Path | None = None,
-    crossings: int = 0,
-    first_stage_ms: float | None = None,
 ) -> Path:
     """The model card: what the model is, what it was trained on, how it scores and how to reproduce it."""
     res = json.loads((run_dir / "results.json").read_text())
@@ -106,12 +93,12 @@ def write_card(
             if refine
             else []
         ),
-        f"- Latency: {latency_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
-        f"  (median, measured when shipped{load}, on a drawn frame with {crossings} crossings"
+        f"- Latency: {latency.median_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
+        f"  (median, measured when shipped{load}, on a drawn frame with {latency.crossings} crossings"
         + (
-            f"; the first stage alone {first_stage_ms:.1f} ms, so the second costs "
-            f"{1e3 * (latency_ms - first_stage_ms) / max(crossings, 1):.0f} us a crossing"
-            if first_stage_ms is not None
+            f"; the first stage alone {latency.first_stage_ms:.1f} ms, so the second costs "
+            f"{latency.second_stage_us_per_crossing:.0f} us a crossing"
+            if latency.first_stage_ms is not None
             else ""
         )
         + ").",
@@ -283,22 +270,15 @@ def ship(
     )
     rows.update(extra_results or {})
     load = os.getloadavg()[0]
-    latency, crossings = _latency_ms(detector)
-    first_stage_ms = None
-    if detector.refiner is not None:
-        refiner, detector.refiner = detector.refiner, None
-        first_stage_ms = _latency_ms(detector)[0]
-        detector.refiner = refiner
+    latency = detector_latency(detector, repeats=50)
     write_card(
         run_dir,
         models_dir / CARD_NAME,
         model=dst,
-        latency_ms=latency,
+        latency=latency,
         extra_results=rows,
         load_average=load,
         score_bias=detector.score_bias,
         refiner=refiner_path(dst) if detector.refiner is not None else None,
-        crossings=crossings,
-        first_stage_ms=first_stage_ms,
     )
     return dst

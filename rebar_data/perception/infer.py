@@ -8,7 +8,8 @@ origin (the top-left corner of the top-left pixel is (0, 0)), as everywhere in t
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Any
 
@@ -133,6 +134,16 @@ class Detector:
 
         return cls(run, meta=dict(meta or {}), backend="torch", path=path)
 
+    @contextmanager
+    def first_stage_only(self) -> Iterator[Detector]:
+        """Within the block, ``detect`` gives the heatmap network's positions alone (to measure what the
+        second stage adds or costs); the refiner is back afterwards."""
+        refiner, self.refiner = self.refiner, None
+        try:
+            yield self
+        finally:
+            self.refiner = refiner
+
     def default_camera(self, height: int, width: int) -> tuple[float, float, float, float]:
         """Intrinsics assumed when the caller gives none: principal point at the image centre and the
         training data's focal length for this image width."""
@@ -180,11 +191,12 @@ class Detector:
         """
         if not 0.0 < threshold < 1.0:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
-        out = self.raw(rgb, camera=camera)
+        image = _check_image(rgb)
+        out = self.raw(image, camera=camera)
         det = decode(out[0] + self.score_bias, out[1:], threshold=threshold, max_detections=max_detections)
         if self.refiner is not None and len(det):
-            det[:, :2] = self.refiner.refine(_check_image(rgb), det[:, :2])
-        h, w = rgb.shape[:2]
+            det[:, :2] = self.refiner.refine(image, det[:, :2])
+        h, w = image.shape[:2]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
         return det[inside]
 

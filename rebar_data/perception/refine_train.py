@@ -17,7 +17,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -25,7 +24,7 @@ from torch import nn
 from tqdm import tqdm
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.augment import apply_affine, index_matrix, photometric, random_affine
+from rebar_data.perception.augment import apply_affine, photometric, random_affine, warp
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image
 
@@ -88,18 +87,6 @@ def build(cfg: RefineConfig) -> PatchNet:
     return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks)
 
 
-def cut(image: np.ndarray, patch_from_image: np.ndarray, size: int) -> np.ndarray:
-    """Resample one training patch through a 2x3 map from image to patch pixels (bilinear; mirrored
-    beyond the image's border, so no edge looks like a bar)."""
-    return cv2.warpAffine(
-        image,
-        index_matrix(patch_from_image),
-        (size, size),
-        flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REFLECT,
-    )
-
-
 def training_patch(
     image: np.ndarray, crossing: np.ndarray, rng: np.random.Generator, cfg: RefineConfig, aug: AugmentConfig
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -115,7 +102,7 @@ def training_patch(
         target=np.array([size / 2, size / 2]),
         cfg=aug.model_copy(update={"scale": cfg.scale}),
     )
-    x = photometric(cut(image, patch_from_image, size), rng, aug)
+    x = photometric(warp(image, patch_from_image, size, fill=None), rng, aug)
     return x, apply_affine(crossing, patch_from_image)[0] - size / 2
 
 
@@ -223,16 +210,15 @@ def train_refiner(
         net.load_state_dict(payload["state_dict"])  # the same settings: go on where it stopped
         opt.load_state_dict(payload["optimizer"])
         history = payload["history"]
-    if len(history) >= cfg.epochs:
-        return copy.deepcopy(net).to(memory_format=torch.contiguous_format).eval(), history
-    if images is None:
-        images = [read_image(s.path) for s in samples]
-    threads_before = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads)
-    try:
-        _epochs(net, opt, history, keys, samples, images, out, cfg, aug, seed=seed, progress=progress)
-    finally:
-        torch.set_num_threads(threads_before)
+    if len(history) < cfg.epochs:  # otherwise a finished stage: kept as it is
+        if images is None:
+            images = [read_image(s.path) for s in samples]
+        threads_before = torch.get_num_threads()
+        torch.set_num_threads(cfg.threads)
+        try:
+            _epochs(net, opt, history, keys, samples, images, out, cfg, aug, seed=seed, progress=progress)
+        finally:
+            torch.set_num_threads(threads_before)
     return copy.deepcopy(net).to(memory_format=torch.contiguous_format).eval(), history
 
 

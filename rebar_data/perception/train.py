@@ -552,9 +552,8 @@ def _finish(
         curves[split] = (samples, preds)
     first_stage: dict[str, dict[str, float]] = {}
     if detector.refiner is not None and test_samples:  # what the second stage adds, on the reported split
-        refiner_module, detector.refiner = detector.refiner, None
-        first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
-        detector.refiner = refiner_module
+        with detector.first_stage_only():
+            first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
         _log(f"first stage alone on test: {format_summary(first_stage['test'])}", progress)
     meta = {**meta, "results": results}
     save_checkpoint(out / "best.pt", net, meta)
