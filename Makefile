@@ -53,12 +53,15 @@ train: setup
 	if [ ! -d "$$gen" ]; then $(REBAR) dataset build pipelines/planar-slab.yaml --out $(DATA) --workers $(WORKERS) || exit 1; fi; \
 	$(REBAR) train "$$ds" --out runs/train/paper-tunnel --ship --eval "$$gen"
 
-# Servo evaluation: the paper's set-up (shipped detector) and the randomized suite with detector faults,
-# each checked against eval/thresholds.yaml. Outputs (tables, plots, .rrd recordings) go to $(EVAL_OUT).
+# Servo evaluation: the paper's set-up (shipped detector), the same with a lower bar mat under the top one,
+# and the randomized suite with detector faults, each checked against eval/thresholds.yaml. Outputs
+# (tables, plots, .rrd recordings) go to $(EVAL_OUT).
 EVAL_OUT ?= runs/eval
 eval: setup
 	$(REBAR) servo run eval/paper.yaml --out $(EVAL_OUT)/paper
 	$(REBAR) servo check $(EVAL_OUT)/paper
+	$(REBAR) servo run eval/paper-lower-mat.yaml --out $(EVAL_OUT)/paper-lower-mat
+	$(REBAR) servo check $(EVAL_OUT)/paper-lower-mat
 	$(REBAR) servo run eval/random.yaml --out $(EVAL_OUT)/random
 	$(REBAR) servo check $(EVAL_OUT)/random
 

@@ -14,6 +14,7 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 
 from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, read_yaml, validate
+from rebar_data.scene.config import SceneConfig
 
 Vec3 = tuple[float, float, float]
 Range = tuple[float, float]
@@ -200,6 +201,7 @@ class SuiteConfig(Strict):
     detector_path: str | None = None
     frames: Literal["renderer", "raycast"] = "renderer"
     shadows: bool = False
+    scene: SceneConfig = SceneConfig()
     faults: FaultsConfig = FaultsConfig()
     world: WorldConfig = WorldConfig()
     camera: CameraConfig = CameraConfig()

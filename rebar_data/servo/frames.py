@@ -83,7 +83,10 @@ class RaycastFrames:
 class RendererFrames:
     """Frames from the project's renderer: one sampled scene (lights, materials, surroundings, distractors)
     per run and one sampled sensor (exposure, noise, vignetting, JPEG) per episode, without the random
-    per-frame motion blur and defocus of the dataset (the servo camera's blur would follow its motion)."""
+    per-frame motion blur and defocus of the dataset (the servo camera's blur would follow its motion).
+
+    ``scene`` is what the scene is drawn from (a suite's ``scene`` section, the dataset's defaults when it
+    has none); its sensor's motion-blur and defocus probabilities are set to zero whatever it says."""
 
     def __init__(
         self,
@@ -93,11 +96,12 @@ class RendererFrames:
         *,
         shadows: bool = False,
         depth_noise: bool = True,
+        scene=None,
     ):
         try:
             from rebar_data.render.renderer import Renderer
             from rebar_data.scene.cameras import Intrinsics
-            from rebar_data.scene.config import RenderConfig, SceneConfig, SensorConfig
+            from rebar_data.scene.config import RenderConfig, SceneConfig
             from rebar_data.scene.sample import sample_scene, sample_sensor
         except ImportError as e:
             raise ConfigError(
@@ -108,9 +112,9 @@ class RendererFrames:
         intr = Intrinsics(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
         self._renderer = Renderer(intr, RenderConfig(shadows=shadows))
         self._renderer.set_mesh(rm)
-        self._scene_cfg = SceneConfig(
-            sensor=SensorConfig(motion_blur_probability=0.0, defocus_probability=0.0)
-        )
+        scene = scene if scene is not None else SceneConfig()
+        sensor = scene.sensor.model_copy(update={"motion_blur_probability": 0.0, "defocus_probability": 0.0})
+        self._scene_cfg = scene.model_copy(update={"sensor": sensor})
         self._renderer.set_scene(sample_scene(self._scene_cfg, rng))
         self._sample_sensor = sample_sensor
         self.new_sensor(rng)

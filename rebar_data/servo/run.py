@@ -46,7 +46,12 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
     if suite.frames == "renderer":
         try:
             frames = RendererFrames(
-                rm, camera, scene_rng, shadows=suite.shadows, depth_noise=suite.camera.depth_noise
+                rm,
+                camera,
+                scene_rng,
+                shadows=suite.shadows,
+                depth_noise=suite.camera.depth_noise,
+                scene=suite.scene,
             )
         except BaseException:
             world.close()
