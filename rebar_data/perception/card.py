@@ -84,7 +84,9 @@ def write_card(
         f"{cfg['parameters'] / 1e3:.0f} k parameters; channels {tc['model']['channels']}, blocks {tc['model']['blocks']}.",
         *(
             [
-                f"- Second stage: `{refiner.name}` (ONNX, {refiner.stat().st_size / 1024:.0f} KiB, "
+                f"- Second stage: `{refiner.name}` (ONNX, "
+                f"{'int8, ' if refine.get('quantize', 'none') == 'int8' else ''}"
+                f"{refiner.stat().st_size / 1024:.0f} KiB, "
                 f"{res.get('refiner_parameters', 0) / 1e3:.0f} k parameters), beside the first; a",
                 f"  {refine['patch_px']} px patch around each detection, plain convolutions to 1/8 and two fully",
                 "  connected layers regress the crossing's offset from the patch centre. `Detector.load` loads both;",

@@ -11,6 +11,7 @@ network's quirks.
 from __future__ import annotations
 
 import copy
+import logging
 import math
 import sys
 import time
@@ -30,6 +31,7 @@ from rebar_data.perception.data import Sample, read_image
 
 FORMAT = "rebar-keypoint-refiner"
 FORMAT_VERSION = 1
+EXPORT_ONLY = {"quantize", "calibration_patches"}  # RefineConfig settings that leave training alone
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
@@ -162,6 +164,89 @@ def export_onnx(net: PatchNet, path: Path) -> Path:
     return path
 
 
+def calibration_patches(
+    samples: list[Sample], cfg: RefineConfig, *, seed: int, images_used: int = 64
+) -> np.ndarray:
+    """Patches as the refiner meets them at inference, to set the int8 file's value ranges: cut on the
+    pixel grid (:func:`~rebar_data.perception.refine.patches`) around visible crossings of an even spread
+    of ``images_used`` images, each point moved by the training jitter (Gaussian, ``jitter_px``).
+
+    Returns:
+        (``cfg.calibration_patches``, P, P, 3) uint8 patches (fewer when the images hold fewer crossings).
+    """
+    from rebar_data.perception.refine import patches
+
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 4099]))
+    used = [s for s in samples if len(s.visible)]
+    used = [
+        used[i] for i in np.unique(np.linspace(0, len(used) - 1, min(images_used, len(used))).astype(int))
+    ]
+    each = -(-cfg.calibration_patches // max(1, len(used)))
+    out = []
+    for s in used:
+        pick = rng.choice(len(s.visible), size=min(each, len(s.visible)), replace=False)
+        uv = s.visible[pick] + rng.normal(0.0, cfg.jitter_px, (len(pick), 2))
+        out.append(patches(read_image(s.path), uv, cfg.patch_px)[0])
+    if not out:
+        raise ConfigError(
+            "no visible crossings to calibrate the int8 second stage on; accepted: quantize: none"
+        )
+    return np.concatenate(out)[: cfg.calibration_patches]
+
+
+def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray) -> Path:
+    """The float refiner file ``src`` as int8 at ``dst``: ONNX Runtime's static quantization, int8
+    weights per output channel and uint8 activations, their ranges the min and max seen on
+    ``calibration`` (uint8 patches, N x P x P x 3)."""
+    from onnxruntime.quantization import CalibrationDataReader
+
+    class Batches(CalibrationDataReader):
+        def __init__(self) -> None:
+            self._it = iter(np.array_split(calibration, max(1, len(calibration) // 64)))
+
+        def get_next(self) -> dict[str, np.ndarray] | None:
+            b = next(self._it, None)
+            return None if b is None else {"patches": np.ascontiguousarray(b)}
+
+    root_logger = logging.getLogger()
+    level = root_logger.level
+    # ONNX Runtime warns on the root logger, with the whole tensor type, that the uint8 input is not
+    # quantized (it is already 8-bit): kept quiet
+    root_logger.setLevel(logging.ERROR)
+    try:
+        _quantize(src, dst, Batches())
+    finally:
+        root_logger.setLevel(level)
+    return dst
+
+
+def _quantize(src: Path, dst: Path, batches) -> None:
+    import tempfile
+
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    with tempfile.TemporaryDirectory(prefix="rebar-quant-") as tmp:
+        pre = Path(tmp) / "pre.onnx"
+        # symbolic shape inference cannot resolve the batch axis and would leave a file in the working
+        # folder; ONNX's own shape inference, which still runs, is enough for a plain convolution network
+        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+        out = Path(tmp) / "int8.onnx"
+        quantize_static(
+            str(pre),
+            str(out),
+            batches,
+            quant_format=QuantFormat.QOperator,
+            per_channel=True,
+            activation_type=QuantType.QUInt8,
+            weight_type=QuantType.QInt8,
+            calibrate_method=CalibrationMethod.MinMax,
+        )
+        tmp_dst = dst.with_name(dst.name + ".tmp")
+        tmp_dst.write_bytes(out.read_bytes())
+        tmp_dst.replace(dst)
+
+
 def learning_rate(step: int, total: int, cfg: RefineConfig) -> float:
     """Linear warm-up over the first 3% of steps, then cosine decay to 2% of the peak."""
     warm = max(1, round(0.03 * total))
@@ -190,7 +275,7 @@ def train_refiner(
         The trained network (eval mode) and one row per epoch (loss, mean offset error in px, seconds).
     """
     last = out / "refine_last.pt"
-    want = cfg.model_dump(mode="json")
+    want = _training_settings(cfg)
     keys = np.array([(i, k) for i, s in enumerate(samples) for k in range(len(s.visible))], np.int64)
     if not len(keys):
         raise ConfigError(
@@ -206,7 +291,7 @@ def train_refiner(
             _, saved, payload = load(last)
         except ConfigError:
             saved = None  # an unreadable or older file: train afresh
-    if saved is not None and payload is not None and saved.model_dump(mode="json") == want:
+    if saved is not None and payload is not None and _training_settings(saved) == want:
         net.load_state_dict(payload["state_dict"])  # the same settings: go on where it stopped
         opt.load_state_dict(payload["optimizer"])
         history = payload["history"]
@@ -220,6 +305,11 @@ def train_refiner(
         finally:
             torch.set_num_threads(threads_before)
     return copy.deepcopy(net).to(memory_format=torch.contiguous_format).eval(), history
+
+
+def _training_settings(cfg: RefineConfig) -> dict[str, Any]:
+    """The settings a trained refiner depends on (not those that only shape the exported file)."""
+    return cfg.model_dump(mode="json", exclude=EXPORT_ONLY)
 
 
 def _epochs(

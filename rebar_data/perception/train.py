@@ -53,8 +53,9 @@ from rebar_data.perception.metrics import (
     pixel_metrics,
 )
 from rebar_data.perception.model import STRIDE, KeypointNet, count_parameters
-from rebar_data.perception.refine_train import PatchNet, train_refiner
+from rebar_data.perception.refine_train import PatchNet, calibration_patches, train_refiner
 from rebar_data.perception.refine_train import export_onnx as export_refiner
+from rebar_data.perception.refine_train import quantize_onnx as quantize_refiner
 from rebar_data.perception.refine_train import save as save_refiner
 from rebar_data.perception.targets import encode
 
@@ -423,6 +424,7 @@ def _run(
         val_samples,
         test_samples,
         dataset_meta,
+        train_samples=train_samples,
         refiner=refiner,
         refine_history=refine_history,
         train_s=train_s,
@@ -514,6 +516,7 @@ def _finish(
     test_samples: list[Sample],
     dataset_meta: dict,
     *,
+    train_samples: list[Sample],
     refiner: PatchNet | None,
     refine_history: list[dict[str, float]],
     train_s: float,
@@ -528,10 +531,16 @@ def _finish(
         stale.unlink(missing_ok=True)
     if refiner is not None:
         save_refiner(out / "best.refine.pt", refiner, cfg.refine)
+        onnx_path = export_refiner(refiner, out / "best.refine.onnx")
+        if cfg.refine.quantize == "int8":
+            patches = calibration_patches(train_samples, cfg.refine, seed=cfg.seed)
+            quantize_refiner(onnx_path, onnx_path, patches)
+            _log(f"second stage quantized to int8 ({len(patches)} calibration patches)", progress)
         meta["refiner"] = {
             "patch_px": cfg.refine.patch_px,
             "iterations": cfg.refine.iterations,
-            "sha256": sha256_file(export_refiner(refiner, out / "best.refine.onnx")),
+            "quantize": cfg.refine.quantize,
+            "sha256": sha256_file(onnx_path),
         }
     detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)
     if val_samples:  # the operating point, chosen on val with the raw scores

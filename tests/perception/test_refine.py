@@ -4,6 +4,7 @@ import json
 import shutil
 
 import numpy as np
+import onnx
 import pytest
 import torch
 
@@ -12,7 +13,14 @@ from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import load_split, read_image
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.refine import Refiner, patches
-from rebar_data.perception.refine_train import build, export_onnx, train_refiner, training_patch
+from rebar_data.perception.refine_train import (
+    build,
+    calibration_patches,
+    export_onnx,
+    quantize_onnx,
+    train_refiner,
+    training_patch,
+)
 
 from .conftest import TINY_TRAIN
 
@@ -87,10 +95,25 @@ def test_the_refiner_learns_to_move_points_onto_crossings(drawn_dataset, tmp_pat
         before += list(np.linalg.norm(start - s.visible, axis=1))
         after += list(np.linalg.norm(moved - s.visible, axis=1))
     assert np.median(after) < 0.8 * np.median(before)
-    # a finished stage is kept, not retrained
-    again, history_again = train_refiner(samples, tmp_path, cfg, STILL, seed=0)
-    assert history_again == history
-    torch.testing.assert_close(again.state_dict(), net.state_dict())
+    # a finished stage is kept, not retrained, also when only the exported file's settings change
+    for same in (cfg, cfg.model_copy(update={"quantize": "none", "calibration_patches": 64})):
+        again, history_again = train_refiner(samples, tmp_path, same, STILL, seed=0)
+        assert history_again == history
+        torch.testing.assert_close(again.state_dict(), net.state_dict())
+    # the int8 file moves the points closer as the float network does (the shipped network's int8 file
+    # is within 0.03 px of its float one in median; this tiny network's, within about 0.6 px)
+    calibration = calibration_patches(samples, cfg.model_copy(update={"calibration_patches": 256}), seed=0)
+    assert calibration.shape == (256, 16, 16, 3) and calibration.dtype == np.uint8
+    int8 = quantize_onnx(export_onnx(net, tmp_path / "f.onnx"), tmp_path / "q.onnx", calibration)
+    assert any(n.op_type == "QLinearConv" for n in onnx.load(int8).graph.node)
+    quantized = Refiner.load_onnx(int8, threads=1)
+    rng = np.random.default_rng(0)
+    after_int8 = []
+    for s in test:
+        start = s.visible + rng.normal(0, 1.5, s.visible.shape)
+        after_int8 += list(np.linalg.norm(quantized.refine(read_image(s.path), start) - s.visible, axis=1))
+    assert np.median(after_int8) < 0.8 * np.median(before), (np.median(after_int8), np.median(before))
+    assert np.median(after_int8) < np.median(after) + 0.3, (np.median(after_int8), np.median(after))
 
 
 def test_onnx_refiner_gives_what_pytorch_gives(tmp_path):
@@ -116,6 +139,8 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     assert (out / "best.refine.onnx").is_file() and (out / "best.refine.pt").is_file()
     det = Detector.load(out)
     assert det.refiner is not None and det.meta["refiner"]["patch_px"] == TINY_TRAIN["refine"]["patch_px"]
+    assert det.meta["refiner"]["quantize"] == "int8"  # the default: the shipped second stage is int8
+    assert any(n.op_type == "QLinearConv" for n in onnx.load(out / "best.refine.onnx").graph.node)
     results = json.loads((out / "results.json").read_text())
     assert "test" in results["results_first_stage"] and results["refiner_parameters"] > 0
     rgb = read_image(load_split(drawn_dataset, "test")[0].path)

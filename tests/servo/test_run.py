@@ -158,7 +158,10 @@ def test_check_fails_on_a_regression(tmp_path, root, monkeypatch, capsys):
         ({"episodes": [], "random": None}, ["no episodes"]),
         ({"ibvs": {"gain": {"at_zero": 1.0, "at_infinity": 2.0, "slope_at_zero": 1.0}}}, ["at_infinity"]),
         ({"episods": []}, ["unknown key", "episods"]),
-        ({"scene": {"surroundings": {"distractors": {"lower_layer_probability": 2}}}}, ["lower_layer_probability"]),
+        (
+            {"scene": {"surroundings": {"distractors": {"lower_layer_probability": 2}}}},
+            ["lower_layer_probability"],
+        ),
     ],
 )
 def test_bad_suites_are_one_clear_error(tmp_path, capsys, change, words):
