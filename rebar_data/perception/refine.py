@@ -56,11 +56,13 @@ class Refiner:
         """Wrap a :class:`~rebar_data.perception.refine_train.PatchNet` (eager PyTorch)."""
         import torch
 
-        net = net.eval()
+        from rebar_data.perception.refine_train import PatchExportWrapper
+
+        wrapped = PatchExportWrapper(net.eval())  # uint8 (N, P, P, 3) in, as the ONNX file takes them
 
         def run(x: np.ndarray) -> np.ndarray:
             with torch.inference_mode():
-                return net(torch.from_numpy(x).permute(0, 3, 1, 2).float()).numpy()
+                return wrapped(torch.from_numpy(x)).numpy()
 
         return cls(run, patch_px=net.patch_px, iterations=iterations)
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import copy
 import logging
-import math
 import sys
 import time
 from pathlib import Path
@@ -28,6 +27,7 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.augment import apply_affine, photometric, random_affine, warp
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image
+from rebar_data.perception.schedule import warmup_cosine
 
 FORMAT = "rebar-keypoint-refiner"
 FORMAT_VERSION = 1
@@ -226,7 +226,8 @@ def _quantize(src: Path, dst: Path, batches) -> None:
     from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
     from onnxruntime.quantization.shape_inference import quant_pre_process
 
-    with tempfile.TemporaryDirectory(prefix="rebar-quant-") as tmp:
+    # the temporary folder sits beside dst, so the finished file is renamed into place atomically
+    with tempfile.TemporaryDirectory(prefix=".rebar-quant-", dir=dst.parent) as tmp:
         pre = Path(tmp) / "pre.onnx"
         # symbolic shape inference cannot resolve the batch axis and would leave a file in the working
         # folder; ONNX's own shape inference, which still runs, is enough for a plain convolution network
@@ -242,18 +243,12 @@ def _quantize(src: Path, dst: Path, batches) -> None:
             weight_type=QuantType.QInt8,
             calibrate_method=CalibrationMethod.MinMax,
         )
-        tmp_dst = dst.with_name(dst.name + ".tmp")
-        tmp_dst.write_bytes(out.read_bytes())
-        tmp_dst.replace(dst)
+        out.replace(dst)
 
 
 def learning_rate(step: int, total: int, cfg: RefineConfig) -> float:
     """Linear warm-up over the first 3% of steps, then cosine decay to 2% of the peak."""
-    warm = max(1, round(0.03 * total))
-    if step < warm:
-        return cfg.lr * (step + 1) / warm
-    t = min(1.0, (step - warm) / max(1, total - warm))
-    return cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * t)))
+    return warmup_cosine(step, peak=cfg.lr, warm=max(1, round(0.03 * total)), total=total)
 
 
 def train_refiner(

@@ -57,6 +57,7 @@ from rebar_data.perception.refine_train import PatchNet, calibration_patches, tr
 from rebar_data.perception.refine_train import export_onnx as export_refiner
 from rebar_data.perception.refine_train import quantize_onnx as quantize_refiner
 from rebar_data.perception.refine_train import save as save_refiner
+from rebar_data.perception.schedule import warmup_cosine
 from rebar_data.perception.targets import encode
 
 EARLY_STOP_METRIC = "val_oks_ap"
@@ -183,12 +184,9 @@ def batch_stream(samples: list[Sample], cfg: TrainConfig, *, first: int, last: i
 
 def learning_rate(step: int, *, steps_per_epoch: int, cfg: TrainConfig) -> float:
     """Linear warm-up, then cosine decay to 2% of the peak at the last epoch."""
-    warm = cfg.warmup_epochs * steps_per_epoch
-    total = cfg.epochs * steps_per_epoch
-    if step < warm:
-        return cfg.lr * (step + 1) / warm
-    t = min(1.0, (step - warm) / max(1.0, total - warm))
-    return cfg.lr * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * t)))
+    return warmup_cosine(
+        step, peak=cfg.lr, warm=cfg.warmup_epochs * steps_per_epoch, total=cfg.epochs * steps_per_epoch
+    )
 
 
 @dataclass
