@@ -19,6 +19,19 @@ MAX_SHIPPED_BYTES = 5 * 1024 * 1024
 CARD_NAME = "MODEL_CARD.md"
 
 
+def _supplement_lines(supplements: list[dict]) -> list[str]:
+    """The card's words on the further datasets a run trained on, if any."""
+    if not supplements:
+        return []
+    named = ", ".join(
+        f"`{d.get('name')}` v{d.get('version')} ({d.get('images')} images)" for d in supplements
+    )
+    return [
+        f"- Also trained on every image of {named} (`pipelines/<name>.yaml`): scenes of their own,",
+        "  none of them in the val or test split above.",
+    ]
+
+
 def _row(name: str, m: dict) -> str:
     return (
         f"| {name} | {int(m['n_gt'])} | {m['oks_ap50']:.4f} | {m['oks_ap']:.4f} | {m['pck1']:.3f} | {m['pck2']:.3f} | "
@@ -111,6 +124,7 @@ def write_card(
         "## Training",
         f"- Data: `{ds.get('name')}` v{ds.get('version')}, its train split (early stopping and the choice of",
         "  epoch on val); the dataset is split by scene, so no frame of a val or test scene was trained on.",
+        *_supplement_lines(ds.get("supplements") or []),
         f"- {res['epochs_run']} epochs run, best at epoch {res['best_epoch']}"
         + (" (stopped early)" if res["stopped_early"] else "")
         + f", {res['train_seconds_total'] / 60:.1f} minutes of training on this 2-core CPU"
@@ -139,8 +153,8 @@ def write_card(
             else []
         ),
         f"- Occluded crossings (visibility 1): {tc['occluded']} in the loss.",
-        "- Reproduce: `make train` (builds the default dataset and the planar-slab set when missing, trains,",
-        "  and ships this file and card); the settings below are `TrainConfig`'s defaults.",
+        "- Reproduce: `make train` (builds the default dataset, its supplement and the planar-slab set when",
+        "  missing, trains, and ships this file and card); the settings below are `TrainConfig`'s defaults.",
         "",
         "## Metrics",
         f"OKS sigma {sigma:g}; object area = the crossing's square box (side `box_size_px`, four projected bar",

@@ -18,7 +18,7 @@ def run_train(args: argparse.Namespace) -> None:
     root = check_dataset(args.dataset)
     if args.eval and not args.ship:
         raise ConfigError("--eval scores the model for its card; accepted: --eval together with --ship")
-    for path in args.eval or ():
+    for path in [*(args.eval or ()), *(args.supplement or ())]:
         check_dataset(path)
     config = resolve_config(read_yaml(args.config) if args.config else None, {})
     out = (
@@ -27,7 +27,13 @@ def run_train(args: argparse.Namespace) -> None:
         else Path("runs/train") / str(read_info(root).get("name") or root.parent.name)
     )
     result = train(
-        root, out, config=config, epochs=args.epochs, resume=not args.fresh, progress=not args.quiet
+        root,
+        out,
+        config=config,
+        epochs=args.epochs,
+        supplements=args.supplement or (),
+        resume=not args.fresh,
+        progress=not args.quiet,
     )
     if args.ship:
         from rebar_data.perception.card import ship
@@ -133,6 +139,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--config", help="YAML of training settings (fields of TrainConfig: epochs, batch_size, ...)"
     )
     t.add_argument("--epochs", type=int, help="epochs (overrides the config)")
+    t.add_argument(
+        "--supplement",
+        action="append",
+        metavar="DATASET",
+        help="another dataset whose every image also trains the model (repeatable); val and test stay the first's",
+    )
     t.add_argument("--fresh", action="store_true", help="start afresh instead of resuming the run in --out")
     t.add_argument(
         "--ship", action="store_true", help="then copy the best model and its card into the package"

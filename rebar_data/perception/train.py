@@ -21,7 +21,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -38,6 +38,7 @@ from rebar_data.perception.data import Sample, check_dataset, load_split, read_i
 from rebar_data.perception.evaluate import (
     CALIBRATION_FLOOR,
     calibrate_score_bias,
+    load_splits,
     predict,
     score,
     truth_of,
@@ -231,6 +232,7 @@ def train(
     config: TrainConfig | dict | None = None,
     epochs: int | None = None,
     batch_size: int | None = None,
+    supplements: Sequence[str | Path] = (),
     resume: bool = True,
     progress: bool = True,
 ) -> TrainResult:
@@ -242,6 +244,8 @@ def train(
         config: Settings; defaults are what ``make train`` uses.
         epochs: Overrides ``config.epochs``.
         batch_size: Overrides ``config.batch_size``.
+        supplements: Further datasets whose every image (all splits) joins the training images; the
+            epoch is still chosen on ``dataset_path``'s val split and scored on its test split.
         resume: Continue from ``out_dir/last.pt`` if it exists (the settings must match, but for
             epochs, patience and val_every); False starts afresh and overwrites the run.
         progress: Show a progress bar per epoch and a summary line after it (on stderr).
@@ -257,6 +261,8 @@ def train(
     train_samples = load_split(root, "train")
     if not train_samples:
         raise ConfigError(f"{root}: the train split has no images; accepted: a dataset with training images")
+    extra, supplement_meta = _supplement_images(supplements, trained_on=info.get("name"))
+    train_samples = train_samples + extra
     val_samples = load_split(root, "val")
     test_samples = load_split(root, "test")
     out.mkdir(parents=True, exist_ok=True)
@@ -272,11 +278,41 @@ def train(
             train_samples,
             val_samples,
             test_samples,
+            supplements=supplement_meta,
             resume=resume,
             progress=progress,
         )
     finally:
         torch.set_num_threads(threads_before)
+
+
+def _supplement_images(
+    supplements: Sequence[str | Path], *, trained_on: str | None
+) -> tuple[list[Sample], list[dict[str, Any]]]:
+    """Every image of each supplement, and what the run records of them (path, name, version, images)."""
+    images: list[Sample] = []
+    meta: list[dict[str, Any]] = []
+    for path in supplements:
+        root = check_dataset(path)
+        info = read_info(root)
+        if info.get("name") == trained_on:
+            raise ConfigError(
+                f"{root}: is a build of {trained_on!r}, the dataset trained on, whose val and test scenes a "
+                "supplement would train on; accepted: a dataset built from another pipeline"
+            )
+        these = load_splits(root)
+        if not these:
+            raise ConfigError(f"{root}: the supplement has no images; accepted: a dataset with images")
+        images += these
+        meta.append(
+            {
+                "path": str(root),
+                "name": info.get("name"),
+                "version": info.get("version"),
+                "images": len(these),
+            }
+        )
+    return images, meta
 
 
 def _log(msg: str, progress: bool) -> None:
@@ -300,6 +336,17 @@ def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> Non
             )
 
 
+def _check_same_supplements(saved: list[dict[str, Any]], now: list[dict[str, Any]], path: Path) -> None:
+    def names(sups: list[dict[str, Any]]) -> list[str]:
+        return [f"{d.get('name')} v{d.get('version')}" for d in sups]
+
+    if names(saved) != names(now):
+        raise ConfigError(
+            f"{path}: holds a run trained with supplements {names(saved) or 'none'}, not {names(now) or 'none'}; "
+            "accepted: the same supplements to resume, or a fresh start (--fresh) or another run folder"
+        )
+
+
 def _run(
     cfg: TrainConfig,
     root: Path,
@@ -310,6 +357,7 @@ def _run(
     val_samples: list[Sample],
     test_samples: list[Sample],
     *,
+    supplements: list[dict[str, Any]],
     resume: bool,
     progress: bool,
 ) -> TrainResult:
@@ -330,6 +378,7 @@ def _run(
     if resume and last.exists():
         _, _, payload = load_checkpoint(last)
         _check_resumable(payload["train_config"], cfg, last)
+        _check_same_supplements(payload["meta"]["dataset"].get("supplements", []), supplements, last)
         net.load_state_dict(payload["state_dict"])
         avg.net.load_state_dict(payload["average_state_dict"])
         avg.updates = payload["average_updates"]
@@ -337,7 +386,12 @@ def _run(
         torch.set_rng_state(payload["torch_rng"])
         state = payload["state"]
         _log(f"resuming {out} after epoch {state['epoch']}", progress)
-    dataset_meta = {"path": str(root), "name": info.get("name"), "version": info.get("version")}
+    dataset_meta = {
+        "path": str(root),
+        "name": info.get("name"),
+        "version": info.get("version"),
+        "supplements": supplements,
+    }
     (out / "config.json").write_text(
         json.dumps(
             {
@@ -475,6 +529,7 @@ def _train_epoch(
         "epoch": epoch,
         "lr": lr,
         "mosaic": int(mosaic),
+        "steps": steps,
         "train_loss": sums[0] / steps,
         "train_heat_loss": sums[1] / steps,
         "train_offset_loss": sums[2] / steps,

@@ -80,6 +80,10 @@ def test_train_command_runs_from_a_settings_file(drawn_dataset, tmp_path, capsys
     assert rc == 0
     assert capsys.readouterr().out.strip().splitlines()[-1] == str(tmp_path / "run")
     assert (tmp_path / "run/best.onnx").exists()
+    rc = main(
+        ["train", str(drawn_dataset), "--supplement", str(tmp_path / "nowhere"), "--out", str(tmp_path / "r")]
+    )
+    assert rc == 2 and "nowhere" in capsys.readouterr().err  # a wrong supplement fails before training
 
 
 def test_user_errors_are_one_line_and_exit_2(tmp_path, capsys):

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -113,3 +114,29 @@ def test_batches_are_the_same_with_or_without_a_loader_process(drawn_dataset):
     resumed = list(batch_stream(samples, here, first=4, last=4, steps=2))  # epoch 4 alone, as after a resume
     torch.testing.assert_close(resumed[0][0], a[2][0])
     assert not torch.equal(a[0][0], a[2][0])
+
+
+def test_a_supplement_adds_its_images_to_training_and_is_recorded(drawn_dataset, tmp_path):
+    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+
+    spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
+    extra = write_synthetic_dataset(tmp_path / "data", spec, seed=5, name="drawn-extra")
+    cfg = {**TINY_TRAIN, "epochs": 1, "refine": {**TINY_TRAIN["refine"], "enabled": False}}
+    alone = train(drawn_dataset, tmp_path / "alone", config=cfg, progress=False)
+    both = train(drawn_dataset, tmp_path / "both", config=cfg, supplements=[extra], progress=False)
+    n_train, n_extra = len(load_split(drawn_dataset, "train")), 6
+    steps_alone = math.ceil(n_train / cfg["batch_size"])
+    steps_both = math.ceil((n_train + n_extra) / cfg["batch_size"])
+    assert steps_both > steps_alone
+    assert alone.history[0]["steps"] == steps_alone and both.history[0]["steps"] == steps_both
+    recorded = json.loads((tmp_path / "both/results.json").read_text())["dataset"]["supplements"]
+    assert [(d["name"], d["images"]) for d in recorded] == [("drawn-extra", n_extra)]
+    assert set(both.results) == {"val", "test"}  # scored on the first dataset's splits alone
+    from rebar_data.perception.card import CARD_NAME, ship
+
+    ship(tmp_path / "both", models_dir=tmp_path / "models")
+    assert "`drawn-extra` v0.0.0 (6 images)" in (tmp_path / "models" / CARD_NAME).read_text()
+    with pytest.raises(ConfigError, match="supplements"):  # a run resumes only with the supplements it had
+        train(drawn_dataset, tmp_path / "both", config=cfg, epochs=2, progress=False)
+    with pytest.raises(ConfigError, match="another pipeline"):  # its own val and test scenes would leak in
+        train(drawn_dataset, tmp_path / "r", config=cfg, supplements=[drawn_dataset], progress=False)
