@@ -78,7 +78,7 @@ class RefineConfig(Strict):
     patches around training crossings); ``"none"`` ships it in float. On paper-tunnel's test split int8
     scored as float did (PCK@2px 0.859 and 0.860, recall@P0.99 0.81 and 0.80) and ran 1.46x
     faster (9.4 to 6.4 ms for the 131 patches of the bench frame, 2 threads).
-    ``epochs`` = 9 since `make train` adds the lower-mat supplement (37% more crossings): about the 12
+    ``epochs`` = 7 since `make train` adds the lower-mat supplement (75% more images): about the 12
     epochs' patches over paper-tunnel alone, in the same time.
     The first stage stays in float: int8 cost it recall@P0.99 (0.80 to 0.45) and time nothing. Both
     settings shape only the exported file, so changing them keeps a trained second stage.
@@ -89,7 +89,7 @@ class RefineConfig(Strict):
     widths: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 24, 32, 48)
     blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (1, 1, 1)
     hidden: PositiveInt = 128
-    epochs: PositiveInt = 9
+    epochs: PositiveInt = 7
     batch_size: PositiveInt = 256
     lr: Positive = 2e-3
     weight_decay: NonNegative = 1e-4
@@ -117,11 +117,11 @@ class TrainConfig(Strict):
     with other work, a second OpenMP thread mostly waits for its partner: a training step took 0.44 s
     with two threads and 0.27 s with one, while the machine was busy with other jobs.
 
-    ``epochs`` = 14 with `make train`'s data (paper-tunnel's 960 training images and the 360 of its
+    ``epochs`` = 11 with `make train`'s data (paper-tunnel's 960 training images and the 720 of its
     lower-mat supplement): 4,620 steps, about the 4,800 of 20 epochs over paper-tunnel alone, in 30 minutes.
     """
 
-    epochs: PositiveInt = 14
+    epochs: PositiveInt = 11
     batch_size: PositiveInt = 8
     crop_px: Annotated[int, Field(ge=32, multiple_of=16)] = 384
     crops_per_image: PositiveInt = 2
