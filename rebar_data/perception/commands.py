@@ -18,7 +18,7 @@ def run_train(args: argparse.Namespace) -> None:
     root = check_dataset(args.dataset)
     if args.eval and not args.ship:
         raise ConfigError("--eval scores the model for its card; accepted: --eval together with --ship")
-    for path in [*(args.eval or ()), *(args.supplement or ())]:
+    for path in args.eval or ():  # scored after training: fail before it (train checks supplements itself)
         check_dataset(path)
     config = resolve_config(read_yaml(args.config) if args.config else None, {})
     out = (

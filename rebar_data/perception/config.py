@@ -78,10 +78,11 @@ class RefineConfig(Strict):
     patches around training crossings); ``"none"`` ships it in float. On paper-tunnel's test split int8
     scored as float did (PCK@2px 0.859 and 0.860, recall@P0.99 0.81 and 0.80) and ran 1.46x
     faster (9.4 to 6.4 ms for the 131 patches of the bench frame, 2 threads).
-    ``epochs`` = 7 since `make train` adds the lower-mat supplement (75% more images): about the 12
-    epochs' patches over paper-tunnel alone, in the same time.
     The first stage stays in float: int8 cost it recall@P0.99 (0.80 to 0.45) and time nothing. Both
     settings shape only the exported file, so changing them keeps a trained second stage.
+
+    ``epochs`` = 7 since `make train` adds the lower-mat supplement (75% more images): about the 12
+    epochs' patches over paper-tunnel alone, in the same time.
     """
 
     enabled: bool = True

@@ -18,6 +18,7 @@ import numpy as np
 
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.scene.config import SceneConfig
 from rebar_data.servo.camera import CameraModel, kinect_depth
 from rebar_data.servo.raycast import Raycaster
 
@@ -96,12 +97,12 @@ class RendererFrames:
         *,
         shadows: bool = False,
         depth_noise: bool = True,
-        scene=None,
+        scene: SceneConfig | None = None,
     ):
         try:
             from rebar_data.render.renderer import Renderer
             from rebar_data.scene.cameras import Intrinsics
-            from rebar_data.scene.config import RenderConfig, SceneConfig
+            from rebar_data.scene.config import RenderConfig
             from rebar_data.scene.sample import sample_scene, sample_sensor
         except ImportError as e:
             raise ConfigError(
