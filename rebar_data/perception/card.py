@@ -102,8 +102,17 @@ def write_card(
                 f"{refiner.stat().st_size / 1024:.0f} KiB, "
                 f"{res.get('refiner_parameters', 0) / 1e3:.0f} k parameters), beside the first; a",
                 f"  {refine['patch_px']} px patch around each detection, plain convolutions to 1/8 and two fully",
-                "  connected layers regress the crossing's offset from the patch centre. `Detector.load` loads both;",
-                "  set `detector.refiner = None` for the first stage alone.",
+                "  connected layers regress the crossing's offset from the patch centre"
+                + (", and the logit p that the patch shows a" if refine.get("verify") else "."),
+                *(
+                    [
+                        "  crossing at all. A detection's score becomes sigmoid(first-stage logit + log p): the second",
+                        "  stage only lowers scores (of bars passing over the mat beneath, mostly).",
+                    ]
+                    if refine.get("verify")
+                    else []
+                ),
+                "  `Detector.load` loads both; set `detector.refiner = None` for the first stage alone.",
             ]
             if refine
             else []
@@ -146,8 +155,18 @@ def write_card(
                 f"  each a {refine['patch_px']} px patch centred with a random error (Gaussian sigma "
                 f"{refine['jitter_px']:g} px, or for {refine['jitter_uniform_fraction']:.0%} uniform up to "
                 f"{refine['jitter_uniform_px']:g} px),",
-                "  turned, flipped, scaled and recoloured like the crops; smooth-L1 loss on the offset. It learns",
-                "  from the labels alone, not from the first stage's outputs.",
+                "  turned, flipped, scaled and recoloured like the crops; smooth-L1 loss on the offset. Its positions",
+                "  learn from the labels alone, not from the first stage's outputs.",
+                *(
+                    [
+                        f"  Its verification also learns from negatives: the trained first stage's detections (score >= "
+                        f"{refine['negative_score']:g})",
+                        f"  on the training images farther than {refine['negative_gate_px']:g} px from every "
+                        "visible crossing; cross-entropy beside the offset loss.",
+                    ]
+                    if refine.get("verify")
+                    else []
+                ),
             ]
             if refine
             else []
@@ -176,8 +195,10 @@ def write_card(
         "- `(all splits)` rows: datasets built with other configs (`pipelines/*.yaml`), never trained on.",
         *(
             [
-                "- `first stage alone`: the heatmap network's positions without the second stage (the same",
-                "  detections and scores), to show what the second stage adds.",
+                "- `first stage alone`: the heatmap network's detections without the second stage (its",
+                "  positions and scores"
+                + (", before verification" if refine.get("verify") else "")
+                + "), to show what the second stage adds.",
             ]
             if refine
             else []

@@ -83,6 +83,18 @@ class RefineConfig(Strict):
 
     ``epochs`` = 7 since `make train` adds the lower-mat supplement (75% more images): about the 12
     epochs' patches over paper-tunnel alone, in the same time.
+
+    ``verify``: the second stage also says whether its patch shows a crossing at all. Most of the first
+    stage's confident false detections are places where a top bar passes over a bar of the mat beneath
+    (two bars crossing in the image, not touching) or a crossing of that lower mat; at stride 4 they look
+    like crossings, at full resolution the lower bar is thinner, darker and shadowed. The second stage
+    learns this from the labelled crossings (positives, jittered as above) and from negatives mined
+    with the trained first stage on the training images: its detections scoring at least
+    ``negative_score`` that lie farther than ``negative_gate_px`` from every visible crossing (occluded
+    ones included: a detection there counts as false in the metrics). A detection's score becomes
+    sigmoid(first-stage logit + log p), p the second stage's probability of a crossing, so it only
+    ever lowers a score, and the operating point chosen on val still shifts every score alike.
+    ``verify_weight`` weighs its cross-entropy against the offset loss.
     """
 
     enabled: bool = True
@@ -103,6 +115,10 @@ class RefineConfig(Strict):
     threads: PositiveInt = 2
     quantize: Literal["int8", "none"] = "int8"
     calibration_patches: PositiveInt = 2048
+    verify: bool = True
+    negative_score: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.1
+    negative_gate_px: Positive = 6.0
+    verify_weight: Positive = 1.0
 
 
 class TrainConfig(Strict):

@@ -195,10 +195,24 @@ class Detector:
         out = self.raw(image, camera=camera)
         det = decode(out[0] + self.score_bias, out[1:], threshold=threshold, max_detections=max_detections)
         if self.refiner is not None and len(det):
-            det[:, :2] = self.refiner.refine(image, det[:, :2])
+            det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2])
+            if verify is not None:
+                det[:, 2] = verified_score(det[:, 2], verify)
+                det = det[det[:, 2] >= threshold]
+                det = det[np.argsort(-det[:, 2], kind="stable")]
         h, w = image.shape[:2]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
         return det[inside]
+
+
+def verified_score(score: np.ndarray, verify_logit: np.ndarray) -> np.ndarray:
+    """A detection's score after the second stage's verification: sigmoid(logit(score) + log p), with p
+    the second stage's probability that the patch shows a crossing. It only lowers scores (p <= 1),
+    so a threshold applied to the first stage's scores loses nothing, and a shift of the first stage's
+    logits (the score bias) shifts the final logits alike."""
+    s = np.clip(np.asarray(score, np.float64), 1e-12, 1.0 - 1e-12)
+    log_p = -np.logaddexp(0.0, -np.asarray(verify_logit, np.float64))
+    return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + log_p)))
 
 
 def onnx_session(path: Path, threads: int):

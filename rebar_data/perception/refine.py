@@ -6,7 +6,9 @@ of the image's resolution), which keeps a whole frame within a few milliseconds,
 half an output cell. Close-ups of rusty bars, where a crossing is a 30 px patch of texture, are where its
 errors concentrate. The refiner sees a ``patch_px`` square at full resolution centred on the first
 stage's estimate and regresses the crossing's offset from the patch centre, in pixels; a frame's
-detections go through it as one batch. How it is trained: :mod:`rebar_data.perception.refine_train`.
+detections go through it as one batch. A refiner trained with verification also gives, per patch, the
+logit that it shows a crossing at all, which lowers the scores of the first stage's false detections.
+How it is trained: :mod:`rebar_data.perception.refine_train`.
 
 This module needs no PyTorch for ONNX files, so the servo's detector loads without it.
 """
@@ -44,12 +46,17 @@ def patches(image: np.ndarray, centres: np.ndarray, size: int) -> tuple[np.ndarr
 
 
 class Refiner:
-    """A loaded refiner: ``refine(image, uv) -> uv`` moves each point to the crossing the patch shows."""
+    """A loaded refiner: ``refine(image, uv) -> uv`` moves each point to the crossing the patch shows;
+    ``refine_and_verify`` also gives each point's verification logit when the refiner has one
+    (``verifies``)."""
 
-    def __init__(self, run: Callable[[np.ndarray], np.ndarray], *, patch_px: int, iterations: int):
+    def __init__(
+        self, run: Callable[[np.ndarray], np.ndarray], *, patch_px: int, iterations: int, verifies: bool
+    ):
         self._run = run
         self.patch_px = patch_px
         self.iterations = iterations
+        self.verifies = verifies
 
     @classmethod
     def from_network(cls, net, *, iterations: int = 1) -> Refiner:
@@ -64,7 +71,7 @@ class Refiner:
             with torch.inference_mode():
                 return wrapped(torch.from_numpy(x)).numpy()
 
-        return cls(run, patch_px=net.patch_px, iterations=iterations)
+        return cls(run, patch_px=net.patch_px, iterations=iterations, verifies=net.verify)
 
     @classmethod
     def load_onnx(cls, path: Path, *, threads: int, iterations: int = 1) -> Refiner:
@@ -79,14 +86,24 @@ class Refiner:
         def run(x: np.ndarray) -> np.ndarray:
             return sess.run(None, {name: x})[0]
 
-        return cls(run, patch_px=size, iterations=iterations)
+        columns = sess.get_outputs()[0].shape[-1]  # 2: offsets; 3: offsets and the verification logit
+        return cls(run, patch_px=size, iterations=iterations, verifies=columns == 3)
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N, 2) refined positions of the (N, 2) points ``uv`` in ``image`` (pixels, COCO corner origin)."""
+        return self.refine_and_verify(image, uv)[0]
+
+    def refine_and_verify(self, image: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """The refined positions (N, 2) and, when the refiner verifies, (N,) logits that each point's
+        first patch (centred where the first stage put it) shows a crossing; None otherwise."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
-            return uv
-        for _ in range(self.iterations):
+            return uv, (np.zeros(0) if self.verifies else None)
+        logit = None
+        for it in range(self.iterations):
             x, corners = patches(image, uv, self.patch_px)
-            uv = corners + self._run(x).astype(np.float64)
-        return uv
+            out = self._run(x).astype(np.float64)
+            if it == 0 and self.verifies:
+                logit = out[:, 2].copy()
+            uv = corners + out[:, :2]
+        return uv, logit

@@ -4,8 +4,10 @@ The refiner trains on its own, from the labels alone: patches around the trainin
 crossings, centred with a random error like the first stage's (a Gaussian and, for some, a uniform error
 up to ``jitter_uniform_px``), turned, flipped and scaled with the keypoint by the same similarity maps as
 the first stage's crops (:func:`~rebar_data.perception.augment.random_affine`), with the same colour, blur
-and noise changes. So the two stages train independently, and the refiner never learns one first-stage
-network's quirks.
+and noise changes. So the two stages' positions train independently, and the refiner never learns one
+first-stage network's quirks. Its verification output (``RefineConfig.verify``) is the one part that
+looks at the first stage: its negatives are where the trained first stage finds crossings that are not
+there (:func:`mine_negatives`).
 """
 
 from __future__ import annotations
@@ -14,6 +16,7 @@ import copy
 import logging
 import sys
 import time
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +45,8 @@ def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 class PatchNet(nn.Module):
     """(N, 3, P, P) RGB patches, values 0-255 -> (N, 2) offset (x, y) of the crossing from the patch centre,
-    in the patch's pixels.
+    in the patch's pixels, and with ``verify`` a third column: the logit that the patch shows a crossing
+    near its centre at all.
 
     Plain 3x3 convolutions, the first at full resolution (folding 2x2 pixels into channels first was
     cheaper but measurably less accurate), three halvings to P / 8 with ``blocks`` more convolutions after
@@ -56,17 +60,23 @@ class PatchNet(nn.Module):
         widths: tuple[int, int, int, int],
         hidden: int,
         blocks: tuple[int, int, int] = (1, 1, 1),
+        *,
+        verify: bool = False,
     ):
         super().__init__()
         a, b, c, d = widths
         self.patch_px = patch_px
+        self.verify = verify
         layers = [_conv(3, a)]
         for cin, cout, n in ((a, b, blocks[0]), (b, c, blocks[1]), (c, d, blocks[2])):
             layers += [_conv(cin, cout, 2), *[_conv(cout, cout) for _ in range(n)]]
         self.features = nn.Sequential(*layers)
         cells = -(-patch_px // 8)
         self.head = nn.Sequential(
-            nn.Flatten(), nn.Linear(d * cells * cells, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2)
+            nn.Flatten(),
+            nn.Linear(d * cells * cells, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, 3 if verify else 2),
         )
 
     def forward(self, patches: torch.Tensor) -> torch.Tensor:
@@ -74,7 +84,8 @@ class PatchNet(nn.Module):
 
 
 class PatchExportWrapper(nn.Module):
-    """What the refiner's ONNX file holds: uint8 RGB patches (N, P, P, 3) in, offsets (N, 2) out."""
+    """What the refiner's ONNX file holds: uint8 RGB patches (N, P, P, 3) in, offsets (N, 2) out (with the
+    verification logit as a third column, (N, 3), when the network has one)."""
 
     def __init__(self, net: PatchNet):
         super().__init__()
@@ -86,14 +97,22 @@ class PatchExportWrapper(nn.Module):
 
 def build(cfg: RefineConfig) -> PatchNet:
     """The refiner network these settings describe."""
-    return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks)
+    return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks, verify=cfg.verify)
 
 
 def training_patch(
-    image: np.ndarray, crossing: np.ndarray, rng: np.random.Generator, cfg: RefineConfig, aug: AugmentConfig
+    image: np.ndarray,
+    crossing: np.ndarray,
+    rng: np.random.Generator,
+    cfg: RefineConfig,
+    aug: AugmentConfig,
+    *,
+    uniform: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
-    """One augmented patch around a labelled crossing and the crossing's offset from its centre."""
-    if rng.uniform() < cfg.jitter_uniform_fraction:
+    """One augmented patch around a labelled crossing and the crossing's offset from its centre.
+    ``uniform = False`` draws the centre's error from the Gaussian alone (for a mined negative, which a
+    5 px error could move next to a real crossing)."""
+    if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
     else:
         error = rng.normal(0.0, cfg.jitter_px, 2)
@@ -155,7 +174,7 @@ def export_onnx(net: PatchNet, path: Path) -> Path:
             (torch.zeros((4, size, size, 3), dtype=torch.uint8),),
             str(tmp),
             input_names=["patches"],
-            output_names=["offset"],
+            output_names=["offset"],  # (N, 2), or (N, 3) with the verification logit
             dynamic_axes={"patches": {0: "n"}, "offset": {0: "n"}},
             opset_version=17,
             dynamo=False,
@@ -251,6 +270,25 @@ def learning_rate(step: int, total: int, cfg: RefineConfig) -> float:
     return warmup_cosine(step, peak=cfg.lr, warm=max(1, round(0.03 * total)), total=total)
 
 
+def mine_negatives(
+    detector, samples: list[Sample], cfg: RefineConfig, *, images: list[np.ndarray], progress: bool = False
+) -> list[np.ndarray]:
+    """Where ``detector`` (the trained first stage alone) finds crossings that are not there: per sample,
+    its detections scoring at least ``cfg.negative_score`` that lie farther than ``cfg.negative_gate_px``
+    from every visible crossing, as (M, 2) u, v."""
+    from rebar_data.perception.evaluate import predict
+
+    found = predict(detector, samples, threshold=cfg.negative_score, images=images, progress=progress)
+    out = []
+    for s, p in zip(samples, found, strict=True):
+        uv = p[:, :2].reshape(-1, 2)
+        if len(s.visible) and len(uv):
+            gap = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2).min(axis=1)
+            uv = uv[gap > cfg.negative_gate_px]
+        out.append(np.ascontiguousarray(uv, np.float64))
+    return out
+
+
 def train_refiner(
     samples: list[Sample],
     out: Path,
@@ -259,15 +297,23 @@ def train_refiner(
     *,
     seed: int,
     images: list[np.ndarray] | None = None,
+    negatives_of: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None,
     progress: bool = False,
 ) -> tuple[PatchNet, list[dict[str, float]]]:
     """Train the refiner on the visible crossings of ``samples``; resumable per epoch.
 
-    ``out/refine_last.pt`` holds the weights, optimiser, and the epochs done with their losses after
-    every epoch. A finished one with the same settings is returned as it is, without training.
+    With ``cfg.verify``, ``negatives_of(images)`` gives each sample's negatives ((M, 2) points, usually
+    :func:`mine_negatives` with the trained first stage); it is called once, only when there is
+    training to do, and its answer is kept in the checkpoint for a resumed run. Without it there are
+    no negatives and the verification output learns from positives alone.
+
+    ``out/refine_last.pt`` holds the weights, optimiser, the negatives and the epochs done with their
+    losses after every epoch. A finished one with the same settings is returned as it is, without
+    training.
 
     Returns:
-        The trained network (eval mode) and one row per epoch (loss, mean offset error in px, seconds).
+        The trained network (eval mode) and one row per epoch (loss, mean offset error in px, seconds,
+        and with ``verify`` how many patches it classed rightly, of positives and of negatives).
     """
     last = out / "refine_last.pt"
     want = _training_settings(cfg)
@@ -280,6 +326,7 @@ def train_refiner(
     net = build(cfg).to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     history: list[dict[str, float]] = []
+    negatives: list[np.ndarray] | None = None
     saved = payload = None
     if last.exists():
         try:
@@ -290,13 +337,39 @@ def train_refiner(
         net.load_state_dict(payload["state_dict"])  # the same settings: go on where it stopped
         opt.load_state_dict(payload["optimizer"])
         history = payload["history"]
+        negatives = payload.get("negatives")
     if len(history) < cfg.epochs:  # otherwise a finished stage: kept as it is
         if images is None:
             images = [read_image(s.path) for s in samples]
         threads_before = torch.get_num_threads()
         torch.set_num_threads(cfg.threads)
         try:
-            _epochs(net, opt, history, keys, samples, images, out, cfg, aug, seed=seed, progress=progress)
+            if negatives is None:
+                negatives = (
+                    negatives_of(images)
+                    if cfg.verify and negatives_of is not None
+                    else [np.zeros((0, 2)) for _ in samples]
+                )
+                if progress and cfg.verify:
+                    tqdm.write(
+                        f"second stage: {sum(len(n) for n in negatives)} negatives mined from the first stage's "
+                        f"detections on {len(samples)} training images, beside {len(keys)} crossings",
+                        file=sys.stderr,
+                    )
+            neg_keys = np.array([(i, m) for i, n in enumerate(negatives) for m in range(len(n))], np.int64)
+            _epochs(
+                net,
+                opt,
+                history,
+                (keys, neg_keys.reshape(-1, 2), negatives),
+                samples,
+                images,
+                out,
+                cfg,
+                aug,
+                seed=seed,
+                progress=progress,
+            )
         finally:
             torch.set_num_threads(threads_before)
     return copy.deepcopy(net).to(memory_format=torch.contiguous_format).eval(), history
@@ -311,7 +384,7 @@ def _epochs(
     net: PatchNet,
     opt: torch.optim.Optimizer,
     history: list[dict[str, float]],
-    keys: np.ndarray,
+    points: tuple[np.ndarray, np.ndarray, list[np.ndarray]],
     samples: list[Sample],
     images: list[np.ndarray],
     out: Path,
@@ -321,7 +394,17 @@ def _epochs(
     seed: int,
     progress: bool,
 ) -> None:
+    """Train the remaining epochs. ``points`` are the positives' (sample, crossing) keys, the negatives'
+    (sample, index) keys and the negatives' points per sample."""
     last = out / "refine_last.pt"
+    pos_keys, neg_keys, negatives = points
+    # one list of (sample, index, is a crossing); the positives first, as before verification existed
+    keys = np.concatenate(
+        [
+            np.c_[pos_keys, np.ones(len(pos_keys), np.int64)],
+            np.c_[neg_keys, np.zeros(len(neg_keys), np.int64)],
+        ]
+    )
     steps = -(-len(keys) // cfg.batch_size)  # the last batch may be smaller
     total = cfg.epochs * steps
     for epoch in range(len(history) + 1, cfg.epochs + 1):
@@ -329,6 +412,8 @@ def _epochs(
         order = rng.permutation(len(keys))
         net.train()
         t0, loss_sum, err_sum = time.perf_counter(), 0.0, 0.0
+        right = np.zeros(2)  # patches classed rightly: negatives, positives
+        seen = np.zeros(2)
         bar = tqdm(
             range(steps),
             desc=f"refiner {epoch}/{cfg.epochs}",
@@ -341,11 +426,15 @@ def _epochs(
             step = (epoch - 1) * steps + b
             for g in opt.param_groups:
                 g["lr"] = learning_rate(step, total, cfg)
-            xs, ys = [], []
-            for i, k in keys[order[b * cfg.batch_size : (b + 1) * cfg.batch_size]]:
-                x, y = training_patch(images[i], samples[i].visible[k], rng, cfg, aug)
+            xs, ys, labels = [], [], []
+            for i, k, positive in keys[order[b * cfg.batch_size : (b + 1) * cfg.batch_size]]:
+                if positive:
+                    x, y = training_patch(images[i], samples[i].visible[k], rng, cfg, aug)
+                else:
+                    x, y = training_patch(images[i], negatives[i][k], rng, cfg, aug, uniform=False)
                 xs.append(x)
                 ys.append(y)
+                labels.append(positive)
             x = (
                 torch.from_numpy(np.stack(xs))
                 .permute(0, 3, 1, 2)
@@ -353,26 +442,50 @@ def _epochs(
                 .contiguous(memory_format=torch.channels_last)
             )
             y = torch.from_numpy(np.stack(ys)).float()
+            is_crossing = torch.tensor(labels, dtype=torch.bool)
             pred = net(x)
-            loss = F.smooth_l1_loss(pred, y, beta=cfg.loss_beta_px)
+            offset = pred[is_crossing, :2]
+            loss = (
+                F.smooth_l1_loss(offset, y[is_crossing], beta=cfg.loss_beta_px)
+                if len(offset)
+                else pred.sum() * 0.0  # a batch of negatives alone
+            )
+            if net.verify:
+                logit = pred[:, 2]
+                loss = loss + cfg.verify_weight * F.binary_cross_entropy_with_logits(
+                    logit, is_crossing.float()
+                )
+                correct = ((logit > 0) == is_crossing).numpy()
+                for c in (0, 1):
+                    seen[c] += float((is_crossing.numpy() == c).sum())
+                    right[c] += float(correct[is_crossing.numpy() == c].sum())
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
             loss_sum += loss.item()
-            err_sum += float((pred.detach() - y).norm(dim=1).mean())
+            if len(offset):
+                err_sum += float((offset.detach() - y[is_crossing]).norm(dim=1).mean())
             bar.set_postfix(loss=f"{loss.item():.3f}")
-        history.append(
-            {
-                "epoch": epoch,
-                "loss": loss_sum / steps,
-                "mean_error_px": err_sum / steps,
-                "seconds": time.perf_counter() - t0,
-            }
-        )
+        row = {
+            "epoch": epoch,
+            "loss": loss_sum / steps,
+            "mean_error_px": err_sum / steps,
+            "seconds": time.perf_counter() - t0,
+        }
+        if net.verify:
+            row["verify_negatives_right"] = right[0] / max(seen[0], 1.0)
+            row["verify_positives_right"] = right[1] / max(seen[1], 1.0)
+        history.append(row)
         if progress:
+            checked = (
+                f"; classed rightly: {row['verify_positives_right']:.1%} of crossings, "
+                f"{row['verify_negatives_right']:.1%} of {len(neg_keys)} negatives"
+                if net.verify
+                else ""
+            )
             tqdm.write(
                 f"refiner epoch {epoch}/{cfg.epochs}: loss {loss_sum / steps:.4f}, "
-                f"mean error {err_sum / steps:.2f} px on jittered training patches",
+                f"mean error {err_sum / steps:.2f} px on jittered training patches{checked}",
                 file=sys.stderr,
             )
-        save(last, net, cfg, optimizer=opt.state_dict(), history=history)
+        save(last, net, cfg, optimizer=opt.state_dict(), history=history, negatives=negatives)

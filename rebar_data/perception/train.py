@@ -54,7 +54,7 @@ from rebar_data.perception.metrics import (
     pixel_metrics,
 )
 from rebar_data.perception.model import STRIDE, KeypointNet, count_parameters
-from rebar_data.perception.refine_train import PatchNet, calibration_patches, train_refiner
+from rebar_data.perception.refine_train import PatchNet, calibration_patches, mine_negatives, train_refiner
 from rebar_data.perception.refine_train import export_onnx as export_refiner
 from rebar_data.perception.refine_train import quantize_onnx as quantize_refiner
 from rebar_data.perception.refine_train import save as save_refiner
@@ -464,8 +464,21 @@ def _run(
         save_checkpoint(out / "best.pt", avg.net, {**base_meta, "epoch": state["epoch"]})
     refiner, refine_history = None, []
     if cfg.refine.enabled:
+
+        def negatives_of(images: list[np.ndarray]) -> list[np.ndarray]:  # the trained first stage's misses
+            first, _, _ = load_checkpoint(out / "best.pt")
+            return mine_negatives(
+                Detector.from_network(first), train_samples, cfg.refine, images=images, progress=progress
+            )
+
         refiner, refine_history = train_refiner(
-            train_samples, out, cfg.refine, cfg.augment, seed=cfg.seed, progress=progress
+            train_samples,
+            out,
+            cfg.refine,
+            cfg.augment,
+            seed=cfg.seed,
+            negatives_of=negatives_of,
+            progress=progress,
         )
     train_s = time.perf_counter() - started
     return _finish(
@@ -593,6 +606,7 @@ def _finish(
             "patch_px": cfg.refine.patch_px,
             "iterations": cfg.refine.iterations,
             "quantize": cfg.refine.quantize,
+            "verify": refiner.verify,
             "sha256": sha256_file(onnx_path),
         }
     detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)

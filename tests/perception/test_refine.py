@@ -11,12 +11,13 @@ import torch
 from rebar_data.config import ConfigError
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import load_split, read_image
-from rebar_data.perception.infer import Detector
+from rebar_data.perception.infer import Detector, verified_score
 from rebar_data.perception.refine import Refiner, patches
 from rebar_data.perception.refine_train import (
     build,
     calibration_patches,
     export_onnx,
+    mine_negatives,
     quantize_onnx,
     train_refiner,
     training_patch,
@@ -143,11 +144,18 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     assert any(n.op_type == "QLinearConv" for n in onnx.load(out / "best.refine.onnx").graph.node)
     results = json.loads((out / "results.json").read_text())
     assert "test" in results["results_first_stage"] and results["refiner_parameters"] > 0
+    assert det.meta["refiner"]["verify"] and det.refiner.verifies  # the default: it verifies too
+    assert results["refine_history"][-1]["verify_positives_right"] > 0.5
     rgb = read_image(load_split(drawn_dataset, "test")[0].path)
     both = det.detect(rgb, threshold=0.01)
+    with det.first_stage_only():
+        first = det.detect(rgb, threshold=0.01)
+    # the same detections, moved, their scores lowered by the verification and cut at the threshold
+    uv, logit = det.refiner.refine_and_verify(rgb, first[:, :2])
+    expected = np.c_[uv, verified_score(first[:, 2], logit)]
+    expected = expected[expected[:, 2] >= 0.01]
+    np.testing.assert_allclose(both, expected[np.argsort(-expected[:, 2], kind="stable")])
     det.refiner = None
-    first = det.detect(rgb, threshold=0.01)
-    np.testing.assert_array_equal(both[:, 2], first[:, 2])  # same detections and scores, moved
     assert Detector.load(out / "best.pt").refiner is not None
     lone = tmp_path / "lone"
     lone.mkdir()
@@ -170,3 +178,79 @@ def test_a_second_stage_file_that_does_not_fit_its_settings_is_named_and_retrain
     samples = load_split(drawn_dataset, "train")
     net, history = train_refiner(samples, tmp_path, small, STILL, seed=0)  # trains afresh, no error
     assert len(history) == 1 and load(tmp_path / "refine_last.pt")[1] == small
+
+
+def test_verification_only_lowers_a_score_and_keeps_the_score_bias_a_shift():
+    score = np.array([0.3, 0.5, 0.9, 0.999])
+    sure = verified_score(score, np.full(4, 30.0))  # the second stage is sure of a crossing: unchanged
+    np.testing.assert_allclose(sure, score, rtol=1e-9)
+    doubt = verified_score(score, np.zeros(4))  # p = 0.5 halves the odds
+    np.testing.assert_allclose(doubt / (1 - doubt), 0.5 * score / (1 - score))
+    assert np.all(verified_score(score, np.array([-3.0, 0.0, 2.0, -8.0])) < score)
+    # a bias added to the first stage's logits moves the final logits by the same amount
+    logit = np.log(score / (1 - score))
+    shifted = verified_score(1 / (1 + np.exp(-(logit + 1.5))), np.array([-2.0, 1.0, 0.0, 4.0]))
+    plain = verified_score(score, np.array([-2.0, 1.0, 0.0, 4.0]))
+    np.testing.assert_allclose(np.log(shifted / (1 - shifted)) - np.log(plain / (1 - plain)), 1.5)
+
+
+def _bar_middles(samples) -> list[np.ndarray]:
+    """Per sample, the points midway between each visible crossing and its nearest: on a bar, no crossing."""
+    out = []
+    for s in samples:
+        v = s.visible
+        d = np.linalg.norm(v[:, None] - v[None], axis=2) + np.eye(len(v)) * 1e9
+        mid = 0.5 * (v + v[d.argmin(axis=1)])
+        gap = np.linalg.norm(mid[:, None] - v[None], axis=2).min(axis=1)
+        out.append(mid[gap > 6.0])
+    return out
+
+
+def test_the_second_stage_learns_to_tell_crossings_from_mined_negatives(drawn_dataset, tmp_path):
+    samples = load_split(drawn_dataset, "train")
+    asked = []
+
+    def negatives_of(images):
+        asked.append(len(images))
+        return _bar_middles(samples)
+
+    cfg = RefineConfig(
+        patch_px=16, widths=(8, 8, 16, 16), hidden=16, epochs=6, batch_size=32, lr=3e-3, threads=1
+    )
+    torch.manual_seed(0)
+    net, history = train_refiner(samples, tmp_path, cfg, STILL, seed=0, negatives_of=negatives_of)
+    assert asked == [len(samples)] and net.verify
+    assert history[-1]["verify_negatives_right"] > 0.8 and history[-1]["verify_positives_right"] > 0.8
+    # on images it never saw, crossings score higher than the middles of bars
+    refiner = Refiner.from_network(net)
+    test = load_split(drawn_dataset, "test")
+    on, off = [], []
+    for s, middles in zip(test, _bar_middles(test), strict=True):
+        rgb = read_image(s.path)
+        on += list(refiner.refine_and_verify(rgb, s.visible)[1])
+        off += list(refiner.refine_and_verify(rgb, middles)[1])
+    assert np.median(on) > 0 > np.median(off), (np.median(on), np.median(off))
+    assert np.mean(np.array(on) > 0) > 0.8 and np.mean(np.array(off) < 0) > 0.8
+    # a stage interrupted after its fifth epoch resumes with the negatives it was given: not asked again
+    payload = torch.load(tmp_path / "refine_last.pt", weights_only=False)
+    payload["history"] = payload["history"][:5]
+    torch.save(payload, tmp_path / "refine_last.pt")
+    _, history_again = train_refiner(samples, tmp_path, cfg, STILL, seed=0, negatives_of=negatives_of)
+    assert asked == [len(samples)] and len(history_again) == 6
+
+
+def test_mined_negatives_are_first_stage_detections_away_from_every_crossing(trained_run, drawn_dataset):
+    samples = load_split(drawn_dataset, "train")
+    det = Detector.load(trained_run.out_dir)
+    det.refiner = None
+    cfg = RefineConfig(negative_score=0.01, negative_gate_px=1.0)  # loose: a tiny network's detections
+    images = [read_image(s.path) for s in samples]
+    mined = mine_negatives(det, samples, cfg, images=images)
+    assert len(mined) == len(samples)
+    total = 0
+    for s, rgb, neg in zip(samples, images, mined, strict=True):
+        found = det.detect(rgb, threshold=0.01, camera=s.camera)[:, :2]
+        far = np.linalg.norm(found[:, None] - s.visible[None], axis=2).min(axis=1) > 1.0
+        np.testing.assert_allclose(neg, found[far])
+        total += len(neg)
+    assert total > 0
