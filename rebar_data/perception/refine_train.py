@@ -149,7 +149,9 @@ def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
         raise ConfigError(f"{path}: cannot be read as a refiner checkpoint ({type(e).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != FORMAT:
         raise ConfigError(f"{path}: is not a {FORMAT} checkpoint; accepted: a file written by `rebar train`")
-    cfg = RefineConfig.model_validate(payload["refine_config"])
+    settings = dict(payload["refine_config"])
+    settings.setdefault("verify", False)  # written before the second stage could verify
+    cfg = RefineConfig.model_validate(settings)
     net = build(cfg)
     try:
         net.load_state_dict(payload["state_dict"])

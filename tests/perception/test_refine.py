@@ -178,6 +178,14 @@ def test_a_second_stage_file_that_does_not_fit_its_settings_is_named_and_retrain
     samples = load_split(drawn_dataset, "train")
     net, history = train_refiner(samples, tmp_path, small, STILL, seed=0)  # trains afresh, no error
     assert len(history) == 1 and load(tmp_path / "refine_last.pt")[1] == small
+    # a file from before verification (no such setting, two outputs) loads as a refiner that does not verify
+    old = small.model_copy(update={"verify": False})
+    payload = {**torch.load(tmp_path / "refine_last.pt", weights_only=False)}
+    payload["refine_config"] = {k: v for k, v in old.model_dump(mode="json").items() if k != "verify"}
+    payload["state_dict"] = build(old).state_dict()
+    torch.save(payload, tmp_path / "old.pt")
+    loaded, cfg, _ = load(tmp_path / "old.pt")
+    assert not cfg.verify and not loaded.verify
 
 
 def test_verification_only_lowers_a_score_and_keeps_the_score_bias_a_shift():
