@@ -65,6 +65,7 @@ def write_card(
     rows += [_row(name, m) for name, m in (extra_results or {}).items()]
     load = f", load average {load_average:.1f} on this 2-core machine" if load_average is not None else ""
     refine = tc.get("refine") if refiner is not None else None
+    verifies = bool(refine and refine.get("verify"))
     lines = [
         "# Rebar-crossing keypoint detector",
         "",
@@ -103,13 +104,13 @@ def write_card(
                 f"{res.get('refiner_parameters', 0) / 1e3:.0f} k parameters), beside the first; a",
                 f"  {refine['patch_px']} px patch around each detection, plain convolutions to 1/8 and two fully",
                 "  connected layers regress the crossing's offset from the patch centre"
-                + (", and the logit p that the patch shows a" if refine.get("verify") else "."),
+                + (", and the logit p that the patch shows a" if verifies else "."),
                 *(
                     [
                         "  crossing at all. A detection's score becomes sigmoid(first-stage logit + log p): the second",
                         "  stage only lowers scores (of bars passing over the mat beneath, mostly).",
                     ]
-                    if refine.get("verify")
+                    if verifies
                     else []
                 ),
                 "  `Detector.load` loads both; set `detector.refiner = None` for the first stage alone.",
@@ -164,7 +165,7 @@ def write_card(
                         f"  on the training images farther than {refine['negative_gate_px']:g} px from every "
                         "visible crossing; cross-entropy beside the offset loss.",
                     ]
-                    if refine.get("verify")
+                    if verifies
                     else []
                 ),
             ]
@@ -197,7 +198,7 @@ def write_card(
             [
                 "- `first stage alone`: the heatmap network's detections without the second stage (its",
                 "  positions and scores"
-                + (", before verification" if refine.get("verify") else "")
+                + (", before verification" if verifies else "")
                 + "), to show what the second stage adds.",
             ]
             if refine

@@ -358,12 +358,12 @@ def train_refiner(
                         f"detections on {len(samples)} training images, beside {len(keys)} crossings",
                         file=sys.stderr,
                     )
-            neg_keys = np.array([(i, m) for i, n in enumerate(negatives) for m in range(len(n))], np.int64)
             _epochs(
                 net,
                 opt,
                 history,
-                (keys, neg_keys.reshape(-1, 2), negatives),
+                keys,
+                negatives,
                 samples,
                 images,
                 out,
@@ -386,7 +386,8 @@ def _epochs(
     net: PatchNet,
     opt: torch.optim.Optimizer,
     history: list[dict[str, float]],
-    points: tuple[np.ndarray, np.ndarray, list[np.ndarray]],
+    pos_keys: np.ndarray,
+    negatives: list[np.ndarray],
     samples: list[Sample],
     images: list[np.ndarray],
     out: Path,
@@ -396,15 +397,14 @@ def _epochs(
     seed: int,
     progress: bool,
 ) -> None:
-    """Train the remaining epochs. ``points`` are the positives' (sample, crossing) keys, the negatives'
-    (sample, index) keys and the negatives' points per sample."""
+    """Train the remaining epochs on the positives' (sample, crossing) keys and each sample's negatives."""
     last = out / "refine_last.pt"
-    pos_keys, neg_keys, negatives = points
+    neg_keys = np.array([(i, m) for i, n in enumerate(negatives) for m in range(len(n))], np.int64)
     # one list of (sample, index, is a crossing); the positives first, as before verification existed
     keys = np.concatenate(
         [
             np.c_[pos_keys, np.ones(len(pos_keys), np.int64)],
-            np.c_[neg_keys, np.zeros(len(neg_keys), np.int64)],
+            np.c_[neg_keys.reshape(-1, 2), np.zeros(len(neg_keys), np.int64)],
         ]
     )
     steps = -(-len(keys) // cfg.batch_size)  # the last batch may be smaller
@@ -457,10 +457,9 @@ def _epochs(
                 loss = loss + cfg.verify_weight * F.binary_cross_entropy_with_logits(
                     logit, is_crossing.float()
                 )
-                correct = ((logit > 0) == is_crossing).numpy()
-                for c in (0, 1):
-                    seen[c] += float((is_crossing.numpy() == c).sum())
-                    right[c] += float(correct[is_crossing.numpy() == c].sum())
+                label = is_crossing.numpy().astype(np.int64)
+                seen += np.bincount(label, minlength=2)
+                right += np.bincount(label[((logit > 0) == is_crossing).numpy()], minlength=2)
             opt.zero_grad(set_to_none=True)
             loss.backward()
             opt.step()
