@@ -9,7 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.bench import DetectorLatency, detector_latency
+from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
 from rebar_data.perception.data import check_dataset, read_info
 from rebar_data.perception.evaluate import predict
 from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector, refiner_path
@@ -46,6 +46,7 @@ def write_card(
     *,
     model: Path,
     latency: DetectorLatency,
+    latency_source: str,
     extra_results: dict[str, dict] | None = None,
     load_average: float | None = None,
     score_bias: float = 0.0,
@@ -119,10 +120,11 @@ def write_card(
             else []
         ),
         f"- Latency: {latency.median_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
-        f"  (median, measured when shipped{load}, on a drawn frame with {latency.crossings} crossings"
+        f"  (median, measured when shipped{load}, over {latency_source}: {latency.candidates:.0f} candidates",
+        f"  and {latency.crossings:.0f} crossings found a frame on average"
         + (
             f"; the first stage alone {latency.first_stage_ms:.1f} ms, so the second costs "
-            f"{latency.second_stage_us_per_crossing:.0f} us a crossing"
+            f"{latency.second_stage_us_per_candidate:.0f} us a candidate"
             if latency.first_stage_ms is not None
             else ""
         )
@@ -308,12 +310,14 @@ def ship(
     )
     rows.update(extra_results or {})
     load = os.getloadavg()[0]
-    latency = detector_latency(detector, repeats=50)
+    frames, latency_source = latency_frames()
+    latency = detector_latency(detector, frames, repeats=64)
     write_card(
         run_dir,
         models_dir / CARD_NAME,
         model=dst,
         latency=latency,
+        latency_source=latency_source,
         extra_results=rows,
         load_average=load,
         score_bias=detector.score_bias,

@@ -16,6 +16,8 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     assert "| drawn test, first stage alone |" in card and "rebar_keypoint.refine.onnx" in card
     # the second stage's verification is described where the model and its training are
     assert "sigmoid(first-stage logit + log p)" in card and "farther than 6 px from every" in card
+    # latency is timed on rendered frames like the training data's, not on the drawn worst case
+    assert "over 8 rendered paper-tunnel frames" in card and "candidates" in card
     det = Detector.load(model)
     assert det.meta["dataset"]["name"] == "drawn" and det.refiner is not None
 
