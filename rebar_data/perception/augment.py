@@ -185,18 +185,36 @@ def mosaic_crop(
 
 def photometric(image: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:
     """Random brightness, contrast, saturation, hue, gamma, blur and noise (pixels only)."""
-    img = image.astype(np.float32)
+    return photometric_batch(image[None], rng, cfg)[0]
+
+
+def photometric_batch(images: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:
+    """:func:`photometric` for (N, H, W, 3) uint8 images at once, each with its own random changes.
+
+    Each change is drawn for all N images before the next one, so one image (N = 1) gets the draws, and
+    the pixels, it would get alone; the per-image arithmetic keeps the single image's number types.
+    """
+    n = len(images)
+    img = images.astype(np.float32)
     if cfg.hue_deg > 0 or cfg.saturation > 0:
-        hsv = cv2.cvtColor(image, cv2.COLOR_RGB2HSV_FULL).astype(np.float32)
-        hsv[..., 0] = (hsv[..., 0] + rng.uniform(-cfg.hue_deg, cfg.hue_deg) * 256 / 360) % 256
-        hsv[..., 1] *= 1 + rng.uniform(-cfg.saturation, cfg.saturation)
-        img = cv2.cvtColor(np.clip(hsv, 0, 255).astype(np.uint8), cv2.COLOR_HSV2RGB_FULL).astype(np.float32)
-    mean = img.mean()
-    img = (img - mean) * (1 + rng.uniform(-cfg.contrast, cfg.contrast)) + mean
-    img *= 1 + rng.uniform(-cfg.brightness, cfg.brightness)
-    img = 255.0 * (np.clip(img, 0, 255) / 255.0) ** np.exp(rng.uniform(-cfg.gamma, cfg.gamma))
-    if rng.uniform() < cfg.blur_probability:
-        img = cv2.GaussianBlur(img, (0, 0), max(1e-3, rng.uniform(*cfg.blur_sigma_px)))
-    if rng.uniform() < cfg.noise_probability:
-        img += rng.normal(0, rng.uniform(*cfg.noise_std), img.shape).astype(np.float32)
+        hsv = cv2.cvtColor(images.reshape(-1, *images.shape[2:]), cv2.COLOR_RGB2HSV_FULL)
+        hsv = hsv.reshape(images.shape).astype(np.float32)
+        hue = (rng.uniform(-cfg.hue_deg, cfg.hue_deg, n) * 256 / 360).astype(np.float32)
+        hsv[..., 0] = (hsv[..., 0] + hue[:, None, None]) % 256
+        hsv[..., 1] *= (1 + rng.uniform(-cfg.saturation, cfg.saturation, n)).astype(np.float32)[:, None, None]
+        rgb = np.clip(hsv, 0, 255).astype(np.uint8).reshape(-1, *images.shape[2:])
+        img = cv2.cvtColor(rgb, cv2.COLOR_HSV2RGB_FULL).reshape(images.shape).astype(np.float32)
+    mean = np.array([x.mean() for x in img], np.float32)[:, None, None, None]  # as each image alone
+    contrast = (1 + rng.uniform(-cfg.contrast, cfg.contrast, n)).astype(np.float32)[:, None, None, None]
+    img = (img - mean) * contrast + mean
+    img *= (1 + rng.uniform(-cfg.brightness, cfg.brightness, n)).astype(np.float32)[:, None, None, None]
+    gamma = np.exp(rng.uniform(-cfg.gamma, cfg.gamma, n))[:, None, None, None]
+    img = 255.0 * (np.clip(img, 0, 255) / 255.0) ** gamma  # float64 from here, as for one image
+    blurred = np.flatnonzero(rng.uniform(size=n) < cfg.blur_probability)
+    for i, sigma in zip(blurred, rng.uniform(*cfg.blur_sigma_px, len(blurred)), strict=True):
+        img[i] = cv2.GaussianBlur(img[i], (0, 0), max(1e-3, sigma))
+    noisy = np.flatnonzero(rng.uniform(size=n) < cfg.noise_probability)
+    if len(noisy):
+        std = rng.uniform(*cfg.noise_std, len(noisy))[:, None, None, None]
+        img[noisy] += (rng.standard_normal((len(noisy), *img.shape[1:])) * std).astype(np.float32)
     return np.clip(img + 0.5, 0, 255).astype(np.uint8)

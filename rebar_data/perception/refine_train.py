@@ -27,9 +27,9 @@ from torch import nn
 from tqdm import tqdm
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.augment import apply_affine, photometric, random_affine, warp
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image
+from rebar_data.perception.refine_data import patch_batches, patch_keys, steps_per_epoch
 from rebar_data.perception.schedule import warmup_cosine
 
 FORMAT = "rebar-keypoint-refiner"
@@ -98,33 +98,6 @@ class PatchExportWrapper(nn.Module):
 def build(cfg: RefineConfig) -> PatchNet:
     """The refiner network these settings describe."""
     return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks, verify=cfg.verify)
-
-
-def training_patch(
-    image: np.ndarray,
-    crossing: np.ndarray,
-    rng: np.random.Generator,
-    cfg: RefineConfig,
-    aug: AugmentConfig,
-    *,
-    uniform: bool = True,
-) -> tuple[np.ndarray, np.ndarray]:
-    """One augmented patch around a labelled crossing and the crossing's offset from its centre.
-    ``uniform = False`` draws the centre's error from the Gaussian alone (for a mined negative, which a
-    5 px error could move next to a real crossing)."""
-    if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
-        error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
-    else:
-        error = rng.normal(0.0, cfg.jitter_px, 2)
-    size = cfg.patch_px
-    patch_from_image = random_affine(
-        rng,
-        centre=np.asarray(crossing, float) + error,
-        target=np.array([size / 2, size / 2]),
-        cfg=aug.model_copy(update={"scale": cfg.scale}),
-    )
-    x = photometric(warp(image, patch_from_image, size, fill=None), rng, aug)
-    return x, apply_affine(crossing, patch_from_image)[0] - size / 2
 
 
 def save(path: Path, net: PatchNet, cfg: RefineConfig, **extra: Any) -> None:
@@ -319,8 +292,7 @@ def train_refiner(
     """
     last = out / "refine_last.pt"
     want = _training_settings(cfg)
-    keys = np.array([(i, k) for i, s in enumerate(samples) for k in range(len(s.visible))], np.int64)
-    if not len(keys):
+    if not any(len(s.visible) for s in samples):
         raise ConfigError(
             "the train split has no visible crossings; accepted: a dataset with labelled crossings"
         )
@@ -341,28 +313,26 @@ def train_refiner(
         history = payload["history"]
         negatives = payload.get("negatives")
     if len(history) < cfg.epochs:  # otherwise a finished stage: kept as it is
-        if images is None:
-            images = [read_image(s.path) for s in samples]
         threads_before = torch.get_num_threads()
         torch.set_num_threads(cfg.threads)
         try:
-            if negatives is None:
-                negatives = (
-                    negatives_of(images)
-                    if cfg.verify and negatives_of is not None
-                    else [np.zeros((0, 2)) for _ in samples]
-                )
-                if progress and cfg.verify:
+            if negatives is None and cfg.verify and negatives_of is not None:
+                if images is None:
+                    images = [read_image(s.path) for s in samples]
+                negatives = negatives_of(images)
+                if progress:
                     tqdm.write(
                         f"second stage: {sum(len(n) for n in negatives)} negatives mined from the first stage's "
-                        f"detections on {len(samples)} training images, beside {len(keys)} crossings",
+                        f"detections on {len(samples)} training images, beside "
+                        f"{sum(len(s.visible) for s in samples)} crossings",
                         file=sys.stderr,
                     )
+            elif negatives is None:
+                negatives = [np.zeros((0, 2)) for _ in samples]
             _epochs(
                 net,
                 opt,
                 history,
-                keys,
                 negatives,
                 samples,
                 images,
@@ -386,10 +356,9 @@ def _epochs(
     net: PatchNet,
     opt: torch.optim.Optimizer,
     history: list[dict[str, float]],
-    pos_keys: np.ndarray,
     negatives: list[np.ndarray],
     samples: list[Sample],
-    images: list[np.ndarray],
+    images: list[np.ndarray] | None,
     out: Path,
     cfg: RefineConfig,
     aug: AugmentConfig,
@@ -397,21 +366,13 @@ def _epochs(
     seed: int,
     progress: bool,
 ) -> None:
-    """Train the remaining epochs on the positives' (sample, crossing) keys and each sample's negatives."""
+    """Train the remaining epochs on the visible crossings of ``samples`` and each sample's negatives."""
     last = out / "refine_last.pt"
-    neg_keys = np.array([(i, m) for i, n in enumerate(negatives) for m in range(len(n))], np.int64)
-    # one list of (sample, index, is a crossing); the positives first, as before verification existed
-    keys = np.concatenate(
-        [
-            np.c_[pos_keys, np.ones(len(pos_keys), np.int64)],
-            np.c_[neg_keys.reshape(-1, 2), np.zeros(len(neg_keys), np.int64)],
-        ]
-    )
-    steps = -(-len(keys) // cfg.batch_size)  # the last batch may be smaller
+    steps = steps_per_epoch(patch_keys(samples, negatives), cfg)
     total = cfg.epochs * steps
-    for epoch in range(len(history) + 1, cfg.epochs + 1):
-        rng = np.random.default_rng(np.random.SeedSequence([seed, 7919, epoch]))
-        order = rng.permutation(len(keys))
+    first = len(history) + 1
+    batches = patch_batches(samples, negatives, cfg, aug, seed=seed, first=first, images=images)
+    for epoch in range(first, cfg.epochs + 1):
         net.train()
         t0, loss_sum, err_sum = time.perf_counter(), 0.0, 0.0
         right = np.zeros(2)  # patches classed rightly: negatives, positives
@@ -428,23 +389,8 @@ def _epochs(
             step = (epoch - 1) * steps + b
             for g in opt.param_groups:
                 g["lr"] = learning_rate(step, total, cfg)
-            xs, ys, labels = [], [], []
-            for i, k, positive in keys[order[b * cfg.batch_size : (b + 1) * cfg.batch_size]]:
-                if positive:
-                    x, y = training_patch(images[i], samples[i].visible[k], rng, cfg, aug)
-                else:
-                    x, y = training_patch(images[i], negatives[i][k], rng, cfg, aug, uniform=False)
-                xs.append(x)
-                ys.append(y)
-                labels.append(positive)
-            x = (
-                torch.from_numpy(np.stack(xs))
-                .permute(0, 3, 1, 2)
-                .float()
-                .contiguous(memory_format=torch.channels_last)
-            )
-            y = torch.from_numpy(np.stack(ys)).float()
-            is_crossing = torch.tensor(labels, dtype=torch.bool)
+            patches, y, is_crossing = next(batches)
+            x = patches.permute(0, 3, 1, 2).float().contiguous(memory_format=torch.channels_last)
             pred = net(x)
             offset = pred[is_crossing, :2]
             loss = (
@@ -480,7 +426,7 @@ def _epochs(
         if progress:
             checked = (
                 f"; classed rightly: {row['verify_positives_right']:.1%} of crossings, "
-                f"{row['verify_negatives_right']:.1%} of {len(neg_keys)} negatives"
+                f"{row['verify_negatives_right']:.1%} of {sum(len(n) for n in negatives)} negatives"
                 if net.verify
                 else ""
             )

@@ -8,6 +8,7 @@ from rebar_data.perception.augment import (
     apply_affine,
     crop_rays,
     mosaic_crop,
+    photometric_batch,
     random_affine,
     single_crop,
     warp,
@@ -117,3 +118,17 @@ def test_mosaic_puts_every_positive_on_its_spot_and_marks_seam_points_ignored():
             assert crop.image[int(v), int(u), 0] > 150
         assert np.isfinite(crop.rays).all() and crop.rays.shape == (2, 24, 24)
     assert n_pos > 20
+
+
+def test_a_batch_gets_one_change_per_image_and_none_with_every_change_off():
+    rng = np.random.default_rng(0)
+    image = rng.integers(40, 200, (16, 16, 3), dtype=np.uint8)
+    cfg = AugmentConfig(blur_probability=0.5, noise_probability=0.5)
+    out = photometric_batch(np.stack([image] * 8), np.random.default_rng(1), cfg)
+    assert out.shape == (8, 16, 16, 3) and out.dtype == np.uint8
+    assert len({x.tobytes() for x in out}) == 8  # eight copies, eight different changes
+    # with every change off the pixels stay as they are
+    still = AugmentConfig(
+        brightness=0, contrast=0, saturation=0, hue_deg=0, gamma=0, blur_probability=0, noise_probability=0
+    )
+    np.testing.assert_array_equal(photometric_batch(np.stack([image] * 3), rng, still), [image] * 3)

@@ -13,6 +13,7 @@ from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import load_split, read_image
 from rebar_data.perception.infer import Detector, verified_score
 from rebar_data.perception.refine import Refiner, patches
+from rebar_data.perception.refine_data import patch_batches, training_patch
 from rebar_data.perception.refine_train import (
     build,
     calibration_patches,
@@ -20,7 +21,6 @@ from rebar_data.perception.refine_train import (
     mine_negatives,
     quantize_onnx,
     train_refiner,
-    training_patch,
 )
 
 from .conftest import TINY_TRAIN
@@ -74,6 +74,25 @@ def test_a_training_patch_moves_its_offset_with_the_pixels():
         np.testing.assert_allclose(_centroid(x), 16 + y, atol=0.15)
         offsets.append(y)
     assert np.std(offsets) > 0.5  # the centre really was off the crossing
+
+
+def test_patch_batches_cover_every_key_once_an_epoch_and_resume_where_they_stopped(drawn_dataset):
+    samples = load_split(drawn_dataset, "train")
+    negatives = [s.visible[:2] + 7.0 for s in samples]
+    cfg = RefineConfig(patch_px=16, epochs=2, batch_size=64)
+    run = list(patch_batches(samples, negatives, cfg, AugmentConfig(), seed=4, first=1))
+    steps = -(-sum(len(s.visible) + len(n) for s, n in zip(samples, negatives, strict=True)) // 64)
+    assert len(run) == 2 * steps and run[0][0].shape == (64, 16, 16, 3) and run[0][0].dtype == torch.uint8
+    # each epoch holds every crossing once and every negative once
+    labels = torch.cat([b[2] for b in run[:steps]])
+    assert int(labels.sum()) == sum(len(s.visible) for s in samples)
+    assert int((~labels).sum()) == sum(len(n) for n in negatives)
+    # epoch 2 alone, as after a resume, is epoch 2 of the whole run, and not a repeat of epoch 1
+    resumed = list(patch_batches(samples, negatives, cfg, AugmentConfig(), seed=4, first=2))
+    for a, b in zip(resumed, run[steps:], strict=True):
+        for x, y in zip(a, b, strict=True):
+            torch.testing.assert_close(x, y)
+    assert not torch.equal(run[0][0], run[steps][0])
 
 
 def test_the_refiner_learns_to_move_points_onto_crossings(drawn_dataset, tmp_path):
@@ -223,7 +242,13 @@ def test_the_second_stage_learns_to_tell_crossings_from_mined_negatives(drawn_da
         return _bar_middles(samples)
 
     cfg = RefineConfig(
-        patch_px=16, widths=(8, 8, 16, 16), hidden=16, epochs=6, batch_size=32, lr=3e-3, threads=1
+        patch_px=16,
+        widths=(8, 8, 16, 16),
+        hidden=16,
+        epochs=6,
+        batch_size=32,
+        lr=3e-3,
+        threads=1,
     )
     torch.manual_seed(0)
     net, history = train_refiner(samples, tmp_path, cfg, STILL, seed=0, negatives_of=negatives_of)

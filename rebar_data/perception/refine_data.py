@@ -1,0 +1,123 @@
+"""The second stage's training patches (:mod:`rebar_data.perception.refine_train` trains on them).
+
+Each patch is cut around a labelled crossing, or a mined negative, with a random error of its centre,
+turned, flipped and scaled with the point by the first stage's similarity maps
+(:func:`~rebar_data.perception.augment.random_affine`); a batch's colour, blur and noise changes are
+drawn for all its patches at once (:func:`~rebar_data.perception.augment.photometric_batch`).
+
+Every epoch's batches come from a generator seeded by (seed, epoch) alone, so a resumed run gets the
+batches it would have got.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Iterator
+
+import numpy as np
+import torch
+
+from rebar_data.perception.augment import apply_affine, photometric_batch, random_affine, warp
+from rebar_data.perception.config import AugmentConfig, RefineConfig
+from rebar_data.perception.data import Sample, read_image
+
+Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # uint8 patches, offsets, is a crossing
+
+
+def training_patch(
+    image: np.ndarray,
+    crossing: np.ndarray,
+    rng: np.random.Generator,
+    cfg: RefineConfig,
+    aug: AugmentConfig,
+    *,
+    uniform: bool = True,
+) -> tuple[np.ndarray, np.ndarray]:
+    """One patch around a labelled crossing, before colour changes, and the crossing's offset from its
+    centre. ``uniform = False`` draws the centre's error from the Gaussian alone (for a mined negative,
+    which a 5 px error could move next to a real crossing)."""
+    if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
+        error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
+    else:
+        error = rng.normal(0.0, cfg.jitter_px, 2)
+    size = cfg.patch_px
+    patch_from_image = random_affine(
+        rng,
+        centre=np.asarray(crossing, float) + error,
+        target=np.array([size / 2, size / 2]),
+        cfg=aug.model_copy(update={"scale": cfg.scale}),
+    )
+    x = warp(image, patch_from_image, size, fill=None)
+    return x, apply_affine(crossing, patch_from_image)[0] - size / 2
+
+
+def patch_keys(samples: list[Sample], negatives: list[np.ndarray]) -> np.ndarray:
+    """(K, 3) rows of (sample, index, is a crossing): the visible crossings first, then the negatives."""
+    pos = [(i, k, 1) for i, s in enumerate(samples) for k in range(len(s.visible))]
+    neg = [(i, m, 0) for i, n in enumerate(negatives) for m in range(len(n))]
+    return np.array(pos + neg, np.int64).reshape(-1, 3)
+
+
+def steps_per_epoch(keys: np.ndarray, cfg: RefineConfig) -> int:
+    return -(-len(keys) // cfg.batch_size)  # the last batch may be smaller
+
+
+def patch_batch(
+    rows: np.ndarray,
+    image_of: Callable[[int], np.ndarray],
+    samples: list[Sample],
+    negatives: list[np.ndarray],
+    rng: np.random.Generator,
+    cfg: RefineConfig,
+    aug: AugmentConfig,
+) -> Batch:
+    """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, 3) uint8, their (B, 2)
+    offsets of the crossing from the centre (meaningless for negatives) and (B,) whether each is one."""
+    xs, ys = [], []
+    for i, k, positive in rows:
+        centre = samples[i].visible[k] if positive else negatives[i][k]
+        x, y = training_patch(image_of(i), centre, rng, cfg, aug, uniform=bool(positive))
+        xs.append(x)
+        ys.append(y)
+    x = photometric_batch(np.stack(xs), rng, aug)
+    return (
+        torch.from_numpy(x),
+        torch.from_numpy(np.stack(ys)).float(),
+        torch.from_numpy(rows[:, 2].astype(bool)),
+    )
+
+
+def patch_batches(
+    samples: list[Sample],
+    negatives: list[np.ndarray],
+    cfg: RefineConfig,
+    aug: AugmentConfig,
+    *,
+    seed: int,
+    first: int,
+    images: list[np.ndarray] | None = None,
+) -> Iterator[Batch]:
+    """Every batch of the second stage's epochs ``first`` to ``cfg.epochs``, in order; each epoch's from a
+    generator seeded by (seed, epoch) alone, so a resumed run gets the batches it would have got. Without
+    ``images`` each image is read when first needed.
+
+    They are made in the training process: a loader process beside it, as the first stage has, made
+    training slower here (181 against 133 ms a batch of 256 on two cores), as the network's two threads
+    then wait for the core the loader takes.
+    """
+    cache: dict[int, np.ndarray] = {}
+
+    def image_of(i: int) -> np.ndarray:
+        if images is not None:
+            return images[i]
+        if i not in cache:
+            cache[i] = read_image(samples[i].path)
+        return cache[i]
+
+    keys = patch_keys(samples, negatives)
+    size = cfg.batch_size
+    for epoch in range(first, cfg.epochs + 1):
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 7919, epoch]))
+        order = rng.permutation(len(keys))
+        for b in range(steps_per_epoch(keys, cfg)):
+            rows = keys[order[b * size : (b + 1) * size]]
+            yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug)
