@@ -43,8 +43,8 @@ smoke: setup
 	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-smoke)"
 	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-smoke)"
 
-# Train the detector on the default dataset (built first when missing) and its lower-mat supplement (1440
-# images, about 10 minutes to build when missing), and ship it with its model card, scored also on the
+# Train the detector on the default dataset (built first when missing) and its lower-mat supplement (720
+# images, about 5 minutes to build when missing), and ship it with its model card, scored also on the
 # planar-slab set (another config, built when missing: 90 images, a few minutes).
 # An interrupted run resumes from runs/train/paper-tunnel/last.pt; a finished one is re-scored and re-shipped.
 train: setup
