@@ -25,7 +25,6 @@ FRAME_HW = (480, 640)
 THREADS = 2
 BUDGET_MS = 15.0  # a 31 Hz servo loop leaves 32 ms a step; the detector may take under half
 RENDERED_FRAMES = 8
-PAPER_PIPELINE = Path(__file__).resolve().parents[2] / "pipelines" / "paper-tunnel.yaml"
 
 
 def _time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 5) -> np.ndarray:
@@ -57,12 +56,13 @@ def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[np.n
         RuntimeError: and others from Open3D when the offscreen renderer cannot start here.
     """
     from rebar_data.dataset.config import load_pipeline
+    from rebar_data.geometry.bench import PAPER
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.render.renderer import Renderer
     from rebar_data.scene.cameras import PRESETS, trajectory_poses
     from rebar_data.scene.sample import sample_scene, sample_sensor
 
-    cfg = load_pipeline(PAPER_PIPELINE)
+    cfg = load_pipeline(PAPER)
     rm = build_rebar_mesh(cfg.mesh_config())
     rng = np.random.default_rng(seed)
     renderer = Renderer(PRESETS["kinect_v1"], cfg.render)
@@ -105,21 +105,21 @@ def detector_latency(det, frames: list[np.ndarray], *, repeats: int) -> Detector
     machine in the same state."""
     each = max(3, -(-repeats // len(frames)))
     two_stages = det.refiner is not None
-    ours, first = [], []
+    ours, first, kept, candidates = [], [], [], []
     for f in frames:
         ours.append(_time_ms(lambda f=f: det.detect(f), repeats=each, warmup=2))
-        if two_stages:
-            with det.first_stage_only():
+        kept.append(len(det.detect(f)))
+        with det.first_stage_only():
+            if two_stages:
                 first.append(_time_ms(lambda f=f: det.detect(f), repeats=each, warmup=2))
-    with det.first_stage_only():
-        candidates = np.mean([len(det.detect(f)) for f in frames])
+            candidates.append(len(det.detect(f)))
     ours = np.concatenate(ours)
     return DetectorLatency(
         median_ms=float(np.median(ours)),
         p90_ms=float(np.percentile(ours, 90)),
         frames=len(frames),
-        candidates=float(candidates),
-        crossings=float(np.mean([len(det.detect(f)) for f in frames])),
+        candidates=float(np.mean(candidates)),
+        crossings=float(np.mean(kept)),
         first_stage_ms=float(np.median(np.concatenate(first))) if two_stages else None,
     )
 

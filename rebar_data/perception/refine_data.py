@@ -23,18 +23,24 @@ from rebar_data.perception.data import Sample, read_image
 Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # uint8 patches, offsets, is a crossing
 
 
+def patch_geometry(cfg: RefineConfig, aug: AugmentConfig) -> AugmentConfig:
+    """The turns, flips and scales of the second stage's patches: the crops' settings with the patches'
+    own ``scale`` range."""
+    return aug.model_copy(update={"scale": cfg.scale})
+
+
 def training_patch(
     image: np.ndarray,
     crossing: np.ndarray,
     rng: np.random.Generator,
     cfg: RefineConfig,
-    aug: AugmentConfig,
+    geometry: AugmentConfig,
     *,
     uniform: bool = True,
 ) -> tuple[np.ndarray, np.ndarray]:
     """One patch around a labelled crossing, before colour changes, and the crossing's offset from its
-    centre. ``uniform = False`` draws the centre's error from the Gaussian alone (for a mined negative,
-    which a 5 px error could move next to a real crossing)."""
+    centre; ``geometry`` is :func:`patch_geometry`'s. ``uniform = False`` draws the centre's error from the
+    Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing)."""
     if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
     else:
@@ -44,7 +50,7 @@ def training_patch(
         rng,
         centre=np.asarray(crossing, float) + error,
         target=np.array([size / 2, size / 2]),
-        cfg=aug.model_copy(update={"scale": cfg.scale}),
+        cfg=geometry,
     )
     x = warp(image, patch_from_image, size, fill=None)
     return x, apply_affine(crossing, patch_from_image)[0] - size / 2
@@ -57,8 +63,10 @@ def patch_keys(samples: list[Sample], negatives: list[np.ndarray]) -> np.ndarray
     return np.array(pos + neg, np.int64).reshape(-1, 3)
 
 
-def steps_per_epoch(keys: np.ndarray, cfg: RefineConfig) -> int:
-    return -(-len(keys) // cfg.batch_size)  # the last batch may be smaller
+def steps_per_epoch(samples: list[Sample], negatives: list[np.ndarray], cfg: RefineConfig) -> int:
+    """Batches an epoch over every row of :func:`patch_keys` (the last batch may be smaller)."""
+    rows = sum(len(s.visible) for s in samples) + sum(len(n) for n in negatives)
+    return -(-rows // cfg.batch_size)
 
 
 def patch_batch(
@@ -72,10 +80,11 @@ def patch_batch(
 ) -> Batch:
     """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, 3) uint8, their (B, 2)
     offsets of the crossing from the centre (meaningless for negatives) and (B,) whether each is one."""
+    geometry = patch_geometry(cfg, aug)
     xs, ys = [], []
     for i, k, positive in rows:
         centre = samples[i].visible[k] if positive else negatives[i][k]
-        x, y = training_patch(image_of(i), centre, rng, cfg, aug, uniform=bool(positive))
+        x, y = training_patch(image_of(i), centre, rng, cfg, geometry, uniform=bool(positive))
         xs.append(x)
         ys.append(y)
     x = photometric_batch(np.stack(xs), rng, aug)
@@ -115,9 +124,10 @@ def patch_batches(
 
     keys = patch_keys(samples, negatives)
     size = cfg.batch_size
+    steps = steps_per_epoch(samples, negatives, cfg)
     for epoch in range(first, cfg.epochs + 1):
         rng = np.random.default_rng(np.random.SeedSequence([seed, 7919, epoch]))
         order = rng.permutation(len(keys))
-        for b in range(steps_per_epoch(keys, cfg)):
+        for b in range(steps):
             rows = keys[order[b * size : (b + 1) * size]]
             yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug)

@@ -29,7 +29,7 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image
-from rebar_data.perception.refine_data import patch_batches, patch_keys, steps_per_epoch
+from rebar_data.perception.refine_data import patch_batches, steps_per_epoch
 from rebar_data.perception.schedule import warmup_cosine
 
 FORMAT = "rebar-keypoint-refiner"
@@ -368,7 +368,7 @@ def _epochs(
 ) -> None:
     """Train the remaining epochs on the visible crossings of ``samples`` and each sample's negatives."""
     last = out / "refine_last.pt"
-    steps = steps_per_epoch(patch_keys(samples, negatives), cfg)
+    steps = steps_per_epoch(samples, negatives, cfg)
     total = cfg.epochs * steps
     first = len(history) + 1
     batches = patch_batches(samples, negatives, cfg, aug, seed=seed, first=first, images=images)

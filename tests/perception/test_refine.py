@@ -13,7 +13,7 @@ from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import load_split, read_image
 from rebar_data.perception.infer import Detector, verified_score
 from rebar_data.perception.refine import Refiner, patches
-from rebar_data.perception.refine_data import patch_batches, training_patch
+from rebar_data.perception.refine_data import patch_batches, patch_geometry, training_patch
 from rebar_data.perception.refine_train import (
     build,
     calibration_patches,
@@ -70,7 +70,7 @@ def test_a_training_patch_moves_its_offset_with_the_pixels():
     rng = np.random.default_rng(3)
     offsets = []
     for _ in range(20):  # random errors, turns, flips and scales: the spot is where the offset says
-        x, y = training_patch(image, crossing, rng, cfg, STILL)
+        x, y = training_patch(image, crossing, rng, cfg, patch_geometry(cfg, STILL))
         np.testing.assert_allclose(_centroid(x), 16 + y, atol=0.15)
         offsets.append(y)
     assert np.std(offsets) > 0.5  # the centre really was off the crossing
