@@ -10,8 +10,8 @@ from pathlib import Path
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
-from rebar_data.perception.data import check_dataset, read_info
-from rebar_data.perception.evaluate import predict
+from rebar_data.perception.data import check_dataset, load_split, read_info
+from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, predict
 from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector, refiner_path
 from rebar_data.perception.metrics import oks_radius_px
 
@@ -192,6 +192,13 @@ def write_card(
         "",
         f"- `{ds.get('name')} test`: the held-out scenes (other lights, materials, surroundings and camera paths);",
         "  the figure to quote. `val`: the scenes that chose the epoch.",
+        f"- `test, crossings >= {BORDER_BAND_PX:g} px inside the frame`: the test split with the crossings within "
+        f"{BORDER_BAND_PX:g} px of the",
+        "  image border set aside (ignore regions), and the detections there. At the border a crossing just",
+        "  inside the frame looks like one just outside it, which the labels count as no crossing.",
+        "- `test, scenes with (without) a lower mat`: the test scenes with a second mat beneath the bars",
+        f"  (the samples table's `{LOWER_MAT_COLUMN}`), where a bar passing over the mat beneath looks like a",
+        "  crossing; and the others.",
         "- `random ... of frames`: frames drawn at random from the whole dataset, as the paper's frame-level",
         "  80:20 split draws its test set. Most of them were trained on (and the rest are a few centimetres of",
         "  camera motion from frames that were), so the gap to the test row is what a random split hides.",
@@ -230,17 +237,30 @@ def evaluation_rows(
     random_split: bool = True,
     progress: bool = False,
 ) -> dict[str, dict]:
-    """The card's rows beyond the run's own splits: the training dataset scored as a random frame split
-    would test it, and every split of each dataset in ``evaluate_on`` (datasets built with other configs).
+    """The card's rows beyond the run's own splits: where the test split's errors lie
+    (:func:`~rebar_data.perception.evaluate.breakdown`), the training dataset scored as a random frame
+    split would test it, and every split of each dataset in ``evaluate_on`` (datasets built with other
+    configs).
 
     Returns:
         Row name -> metrics (as :func:`rebar_data.perception.metrics.summary` gives them).
     """
-    from rebar_data.perception.evaluate import RANDOM_SPLIT_FRACTION, random_frames, score, score_dataset
+    from rebar_data.perception.evaluate import (
+        RANDOM_SPLIT_FRACTION,
+        breakdown,
+        random_frames,
+        score,
+        score_dataset,
+    )
 
     res = json.loads((run_dir / "results.json").read_text())
     rows: dict[str, dict] = {}
     root = Path(res["dataset"].get("path") or "")
+    test = load_split(root, "test") if (root / "tables/samples.parquet").exists() else []
+    if test:
+        preds = predict(detector, test, progress=progress)
+        for name, m in breakdown(root, test, preds, sigma=res["oks_sigma"]).items():
+            rows[f"{res['dataset'].get('name')} test, {name}"] = m
     if random_split and (root / "tables/samples.parquet").exists():
         samples, seen = random_frames(root)
         preds = predict(detector, samples, progress=progress)

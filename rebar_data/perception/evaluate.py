@@ -18,6 +18,8 @@ LOW_THRESHOLD = 0.05  # predictions kept for scoring: enough of the tail for AP 
 RANDOM_SPLIT_FRACTION = 0.2  # the paper's frame-level 80:20 split
 CALIBRATION_FLOOR = 0.01  # lowest raw score looked at when choosing the operating point
 MAX_SCORE_BIAS = 4.0
+BORDER_BAND_PX = 8.0  # the breakdown's band along the image border (5% of paper-tunnel's test crossings)
+LOWER_MAT_COLUMN = "surr_lower_layer"  # samples table: a second mat lies beneath the labelled bars
 
 
 def truth_of(sample: Sample, *, ignore_occluded: bool = False) -> Truth:
@@ -115,6 +117,59 @@ def score_dataset(
     samples = load_splits(root, splits)
     sigma = float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))
     return score(samples, predict(detector, samples, progress=progress), sigma=sigma)
+
+
+def set_border_aside(
+    samples: Sequence[Sample], predictions: Sequence[np.ndarray], band_px: float
+) -> tuple[list[Truth], list[np.ndarray]]:
+    """Truths and predictions for scoring the inside of each frame: visible crossings within ``band_px``
+    of the image border become ignore regions (a detection on one is neither right nor wrong) and
+    predictions within the band are dropped (a detection there of a crossing just outside the frame is
+    not counted false)."""
+
+    def inside(uv: np.ndarray, s: Sample) -> np.ndarray:
+        uv = np.asarray(uv, float).reshape(-1, 2)
+        return (
+            (uv[:, 0] >= band_px)
+            & (uv[:, 1] >= band_px)
+            & (uv[:, 0] <= s.width - band_px)
+            & (uv[:, 1] <= s.height - band_px)
+        )
+
+    truths, kept = [], []
+    for s, p in zip(samples, predictions, strict=True):
+        keep = inside(s.visible, s)
+        truths.append(Truth(s.visible[keep], s.box_size_px[keep], s.visible[~keep], s.box_size_px[~keep]))
+        p = np.asarray(p, float).reshape(-1, 3)
+        kept.append(p[inside(p[:, :2], s)])
+    return truths, kept
+
+
+def breakdown(
+    root: str | Path, samples: Sequence[Sample], predictions: Sequence[np.ndarray], *, sigma: float
+) -> dict[str, dict[str, float]]:
+    """Where a split's misses and false detections lie: the metrics of the frames' inside (crossings at
+    least ``BORDER_BAND_PX`` from the border, :func:`set_border_aside`), and of the scenes with and without
+    a second mat beneath the bars (when the samples table has ``LOWER_MAT_COLUMN``).
+
+    Returns:
+        Row name -> metrics (as :func:`~rebar_data.perception.metrics.summary` gives them); a group with no
+        image is left out.
+    """
+    rows = {
+        f"crossings >= {BORDER_BAND_PX:g} px inside the frame": summary(
+            *set_border_aside(samples, predictions, BORDER_BAND_PX), sigma=sigma
+        )
+    }
+    table = pq.read_table(Path(root) / "tables/samples.parquet")
+    if LOWER_MAT_COLUMN not in table.column_names:
+        return rows
+    lower = dict(zip(table["image_id"].to_pylist(), table[LOWER_MAT_COLUMN].to_pylist(), strict=True))
+    for flag, name in ((True, "scenes with a lower mat"), (False, "scenes without a lower mat")):
+        pick = [k for k, s in enumerate(samples) if bool(lower[s.image_id]) == flag]
+        if pick:
+            rows[name] = score([samples[k] for k in pick], [predictions[k] for k in pick], sigma=sigma)
+    return rows
 
 
 def calibrate_score_bias(samples: Sequence[Sample], predictions: Sequence[np.ndarray]) -> float:

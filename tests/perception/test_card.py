@@ -14,6 +14,8 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     card = (tmp_path / CARD_NAME).read_text()
     assert "OKS sigma 0.04" in card and "| drawn test |" in card and "make train" in card
     assert "| drawn test, first stage alone |" in card and "rebar_keypoint.refine.onnx" in card
+    # where the test split's errors lie: the frames' inside (the drawn set has no lower-mat column)
+    assert "| drawn test, crossings >= 8 px inside the frame |" in card and "lower mat |" not in card
     # the second stage's verification is described where the model and its training are
     assert "sigmoid(first-stage logit + log p)" in card and "farther than 6 px from every" in card
     # latency is timed on rendered frames like the training data's, not on the drawn worst case

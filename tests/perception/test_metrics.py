@@ -199,3 +199,63 @@ def test_score_bias_puts_score_one_half_at_the_best_f1():
     b = calibrate_score_bias([sample], [pred])
     scores = 1 / (1 + np.exp(-(np.log(pred[:, 2] / (1 - pred[:, 2])) + b)))
     assert (scores[:4] >= 0.5).all() and (scores[4:] < 0.5).all()
+
+
+def _two_scenes(tmp_path, *, lower_mat: bool = True):
+    """A 100 x 80 image with a crossing inside the frame and one 3 px from its left border, detected with
+    a false detection inside and one at the right border; and a second image without crossings."""
+    import pyarrow as pa
+    import pyarrow.parquet as pq
+
+    from rebar_data.perception.data import Sample
+
+    uv = np.array([[50.0, 40.0], [3.0, 40.0]])
+    samples = [
+        Sample("a", None, 100, 80, uv, np.full(2, 30.0)),
+        Sample("b", None, 100, 80, np.zeros((0, 2)), np.zeros(0)),
+    ]
+    preds = [
+        np.array([[50.2, 40.0, 0.9], [3.5, 40.0, 0.8], [98.0, 10.0, 0.95], [70.0, 60.0, 0.7]]),
+        np.array([[30.0, 30.0, 0.6]]),
+    ]
+    columns = {"image_id": ["a", "b"]}
+    if lower_mat:
+        columns["surr_lower_layer"] = [True, False]
+    (tmp_path / "tables").mkdir()
+    pq.write_table(pa.table(columns), tmp_path / "tables/samples.parquet")
+    return samples, preds
+
+
+def test_setting_the_border_aside_ignores_the_crossings_and_drops_the_detections_there(tmp_path):
+    from rebar_data.perception.evaluate import score, set_border_aside
+
+    samples, preds = _two_scenes(tmp_path)
+    every = score(samples, preds, sigma=DEFAULT_OKS_SIGMA)
+    assert every["n_gt"] == 2 and every["precision"] == pytest.approx(2 / 5) and every["recall"] == 1.0
+    truths, kept = set_border_aside(samples, preds, 8.0)
+    np.testing.assert_array_equal(truths[0].uv, [[50.0, 40.0]])
+    np.testing.assert_array_equal(truths[0].ignore_uv, [[3.0, 40.0]])
+    np.testing.assert_array_equal(kept[0][:, 2], [0.9, 0.7])  # the two within 8 px of the border dropped
+    inside = summary(truths, kept)
+    assert inside["n_gt"] == 1 and inside["precision"] == pytest.approx(1 / 3) and inside["recall"] == 1.0
+
+
+def test_the_breakdown_scores_the_frames_inside_and_the_scenes_with_and_without_a_lower_mat(tmp_path):
+    from rebar_data.perception.evaluate import breakdown
+
+    samples, preds = _two_scenes(tmp_path)
+    rows = breakdown(tmp_path, samples, preds, sigma=DEFAULT_OKS_SIGMA)
+    assert list(rows) == [
+        "crossings >= 8 px inside the frame",
+        "scenes with a lower mat",
+        "scenes without a lower mat",
+    ]
+    assert rows["scenes with a lower mat"]["n_gt"] == 2 and rows["scenes without a lower mat"]["n_gt"] == 0
+    assert rows["scenes with a lower mat"]["precision"] == pytest.approx(2 / 4)
+    assert rows["scenes without a lower mat"]["precision"] == 0.0  # its one detection is false
+    other = tmp_path / "other"
+    other.mkdir()
+    samples, preds = _two_scenes(other, lower_mat=False)  # a dataset without the column: the inside alone
+    assert list(breakdown(other, samples, preds, sigma=DEFAULT_OKS_SIGMA)) == [
+        "crossings >= 8 px inside the frame"
+    ]
