@@ -34,12 +34,14 @@ mesh: setup
 	$(REBAR) mesh pipelines/paper-tunnel.yaml --out $(DATA)/mesh/paper-tunnel
 
 dataset: setup
-	$(REBAR) dataset build pipelines/paper-tunnel.yaml --out $(DATA) --workers $(WORKERS) | tee $(DATA)/.last-build
+	@mkdir -p $(DATA)
+	set -o pipefail; $(REBAR) dataset build pipelines/paper-tunnel.yaml --out $(DATA) --workers $(WORKERS) | tee $(DATA)/.last-build
 	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-build)"
 	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-build)"
 
 smoke: setup
-	$(REBAR) dataset build pipelines/smoke.yaml --out $(DATA) --workers $(WORKERS) --force | tee $(DATA)/.last-smoke
+	@mkdir -p $(DATA)
+	set -o pipefail; $(REBAR) dataset build pipelines/smoke.yaml --out $(DATA) --workers $(WORKERS) --force | tee $(DATA)/.last-smoke
 	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-smoke)"
 	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-smoke)"
 
