@@ -176,6 +176,9 @@ class MeshConfig(Strict):
 
 _SEMVER = re.compile(r"^\d+\.\d+\.\d+$")
 
+# the paper's pipeline in the project's `pipelines/` folder: what the benches build, render and servo on
+PAPER_PIPELINE = Path(__file__).resolve().parents[1] / "pipelines" / "paper-tunnel.yaml"
+
 
 def read_yaml(path: str | Path) -> dict[str, Any]:
     """Read a YAML mapping, turning every way a file can be unusable into a ConfigError."""

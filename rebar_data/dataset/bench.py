@@ -16,14 +16,12 @@ from pathlib import Path
 
 import yaml
 
-from rebar_data.config import read_yaml
+from rebar_data.config import PAPER_PIPELINE, read_yaml
 from rebar_data.dataset.build import build_dataset
-
-PAPER = Path(__file__).resolve().parents[2] / "pipelines" / "paper-tunnel.yaml"
 
 
 def bench_config(tmp: Path, *, scenes: int = 3, frames: int = 16) -> Path:
-    data = read_yaml(PAPER)
+    data = read_yaml(PAPER_PIPELINE)
     trajectories = data.get("camera", {}).get("trajectories") or [
         {"kind": "orbit_arc"},
         {"kind": "straight_pass"},

@@ -3,17 +3,14 @@
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 
-from rebar_data.config import load_mesh_config
+from rebar_data.config import PAPER_PIPELINE, load_mesh_config
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.solids import build_parts, merge
 from rebar_data.geometry.specs import build_layout
-
-PAPER = Path(__file__).resolve().parents[2] / "pipelines" / "paper-tunnel.yaml"
 
 
 def _timed(fn, repeat: int = 3):
@@ -39,7 +36,7 @@ def _sampled_crossings(layout, step_m: float, reach_m: float) -> tuple[int, floa
 
 
 def run() -> list[str]:
-    cfg = load_mesh_config(PAPER)
+    cfg = load_mesh_config(PAPER_PIPELINE)
     t_layout, layout = _timed(lambda: build_layout(cfg))
     t_cross, crossings = _timed(lambda: find_crossings(layout, cfg.mesh.crossing_tolerance_m))
     t_parts, parts = _timed(lambda: build_parts(layout.bars, crossings, cfg.realism, layout.rngs["tie_wire"]))

@@ -55,14 +55,14 @@ def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[np.n
     Raises:
         RuntimeError: and others from Open3D when the offscreen renderer cannot start here.
     """
+    from rebar_data.config import PAPER_PIPELINE
     from rebar_data.dataset.config import load_pipeline
-    from rebar_data.geometry.bench import PAPER
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.render.renderer import Renderer
     from rebar_data.scene.cameras import PRESETS, trajectory_poses
     from rebar_data.scene.sample import sample_scene, sample_sensor
 
-    cfg = load_pipeline(PAPER)
+    cfg = load_pipeline(PAPER_PIPELINE)
     rm = build_rebar_mesh(cfg.mesh_config())
     rng = np.random.default_rng(seed)
     renderer = Renderer(PRESETS["kinect_v1"], cfg.render)

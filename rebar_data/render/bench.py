@@ -35,11 +35,10 @@ def _rss_mb() -> float:
 
 
 def _paper_mesh():
-    from rebar_data.config import load_mesh_config
+    from rebar_data.config import PAPER_PIPELINE, load_mesh_config
     from rebar_data.geometry.build import build_rebar_mesh
 
-    path = Path(__file__).resolve().parents[2] / "pipelines" / "paper-tunnel.yaml"
-    return build_rebar_mesh(load_mesh_config(path))
+    return build_rebar_mesh(load_mesh_config(PAPER_PIPELINE))
 
 
 def _frames(renderer, poses, sensors, rng) -> np.ndarray:

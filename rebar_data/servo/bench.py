@@ -9,7 +9,6 @@ servo visit's cost per step.
 from __future__ import annotations
 
 import time
-from pathlib import Path
 
 import numpy as np
 
@@ -25,19 +24,19 @@ def _per_call(fn, n: int) -> float:
 
 
 def run() -> list[str]:
+    from rebar_data.config import PAPER_PIPELINE
     from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig
     from rebar_data.servo.controllers import IbvsController, PbvsController
     from rebar_data.servo.episode import EpisodeRunner
     from rebar_data.servo.run import build_context
     from rebar_data.servo.tracker import TargetTracker
 
-    root = Path(__file__).resolve().parents[2]
     suite = SuiteConfig.model_validate(
         {
             "name": "bench",
             "detector": "ground_truth",
             "frames": "raycast",
-            "world": {"mesh_config": str(root / "pipelines" / "paper-tunnel.yaml")},
+            "world": {"mesh_config": str(PAPER_PIPELINE)},
             "recording": {"rrd": "none"},
             "tcp": {"approach": False},
             "episodes": [
