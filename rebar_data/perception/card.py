@@ -108,7 +108,8 @@ def write_card(
                 + (", and the logit p that the patch shows a" if verifies else "."),
                 *(
                     [
-                        "  crossing at all. A detection's score becomes sigmoid(first-stage logit + log p): the second",
+                        "  crossing at all. A detection's score becomes sigmoid(first-stage logit + "
+                        f"{refine.get('verify_power', 1.0):g} log p): the second",
                         "  stage only lowers scores (of bars passing over the mat beneath, mostly).",
                     ]
                     if verifies

@@ -76,6 +76,8 @@ class Detector:
         self._run = run
         self.meta = meta
         self.score_bias = float(meta.get("score_bias", 0.0))
+        # how hard the second stage's verification counts (files written before it was stored: fully)
+        self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))
         self.backend = backend
         self.path = path
         self._rays: dict[tuple, np.ndarray] = {}
@@ -197,7 +199,7 @@ class Detector:
         if self.refiner is not None and len(det):
             det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2])
             if verify is not None:
-                det[:, 2] = verified_score(det[:, 2], verify)
+                det[:, 2] = verified_score(det[:, 2], verify, power=self.verify_power)
                 det = det[det[:, 2] >= threshold]
                 det = det[np.argsort(-det[:, 2], kind="stable")]
         h, w = image.shape[:2]
@@ -205,14 +207,15 @@ class Detector:
         return det[inside]
 
 
-def verified_score(score: np.ndarray, verify_logit: np.ndarray) -> np.ndarray:
-    """A detection's score after the second stage's verification: sigmoid(logit(score) + log p), with p
-    the second stage's probability that the patch shows a crossing. It only lowers scores (p <= 1),
-    so a threshold applied to the first stage's scores loses nothing, and a shift of the first stage's
-    logits (the score bias) shifts the final logits alike."""
+def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:
+    """A detection's score after the second stage's verification: sigmoid(logit(score) + power * log p),
+    with p the second stage's probability that the patch shows a crossing (``RefineConfig.verify_power``
+    says why the shipped power is below 1). It only lowers scores (p <= 1), so a threshold applied to
+    the first stage's scores loses nothing, and a shift of the first stage's logits (the score bias)
+    shifts the final logits alike."""
     s = np.clip(np.asarray(score, np.float64), 1e-12, 1.0 - 1e-12)
     log_p = -np.logaddexp(0.0, -np.asarray(verify_logit, np.float64))
-    return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + log_p)))
+    return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + power * log_p)))
 
 
 def onnx_session(path: Path, threads: int):

@@ -34,7 +34,11 @@ from rebar_data.perception.schedule import warmup_cosine
 
 FORMAT = "rebar-keypoint-refiner"
 FORMAT_VERSION = 1
-EXPORT_ONLY = {"quantize", "calibration_patches"}  # RefineConfig settings that leave training alone
+EXPORT_ONLY = {
+    "quantize",
+    "calibration_patches",
+    "verify_power",
+}  # RefineConfig settings that leave training alone
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:

@@ -607,6 +607,7 @@ def _finish(
             "iterations": cfg.refine.iterations,
             "quantize": cfg.refine.quantize,
             "verify": refiner.verify,
+            "verify_power": cfg.refine.verify_power,
             "sha256": sha256_file(onnx_path),
         }
     detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)

@@ -164,6 +164,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     results = json.loads((out / "results.json").read_text())
     assert "test" in results["results_first_stage"] and results["refiner_parameters"] > 0
     assert det.meta["refiner"]["verify"] and det.refiner.verifies  # the default: it verifies too
+    assert det.verify_power == det.meta["refiner"]["verify_power"] == RefineConfig().verify_power
     assert results["refine_history"][-1]["verify_positives_right"] > 0.5
     rgb = read_image(load_split(drawn_dataset, "test")[0].path)
     both = det.detect(rgb, threshold=0.01)
@@ -171,7 +172,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
         first = det.detect(rgb, threshold=0.01)
     # the same detections, moved, their scores lowered by the verification and cut at the threshold
     uv, logit = det.refiner.refine_and_verify(rgb, first[:, :2])
-    expected = np.c_[uv, verified_score(first[:, 2], logit)]
+    expected = np.c_[uv, verified_score(first[:, 2], logit, power=det.verify_power)]
     expected = expected[expected[:, 2] >= 0.01]
     np.testing.assert_allclose(both, expected[np.argsort(-expected[:, 2], kind="stable")])
     det.refiner = None
@@ -219,6 +220,21 @@ def test_verification_only_lowers_a_score_and_keeps_the_score_bias_a_shift():
     shifted = verified_score(1 / (1 + np.exp(-(logit + 1.5))), np.array([-2.0, 1.0, 0.0, 4.0]))
     plain = verified_score(score, np.array([-2.0, 1.0, 0.0, 4.0]))
     np.testing.assert_allclose(np.log(shifted / (1 - shifted)) - np.log(plain / (1 - plain)), 1.5)
+    # a power w multiplies the odds by p^w: at p = 0.25, w = 0.5 halves them, and counts for less than w = 1
+    quarter = np.full(4, -np.log(3.0))
+    half = verified_score(score, quarter, power=0.5)
+    np.testing.assert_allclose(half / (1 - half), 0.5 * score / (1 - score))
+    assert np.all(verified_score(score, quarter) < half)
+
+
+def test_a_model_file_without_a_verification_power_counts_the_verification_fully():
+    assert (
+        Detector(
+            lambda *_: None, meta={"refiner": {"verify": True}}, backend="onnxruntime", path=None
+        ).verify_power
+        == 1.0
+    )
+    assert Detector(lambda *_: None, meta={}, backend="onnxruntime", path=None).verify_power == 1.0
 
 
 def _bar_middles(samples) -> list[np.ndarray]:
