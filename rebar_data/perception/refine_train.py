@@ -34,11 +34,8 @@ from rebar_data.perception.schedule import warmup_cosine
 
 FORMAT = "rebar-keypoint-refiner"
 FORMAT_VERSION = 1
-EXPORT_ONLY = {
-    "quantize",
-    "calibration_patches",
-    "verify_power",
-}  # RefineConfig settings that leave training alone
+# RefineConfig settings that leave training alone: they shape the exported file or how its output is used
+EXPORT_ONLY = {"quantize", "calibration_patches", "verify_power"}
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
