@@ -110,6 +110,10 @@ class RefineConfig(Strict):
     score bias placed again on val for w = 0.5 (+0.60 against +1.20), as shipped: smoke 0.972,
     paper-tunnel test PCK@2px 0.924, recall@P0.99 0.958, AP@0.5 0.977 either way; planar-slab (never
     trained on) AP@0.5 0.930, recall@P0.99 0.515 (the 11-epoch model at w = 1: 0.885 and 0.454).
+    Each w with its own score bias placed on val (the 22-epoch model; paper-tunnel val and test
+    recall@P0.99, smoke test PCK@2px): w = 0.25: 0.981, 0.954, 0.978; 0.5: 0.982, 0.958, 0.972;
+    0.75: 0.982, 0.957, 0.966; 1: 0.983, 0.958, 0.963. Val cannot choose it (AP@0.5 0.979 for all
+    four); away from the training data a lower w loses fewer true crossings.
 
     Beyond the image's border a patch shows the image mirrored. Mirrored, a crossing 2 px outside the frame
     looks like one 2 px inside it; a second stage trained and run with a flat colour there instead (random
