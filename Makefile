@@ -1,5 +1,7 @@
 # rebar-servo: two commands on a fresh machine, `make dataset` and `make test`, do the whole set-up.
 SHELL := /bin/bash
+# a pipe fails when any part of it fails (a build piped into tee fails as the build does)
+.SHELLFLAGS := -o pipefail -c
 PY := .venv/bin/python
 REBAR := .venv/bin/rebar
 STAMP := .venv/.installed
@@ -30,18 +32,19 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q -e ".[dev,ray]"
 	@touch $(STAMP)
 
+$(DATA):
+	@mkdir -p $@
+
 mesh: setup
 	$(REBAR) mesh pipelines/paper-tunnel.yaml --out $(DATA)/mesh/paper-tunnel
 
-dataset: setup
-	@mkdir -p $(DATA)
-	set -o pipefail; $(REBAR) dataset build pipelines/paper-tunnel.yaml --out $(DATA) --workers $(WORKERS) | tee $(DATA)/.last-build
+dataset: setup | $(DATA)
+	$(REBAR) dataset build pipelines/paper-tunnel.yaml --out $(DATA) --workers $(WORKERS) | tee $(DATA)/.last-build
 	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-build)"
 	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-build)"
 
-smoke: setup
-	@mkdir -p $(DATA)
-	set -o pipefail; $(REBAR) dataset build pipelines/smoke.yaml --out $(DATA) --workers $(WORKERS) --force | tee $(DATA)/.last-smoke
+smoke: setup | $(DATA)
+	$(REBAR) dataset build pipelines/smoke.yaml --out $(DATA) --workers $(WORKERS) --force | tee $(DATA)/.last-smoke
 	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-smoke)"
 	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-smoke)"
 

@@ -50,6 +50,7 @@ def write_card(
     extra_results: dict[str, dict] | None = None,
     load_average: float | None = None,
     score_bias: float = 0.0,
+    verify_power: float = 1.0,
     refiner: Path | None = None,
 ) -> Path:
     """The model card: what the model is, what it was trained on, how it scores and how to reproduce it."""
@@ -109,7 +110,7 @@ def write_card(
                 *(
                     [
                         "  crossing at all. A detection's score becomes sigmoid(first-stage logit + "
-                        f"{refine.get('verify_power', 1.0):g} log p): the second",
+                        f"{verify_power:g} log p): the second",
                         "  stage only lowers scores (of bars passing over the mat beneath, mostly).",
                     ]
                     if verifies
@@ -342,6 +343,7 @@ def ship(
         extra_results=rows,
         load_average=load,
         score_bias=detector.score_bias,
+        verify_power=detector.verify_power,
         refiner=refiner_path(dst) if detector.refiner is not None else None,
     )
     return dst
