@@ -1,5 +1,5 @@
 """Detector latency: 640x480 frames, batch 1, on two CPU threads, end to end (padding, network, peak
-decoding, second stage), against references measured in the same run: the same network in eager PyTorch
+decoding, second stage, depth check), against references measured in the same run: the same network in eager PyTorch
 and a YOLOv8n-pose-shaped network on the same runtime.
 
 The frames are like the training data's, at the servo camera's size: paper-tunnel's mesh rendered at 640x480
@@ -25,6 +25,7 @@ FRAME_HW = (480, 640)
 THREADS = 2
 BUDGET_MS = 15.0  # a 31 Hz servo loop leaves 32 ms a step; the detector may take under half
 RENDERED_FRAMES = 8
+Frame = tuple[np.ndarray, np.ndarray]  # RGB (H, W, 3) uint8 and its depth (H, W) float32 metres, 0 = none
 
 
 def _time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 5) -> np.ndarray:
@@ -38,16 +39,17 @@ def _time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 5) -> np.n
     return out
 
 
-def drawn_frame() -> np.ndarray:
-    """A drawn rebar frame of 640x480, dense with bars: the second stage's worst case."""
+def drawn_frame() -> Frame:
+    """A drawn rebar frame of 640x480 and its depth, dense with bars: the later stages' worst case."""
     from rebar_data.perception.synthetic import SyntheticSpec, random_frame
 
     spec = SyntheticSpec(width=FRAME_HW[1], height=FRAME_HW[0], focal_px=525.0, occluder_fraction=0.0)
     rng = np.random.default_rng(0)
-    return random_frame(spec, rng)[0]
+    rgb, _, depth = random_frame(spec, rng)
+    return rgb, depth
 
 
-def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[np.ndarray]:
+def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[Frame]:
     """``count`` frames like paper-tunnel's, at the servo camera's size: its mesh rendered at 640x480 with the
     Kinect v1 intrinsics, from its pipeline's camera trajectories in turn, each under a new scene (lights,
     material, surroundings) and sensor effects drawn from its settings.
@@ -73,7 +75,8 @@ def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[np.n
             traj = cfg.camera.trajectories[i % len(cfg.camera.trajectories)]
             renderer.set_scene(sample_scene(cfg.scene, rng))
             pose = trajectory_poses(traj, rm, rng)[rng.integers(traj.frames)]
-            frames.append(renderer.render(pose, sample_sensor(cfg.scene, rng), rng).rgb)
+            rendered = renderer.render(pose, sample_sensor(cfg.scene, rng), rng)
+            frames.append((rendered.rgb, rendered.depth_m))
     finally:
         renderer.close()
     return frames
@@ -83,7 +86,7 @@ def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[np.n
 class DetectorLatency:
     """A detector's end-to-end latency over frames: median and 90th percentile of all timed calls, and
     per frame on average the first stage's candidates (what the second stage refines) and the crossings
-    returned; for a two-stage model also the median with the first stage alone."""
+    returned; for a model with later stages also the median with the first stage alone."""
 
     median_ms: float
     p90_ms: float
@@ -99,20 +102,26 @@ class DetectorLatency:
         return 1e3 * (self.median_ms - self.first_stage_ms) / max(self.candidates, 1.0)
 
 
-def detector_latency(det, frames: list[np.ndarray], *, repeats: int) -> DetectorLatency:
-    """Time ``det.detect`` on each of ``frames`` (``repeats`` calls in all, spread evenly), and its first
-    stage alone when it has a second: frame by frame, one right after the other, so that both see the
-    machine in the same state."""
+def detector_latency(det, frames: list[Frame], *, repeats: int) -> DetectorLatency:
+    """Time ``det.detect`` on each of ``frames`` with its depth (``repeats`` calls in all, spread evenly),
+    and its first stage alone when it has later ones: frame by frame, one right after the other, so that
+    both see the machine in the same state."""
     each = max(3, -(-repeats // len(frames)))
-    two_stages = det.refiner is not None
+    two_stages = det.refiner is not None or det.depth_check is not None
     ours, first, kept, candidates = [], [], [], []
-    for f in frames:
-        ours.append(_time_ms(lambda f=f: det.detect(f), repeats=each, warmup=2))
-        kept.append(len(det.detect(f)))
+    for rgb, depth in frames:
+        ours.append(
+            _time_ms(lambda rgb=rgb, depth=depth: det.detect(rgb, depth=depth), repeats=each, warmup=2)
+        )
+        kept.append(len(det.detect(rgb, depth=depth)))
         with det.first_stage_only():
             if two_stages:
-                first.append(_time_ms(lambda f=f: det.detect(f), repeats=each, warmup=2))
-            candidates.append(len(det.detect(f)))
+                first.append(
+                    _time_ms(
+                        lambda rgb=rgb, depth=depth: det.detect(rgb, depth=depth), repeats=each, warmup=2
+                    )
+                )
+            candidates.append(len(det.detect(rgb, depth=depth)))
     ours = np.concatenate(ours)
     return DetectorLatency(
         median_ms=float(np.median(ours)),
@@ -125,12 +134,12 @@ def detector_latency(det, frames: list[np.ndarray], *, repeats: int) -> Detector
 
 
 def _stages(lat: DetectorLatency) -> list[str]:
-    """What each stage of a two-stage detector costs (nothing for one stage)."""
+    """What the first stage and the later ones cost (nothing for one stage)."""
     if lat.first_stage_ms is None:
         return []
     return [
         f"perception:   of which the first stage (heatmap network and peaks) {lat.first_stage_ms:.1f} ms "
-        f"and the second (refining and verifying {lat.candidates:.0f} candidates a frame) "
+        f"and the later ones (refining, verifying and checking in depth {lat.candidates:.0f} candidates a frame) "
         f"{lat.median_ms - lat.first_stage_ms:.1f} ms, {lat.second_stage_us_per_candidate:.0f} us a candidate"
     ]
 
@@ -210,7 +219,7 @@ def run(repeats: int = 100) -> list[str]:
                 f"{dense.crossings:.0f} kept): median {dense.median_ms:.1f} ms, p90 {dense.p90_ms:.1f} ms"
             )
             lines += _stages(dense)
-        rgb = frames[0]
+        rgb = frames[0][0]
         net = KeypointNet(ModelConfig()).eval()
         x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float()
         rays = torch.from_numpy(ray_grid(*FRAME_HW, (525.0, 525.0, 320.0, 240.0)))[None]  # output cells

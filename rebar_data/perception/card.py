@@ -12,7 +12,7 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
 from rebar_data.perception.data import check_dataset, load_split, read_info
 from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, predict
-from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector, refiner_path
+from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector, depth_check_path, refiner_path
 from rebar_data.perception.metrics import oks_radius_px
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
@@ -50,8 +50,11 @@ def write_card(
     extra_results: dict[str, dict] | None = None,
     load_average: float | None = None,
     score_bias: float = 0.0,
+    score_bias_without_depth: float = 0.0,
     verify_power: float = 1.0,
     refiner: Path | None = None,
+    depth_check: Path | None = None,
+    depth_power: float = 1.0,
 ) -> Path:
     """The model card: what the model is, what it was trained on, how it scores and how to reproduce it."""
     res = json.loads((run_dir / "results.json").read_text())
@@ -61,6 +64,10 @@ def write_card(
     ds = res["dataset"]
     rows = [_row(f"{ds.get('name')} {split}", m) for split, m in sorted(res["results"].items(), reverse=True)]
     rows += [
+        _row(f"{ds.get('name')} {split}, without depth (the RGB stages alone)", m)
+        for split, m in sorted(res.get("results_without_depth", {}).items())
+    ]
+    rows += [
         _row(f"{ds.get('name')} {split}, first stage alone", m)
         for split, m in sorted(res.get("results_first_stage", {}).items())
     ]
@@ -68,6 +75,7 @@ def write_card(
     load = f", load average {load_average:.1f} on this 2-core machine" if load_average is not None else ""
     refine = tc.get("refine") if refiner is not None else None
     verifies = bool(refine and refine.get("verify"))
+    dc = tc.get("depth_check") if depth_check is not None else None
     lines = [
         "# Rebar-crossing keypoint detector",
         "",
@@ -79,14 +87,23 @@ def write_card(
             if refine
             else "."
         ),
-        "Input: an RGB image of any size (uint8, H x W x 3) and, optionally, its intrinsics. Output: (u, v,",
+        "Input: an RGB image of any size (uint8, H x W x 3) and, optionally, its intrinsics"
+        + (" and its registered depth image" if dc else "")
+        + ". Output: (u, v,",
         "score) per crossing, in the image's pixels with COCO's corner origin",
         "(the top-left corner of the top-left pixel is (0, 0)).",
         "",
         "```python",
         "from rebar_data.perception.infer import Detector",
         "",  # the block as `ruff format` (which formats code in Markdown) leaves it
-        "uvs = Detector.load().detect(rgb, camera=(fx, fy, cx, cy))  # (N, 3): u, v, score >= 0.5",
+        *(
+            [
+                "# (N, 3): u, v, score >= 0.5; depth: (H, W) metres or uint16 millimetres, 0 = no measurement",
+                "uvs = Detector.load().detect(rgb, camera=(fx, fy, cx, cy), depth=depth)",
+            ]
+            if dc
+            else ["uvs = Detector.load().detect(rgb, camera=(fx, fy, cx, cy))  # (N, 3): u, v, score >= 0.5"]
+        ),
         "```",
         "",
         "The label it learned is where the image shows the bars crossing: the pixel where the two projected",
@@ -121,11 +138,24 @@ def write_card(
             if refine
             else []
         ),
+        *(
+            [
+                f"- Third stage, the depth check: `{depth_check.name}` (ONNX, {depth_check.stat().st_size / 1024:.0f} KiB, "
+                f"{res.get('depth_check_parameters', 0) / 1e3:.0f} k parameters), beside the first. It reads the",
+                f"  depth image's {dc['patch_px']} px patch around each detection (depth relative to the patch centre's, "
+                f"in units of {dc['scale_m'] * 1000:g} mm,",
+                f"  clipped to +-{dc['clip']:g}) and gives the logit q that the two bars there touch, as at a crossing; a bar over the mat",
+                f"  beneath lies a mat's height behind. The score becomes sigmoid(logit + {depth_power:g} log q). It runs only",
+                "  when `detect` gets a depth image; a detection without a measurement at its centre keeps its score.",
+            ]
+            if dc
+            else []
+        ),
         f"- Latency: {latency.median_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
         f"  (median, measured when shipped{load}, over {latency_source}: {latency.candidates:.0f} candidates",
         f"  and {latency.crossings:.0f} crossings found a frame on average"
         + (
-            f"; the first stage alone {latency.first_stage_ms:.1f} ms, so the second costs "
+            f"; the first stage alone {latency.first_stage_ms:.1f} ms, so the later stages cost "
             f"{latency.second_stage_us_per_candidate:.0f} us a candidate"
             if latency.first_stage_ms is not None
             else ""
@@ -133,7 +163,12 @@ def write_card(
         + ").",
         "  `rebar bench --only detector` measures it again beside a YOLOv8n-pose-shaped network.",
         f"- Operating threshold: score 0.5, placed at the best F1 on the val split (a logit shift of {score_bias:+.2f}",
-        "  stored in the file; it changes no ranking, so AP and recall at a precision do not depend on it).",
+        "  stored in the file; it changes no ranking, so AP and recall at a precision do not depend on it)"
+        + (
+            f";\n  without a depth image the RGB stages' own, placed the same way ({score_bias_without_depth:+.2f})."
+            if dc
+            else "."
+        ),
         "",
         "## Training",
         f"- Data: `{ds.get('name')}` v{ds.get('version')}, its train split (early stopping and the choice of",
@@ -176,6 +211,16 @@ def write_card(
             if refine
             else []
         ),
+        *(
+            [
+                f"- Depth check: {dc['epochs']} epochs over depth patches around the training images' visible crossings and",
+                f"  the second stage's negatives ({res.get('depth_check_seconds', 0.0) / 60:.1f} minutes, in the total above), "
+                f"centred with a Gaussian error of {dc['jitter_px']:g} px,",
+                f"  turned by quarter turns, flipped, the relative depth scaled by {dc['gain'][0]:g}-{dc['gain'][1]:g}; cross-entropy.",
+            ]
+            if dc
+            else []
+        ),
         f"- Occluded crossings (visibility 1): {tc['occluded']} in the loss.",
         "- Reproduce: `make train` (builds the default dataset, its supplement and the planar-slab set when",
         "  missing, trains, and ships this file and card); the settings below are `TrainConfig`'s defaults.",
@@ -207,12 +252,21 @@ def write_card(
         "- `(all splits)` rows: datasets built with other configs (`pipelines/*.yaml`), never trained on.",
         *(
             [
-                "- `first stage alone`: the heatmap network's detections without the second stage (its",
+                "- `first stage alone`: the heatmap network's detections without the later stages (its",
                 "  positions and scores"
                 + (", before verification" if verifies else "")
-                + "), to show what the second stage adds.",
+                + "), to show what they add.",
             ]
             if refine
+            else []
+        ),
+        *(
+            [
+                "- `without depth`: the same images given to `detect` without their depth images, as a folder of",
+                "  photographs would be: the two RGB stages alone, at the same operating threshold. Every other row",
+                "  gives the detector each image's depth image, as the robot's RGB-D camera does.",
+            ]
+            if dc
             else []
         ),
         "",
@@ -307,10 +361,10 @@ def ship(
         raise ConfigError(
             f"{run_dir}: no best.onnx and results.json; accepted: a finished `rebar train` run folder"
         )
-    size = sum(p.stat().st_size for p in (src, refiner_path(src)) if p.exists())
+    size = sum(p.stat().st_size for p in (src, refiner_path(src), depth_check_path(src)) if p.exists())
     if size > MAX_SHIPPED_BYTES:
         raise ConfigError(
-            f"{src}: {size / 2**20:.1f} MiB (with its second stage) is over the "
+            f"{src}: {size / 2**20:.1f} MiB (with its later stages) is over the "
             f"{MAX_SHIPPED_BYTES / 2**20:.0f} MiB a shipped model may take"
         )
     for path in evaluate_on:
@@ -318,13 +372,14 @@ def ship(
     models_dir.mkdir(parents=True, exist_ok=True)
     dst = models_dir / SHIPPED_MODEL.name
     pairs = [(src, dst)]
-    if refiner_path(src).exists():
-        pairs.append((refiner_path(src), refiner_path(dst)))
-    else:
-        refiner_path(dst).unlink(missing_ok=True)  # a one-stage model: no stale second stage beside it
+    for beside in (refiner_path, depth_check_path):
+        if beside(src).exists():
+            pairs.append((beside(src), beside(dst)))
+        else:
+            beside(dst).unlink(missing_ok=True)  # a model without that stage: no stale file beside it
     for a, b in pairs:
         shutil.copyfile(a, b.with_name(b.name + ".tmp"))
-    for _, b in reversed(pairs):  # the second stage lands first, so the first never names a missing file
+    for _, b in reversed(pairs):  # the later stages land first, so the first never names a missing file
         b.with_name(b.name + ".tmp").replace(b)
     detector = Detector.load(dst)
     rows = evaluation_rows(
@@ -343,7 +398,10 @@ def ship(
         extra_results=rows,
         load_average=load,
         score_bias=detector.score_bias,
+        score_bias_without_depth=detector.score_bias_without_depth,
         verify_power=detector.verify_power,
         refiner=refiner_path(dst) if detector.refiner is not None else None,
+        depth_check=depth_check_path(dst) if detector.depth_check is not None else None,
+        depth_power=detector.depth_power,
     )
     return dst

@@ -79,7 +79,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
     if not samples:
         raise ConfigError(f"{root}: the {args.split} split has no images; accepted: a split with images")
     threshold = args.threshold if args.threshold is not None else LOW_THRESHOLD
-    preds = predict(detector, samples, threshold=threshold, progress=not args.quiet)
+    preds = predict(detector, samples, threshold=threshold, depth=not args.no_depth, progress=not args.quiet)
     write_predictions(out, [s.image_id for s in samples], preds)
     sigma = float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))
     metrics = score(samples, preds, sigma=sigma)
@@ -178,6 +178,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="lowest score written (default 0.05 for a dataset, so curves are complete; 0.5 for images)",
     )
     d.add_argument("--metrics", help="also write the split's metrics to this JSON file (dataset input)")
+    d.add_argument(
+        "--no-depth",
+        action="store_true",
+        help="leave the dataset's depth images out (the RGB stages alone, as for photographs); images "
+        "given as files are always detected without depth",
+    )
     d.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=run_detect)

@@ -159,6 +159,44 @@ class RefineConfig(Strict):
     verify_power: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
 
 
+class DepthCheckConfig(Strict):
+    """The third stage (``rebar_data.perception.depth_check``): a small network that reads the depth image
+    around each detection and says whether the two bars there touch, as the bars of one mat do at a
+    crossing.
+
+    Why: most of the confident false detections left after the second stage are places where a top bar
+    passes over a bar of the mat beneath. In colour at 32 px that looks like a crossing; in depth the
+    lower bar lies a mat's height (about 0.2 m in the paper's element) behind the top one, where at a
+    true crossing it lies one bar diameter behind. The robot's camera is an RGB-D camera, so the depth is
+    there at no cost. Without a depth image (``detect(rgb)``, a folder of photographs) the stage is
+    skipped and the detector is the two RGB stages alone.
+
+    Each patch is the depth image's ``patch_px`` square around the detection (the refined position),
+    encoded as depth relative to the patch centre's (the median of its central 4 x 4 pixels) in units of
+    ``scale_m``, clipped to +-``clip``, with a second channel that marks pixels with a measurement. A
+    detection whose central 4 x 4 pixels hold no measurement keeps its score. It trains on the visible
+    crossings and on the second stage's mined negatives (:class:`RefineConfig`), each centred with a
+    Gaussian error of ``jitter_px``, turned by quarter turns and flipped, its relative depth scaled by
+    a random ``gain`` (other bar sizes and mat heights). A detection's score becomes sigmoid(logit +
+    ``power`` log p), p the stage's probability that the patch shows a crossing.
+    """
+
+    enabled: bool = True
+    patch_px: Annotated[int, Field(ge=16, multiple_of=8)] = 32
+    scale_m: Positive = 0.05
+    clip: Positive = 4.0
+    widths: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 24, 32, 48)
+    hidden: PositiveInt = 64
+    epochs: PositiveInt = 8
+    batch_size: PositiveInt = 512
+    lr: Positive = 2e-3
+    weight_decay: NonNegative = 1e-4
+    jitter_px: NonNegative = 1.5
+    gain: tuple[Positive, Positive] = (0.7, 1.4)
+    threads: PositiveInt = 2
+    power: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
+
+
 class TrainConfig(Strict):
     """One training run.
 
@@ -202,3 +240,4 @@ class TrainConfig(Strict):
     model: ModelConfig = ModelConfig()
     augment: AugmentConfig = AugmentConfig()
     refine: RefineConfig = RefineConfig()
+    depth_check: DepthCheckConfig = DepthCheckConfig()

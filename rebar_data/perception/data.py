@@ -1,6 +1,6 @@
 """Reads a dataset in the project's layout (the contract in DESIGN.md) into per-image keypoint records.
 
-Only the tables and images are read: ``tables/samples.parquet`` for the images of a split and
+Only the tables, images and depth images are read: ``tables/samples.parquet`` for the images of a split and
 ``tables/keypoints.parquet`` for the crossings, with ``meta/info.json`` for the OKS sigma when it
 records one. Visible crossings (visibility 2) are what the detector learns and is scored on; occluded
 ones (visibility 1) are kept apart so training can leave them out of the loss.
@@ -17,6 +17,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError
+from rebar_data.dataset import layout
 
 SPLITS = ("train", "val", "test")
 _SAMPLE_COLUMNS = ("image_id", "split", "file_name", "width", "height", "fx", "fy", "cx", "cy")
@@ -37,6 +38,7 @@ class Sample:
         occluded: (M, 2) u, v of crossings inside the image but hidden.
         occluded_box_size_px: (M,) their box sides.
         camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin.
+        depth_path: The registered depth image (uint16 millimetres), None when the dataset has none.
     """
 
     image_id: str
@@ -48,6 +50,7 @@ class Sample:
     occluded: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     occluded_box_size_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     camera: tuple[float, float, float, float] | None = None
+    depth_path: Path | None = None
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -104,6 +107,7 @@ def load_split(root: str | Path, split: str) -> list[Sample]:
         lo, hi = np.searchsorted(sorted_ids, iid, "left"), np.searchsorted(sorted_ids, iid, "right")
         rows = order[lo:hi]
         v = vis[rows]
+        depth = root / layout.depth_path(split, iid)
         out.append(
             Sample(
                 image_id=iid,
@@ -115,6 +119,7 @@ def load_split(root: str | Path, split: str) -> list[Sample]:
                 occluded=uv[rows][v == 1],
                 occluded_box_size_px=box[rows][v == 1],
                 camera=tuple(float(samples[k][i]) for k in ("fx", "fy", "cx", "cy")),
+                depth_path=depth if depth.exists() else None,
             )
         )
     return out

@@ -11,6 +11,7 @@ import pyarrow.parquet as pq
 from tqdm import tqdm
 
 from rebar_data.perception.data import SPLITS, Sample, load_split, read_image, read_info
+from rebar_data.perception.depth_check import read_depth
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.metrics import DEFAULT_OKS_SIGMA, Truth, pixel_metrics, summary
 
@@ -35,13 +36,17 @@ def predict(
     *,
     threshold: float = LOW_THRESHOLD,
     images: Sequence[np.ndarray] | None = None,
+    depth: bool = True,
     progress: bool = False,
 ) -> list[np.ndarray]:
-    """Detections (N, 3) for each sample's image, read from disk unless ``images`` are given."""
+    """Detections (N, 3) for each sample's image, read from disk unless ``images`` are given; with
+    ``depth`` each sample's depth image too, when it has one and the detector has a depth check."""
     out = []
+    use_depth = depth and detector.depth_check is not None
     for k, s in enumerate(tqdm(samples, desc="detect", unit="img", disable=not progress, leave=False)):
         rgb = images[k] if images is not None else read_image(s.path)
-        out.append(detector.detect(rgb, threshold=threshold, camera=s.camera))
+        d = read_depth(s.depth_path) if use_depth and s.depth_path is not None else None
+        out.append(detector.detect(rgb, threshold=threshold, camera=s.camera, depth=d))
     return out
 
 

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from rebar_data.config import ConfigError
+from rebar_data.perception.depth_check import DepthCheck, as_depth_m
 from rebar_data.perception.metrics import OPERATING_THRESHOLD
 from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
 from rebar_data.perception.refine import Refiner
@@ -60,9 +61,14 @@ class Detector:
         backend: ``onnxruntime`` or ``torch``.
         score_bias: Logit shift applied to the heatmap before scores are read (``meta["score_bias"]``,
             chosen on the validation split so that score 0.5 is the operating point; 0 when absent).
+        score_bias_without_depth: The same for a call without a depth image, when the model has a depth
+            check (it removes false detections, so its operating point lies elsewhere).
         refiner: The second stage, which moves each detection to the crossing its full-resolution patch
             shows (:mod:`rebar_data.perception.refine`); loaded with the model when the file names one.
             Set it to None to get the heatmap network's positions alone.
+        depth_check: The third stage, which lowers the scores of detections whose depth patch shows no
+            crossing (:mod:`rebar_data.perception.depth_check`); used when ``detect`` gets a depth image.
+        depth_power: How hard the third stage counts (``meta["depth_check"]["power"]``).
     """
 
     def __init__(
@@ -76,12 +82,16 @@ class Detector:
         self._run = run
         self.meta = meta
         self.score_bias = float(meta.get("score_bias", 0.0))
+        # the operating point of the RGB stages alone, when a depth check changed the other one
+        self.score_bias_without_depth = float(meta.get("score_bias_without_depth", self.score_bias))
         # how hard the second stage's verification counts (files written before it was stored: fully)
         self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))
         self.backend = backend
         self.path = path
         self._rays: dict[tuple, np.ndarray] = {}
         self.refiner: Refiner | None = None
+        self.depth_check: DepthCheck | None = None
+        self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
 
     @classmethod
     def load(cls, path: str | Path | None = None, *, threads: int = 2) -> Detector:
@@ -100,6 +110,7 @@ class Detector:
         net, meta, _ = load_checkpoint(p)
         det = cls.from_network(net, meta=meta, path=p)
         det.refiner = _load_refiner(p, det.meta, threads)
+        det.depth_check = _load_depth_check(p, det.meta, threads)
         return det
 
     @classmethod
@@ -118,6 +129,7 @@ class Detector:
 
         det = cls(run, meta=json.loads(raw) if raw else {}, backend="onnxruntime", path=path)
         det.refiner = _load_refiner(path, det.meta, threads)
+        det.depth_check = _load_depth_check(path, det.meta, threads)
         return det
 
     @classmethod
@@ -139,12 +151,13 @@ class Detector:
     @contextmanager
     def first_stage_only(self) -> Iterator[Detector]:
         """Within the block, ``detect`` gives the heatmap network's positions alone (to measure what the
-        second stage adds or costs); the refiner is back afterwards."""
+        later stages add or cost); they are back afterwards."""
         refiner, self.refiner = self.refiner, None
+        depth_check, self.depth_check = self.depth_check, None
         try:
             yield self
         finally:
-            self.refiner = refiner
+            self.refiner, self.depth_check = refiner, depth_check
 
     def default_camera(self, height: int, width: int) -> tuple[float, float, float, float]:
         """Intrinsics assumed when the caller gives none: principal point at the image centre and the
@@ -177,12 +190,15 @@ class Detector:
         *,
         threshold: float = OPERATING_THRESHOLD,
         camera: tuple[float, float, float, float] | None = None,
+        depth: np.ndarray | None = None,
         max_detections: int = 1000,
     ) -> np.ndarray:
         """Crossings in an RGB image.
 
         Args:
             rgb: (H, W, 3) uint8 RGB image, any size.
+            depth: The depth image registered to it, (H, W) float metres or uint16 millimetres (0 = no
+                measurement), for the third stage when the model has one; None skips that stage.
             threshold: Lowest score returned; the default is the operating point the metrics report.
             camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin; None assumes the principal
                 point at the centre and the training data's focal length for this width.
@@ -194,14 +210,21 @@ class Detector:
         if not 0.0 < threshold < 1.0:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
         image = _check_image(rgb)
+        depth_m = as_depth_m(depth, image.shape[:2]) if depth is not None else None
+        checked = depth_m is not None and self.depth_check is not None
         out = self.raw(image, camera=camera)
-        det = decode(out[0] + self.score_bias, out[1:], threshold=threshold, max_detections=max_detections)
+        bias = self.score_bias if checked else self.score_bias_without_depth
+        det = decode(out[0] + bias, out[1:], threshold=threshold, max_detections=max_detections)
         if self.refiner is not None and len(det):
             det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2])
             if verify is not None:
                 det[:, 2] = verified_score(det[:, 2], verify, power=self.verify_power)
-                det = det[det[:, 2] >= threshold]
-                det = det[np.argsort(-det[:, 2], kind="stable")]
+        if checked and len(det):
+            det[:, 2] = verified_score(
+                det[:, 2], self.depth_check.logits(depth_m, det[:, :2]), power=self.depth_power
+            )
+        det = det[det[:, 2] >= threshold]
+        det = det[np.argsort(-det[:, 2], kind="stable")]
         h, w = image.shape[:2]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
         return det[inside]
@@ -237,6 +260,45 @@ def onnx_session(path: Path, threads: int):
         raise ConfigError(f"{path}: cannot be loaded as an ONNX model ({type(e).__name__})") from None
 
 
+def depth_check_path(model: Path) -> Path:
+    """Where a model file's third stage lives: beside it, ``<stem>.depth.onnx`` (or ``.depth.pt``)."""
+    return model.with_name(f"{model.stem}.depth{model.suffix}")
+
+
+def _load_depth_check(model: Path, meta: dict[str, Any], threads: int) -> DepthCheck | None:
+    """The third stage a model file names in its meta (None when it names none)."""
+    entry = meta.get("depth_check")
+    if not entry:
+        return None
+    path = depth_check_path(model)
+    _check_beside(model, path, entry)
+    scale_m, clip = float(entry["scale_m"]), float(entry["clip"])
+    if path.suffix == ".onnx":
+        return DepthCheck.load_onnx(path, threads=threads, scale_m=scale_m, clip=clip)
+    from rebar_data.perception.depth_check_train import load
+
+    net, _, _ = load(path)
+    return DepthCheck.from_network(net, scale_m=scale_m, clip=clip)
+
+
+def _check_beside(model: Path, path: Path, entry: dict[str, Any]) -> None:
+    """Raise ConfigError unless the later stage ``path`` that ``model`` names is beside it, and is the
+    file it was exported with."""
+    if not path.exists():
+        raise ConfigError(
+            f"{model}: its stage {path.name} is missing beside it; accepted: the files together, "
+            f"as `rebar train` writes them ({model.name} and {path.name})"
+        )
+    if path.suffix == ".onnx" and entry.get("sha256"):
+        from rebar_data.dataset.writers.manifest import sha256_file
+
+        if sha256_file(path) != entry["sha256"]:
+            raise ConfigError(
+                f"{path}: is not the stage {model.name} was exported with (its SHA-256 differs); "
+                "accepted: the files from the same `rebar train` run"
+            )
+
+
 def refiner_path(model: Path) -> Path:
     """Where a model file's second stage lives: beside it, ``<stem>.refine.onnx`` (or ``.refine.pt``)."""
     return model.with_name(f"{model.stem}.refine{model.suffix}")
@@ -248,20 +310,9 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
     if not entry:
         return None
     path = refiner_path(model)
-    if not path.exists():
-        raise ConfigError(
-            f"{model}: its second stage {path.name} is missing beside it; accepted: the two files together, "
-            "as `rebar train` writes them (best.onnx and best.refine.onnx)"
-        )
+    _check_beside(model, path, entry)
     iterations = int(entry.get("iterations", 1))
     if path.suffix == ".onnx":
-        from rebar_data.dataset.writers.manifest import sha256_file
-
-        if entry.get("sha256") and sha256_file(path) != entry["sha256"]:
-            raise ConfigError(
-                f"{path}: is not the second stage {model.name} was exported with (its SHA-256 differs); "
-                "accepted: the two files from the same `rebar train` run"
-            )
         return Refiner.load_onnx(path, threads=threads, iterations=iterations)
     from rebar_data.perception.refine_train import load
 

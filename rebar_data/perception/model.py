@@ -21,7 +21,7 @@ STRIDE = 4
 INPUT_MULTIPLE = 16  # the encoder halves the size four times
 
 
-def _conv_bn_relu(cin: int, cout: int, k: int = 3, stride: int = 1, groups: int = 1, dilation: int = 1):
+def conv_bn_relu(cin: int, cout: int, k: int = 3, stride: int = 1, groups: int = 1, dilation: int = 1):
     pad = dilation * (k // 2)
     return nn.Sequential(
         nn.Conv2d(cin, cout, k, stride, pad, dilation=dilation, groups=groups, bias=False),
@@ -35,7 +35,7 @@ class SeparableBlock(nn.Module):
 
     def __init__(self, cin: int, cout: int, *, stride: int = 1, dilation: int = 1):
         super().__init__()
-        self.depthwise = _conv_bn_relu(cin, cin, 3, stride, groups=cin, dilation=dilation)
+        self.depthwise = conv_bn_relu(cin, cin, 3, stride, groups=cin, dilation=dilation)
         self.pointwise = nn.Sequential(nn.Conv2d(cin, cout, 1, bias=False), nn.BatchNorm2d(cout))
         self.residual = stride == 1 and cin == cout
 
@@ -63,7 +63,7 @@ class KeypointNet(nn.Module):
         self.cfg = cfg or ModelConfig()
         c2, c4, c8, c16 = self.cfg.channels
         n4, n8, n16 = self.cfg.blocks
-        self.stem = _conv_bn_relu(3, c2, 3, 2)
+        self.stem = conv_bn_relu(3, c2, 3, 2)
         self.enc4 = nn.Sequential(
             SeparableBlock(c2, c4, stride=2), *[SeparableBlock(c4, c4) for _ in range(n4)]
         )
@@ -74,12 +74,12 @@ class KeypointNet(nn.Module):
             SeparableBlock(c8, c16, stride=2),
             *[SeparableBlock(c16, c16, dilation=1 + i % 2) for i in range(n16)],
         )
-        self.lat16 = _conv_bn_relu(c16, c8, 1)
+        self.lat16 = conv_bn_relu(c16, c8, 1)
         self.ray_embed = nn.Conv2d(2, c8, 1) if self.cfg.ray_channels else None
         self.dec8 = SeparableBlock(c8, c8)
-        self.lat8 = _conv_bn_relu(c8, c4, 1)
+        self.lat8 = conv_bn_relu(c8, c4, 1)
         self.dec4 = SeparableBlock(c4, c4)
-        self.head = nn.Sequential(_conv_bn_relu(c4, c4, 3, groups=c4), nn.Conv2d(c4, 3, 1))
+        self.head = nn.Sequential(conv_bn_relu(c4, c4, 3, groups=c4), nn.Conv2d(c4, 3, 1))
         nn.init.constant_(self.head[-1].bias, 0.0)
         with torch.no_grad():
             self.head[-1].bias[0] = -4.6  # start near p = 0.01, as CenterNet does, so early losses are sane

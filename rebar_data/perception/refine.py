@@ -33,7 +33,8 @@ def patches(image: np.ndarray, centres: np.ndarray, size: int) -> tuple[np.ndarr
     image's border the pixels are mirrored, as in training.
 
     Returns:
-        (N, size, size, 3) uint8 patches and (N, 2) the corners they are centred on (COCO corner origin).
+        (N, size, size, 3) patches (N, size, size for a one-channel (H, W) image, such as a depth image) of
+        the image's type, and (N, 2) the corners they are centred on (COCO corner origin).
     """
     centres = np.asarray(centres, float).reshape(-1, 2)
     h, w = image.shape[:2]
@@ -41,8 +42,10 @@ def patches(image: np.ndarray, centres: np.ndarray, size: int) -> tuple[np.ndarr
     corners = np.clip(np.floor(centres + 0.5), 0, [w, h]).astype(np.int64)
     padded = cv2.copyMakeBorder(image, half, half, half, half, cv2.BORDER_REFLECT)
     windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1))
-    cut_out = windows[corners[:, 1], corners[:, 0]]  # (N, 3, size, size): the window axes come last
-    return np.ascontiguousarray(cut_out.transpose(0, 2, 3, 1)), corners.astype(np.float64)
+    cut_out = windows[corners[:, 1], corners[:, 0]]  # (N, [3,] size, size): the window axes come last
+    if cut_out.ndim == 4:
+        cut_out = cut_out.transpose(0, 2, 3, 1)
+    return np.ascontiguousarray(cut_out), corners.astype(np.float64)
 
 
 class Refiner:

@@ -83,6 +83,7 @@ def write_synthetic_dataset(
         "annotations",
         *(f"images/{s}" for s in SPLITS),
         *(f"labels/{s}" for s in SPLITS),
+        *(f"depth/{s}" for s in SPLITS),
     ):
         (out / sub).mkdir(parents=True, exist_ok=True)
     split_of_traj = _assign_splits(spec.trajectories, spec.splits, rng)
@@ -94,9 +95,11 @@ def write_synthetic_dataset(
         for f, world_from_camera in enumerate(poses):
             image_id = f"t{t:03d}_f{f:03d}"
             split = split_of_traj[t]
-            rgb, kps = draw_frame(spec, world_from_camera, crossings_world, rng)
+            rgb, kps, depth_m = draw_frame(spec, world_from_camera, crossings_world, rng)
             file_name = f"images/{split}/{image_id}.png"
             cv2.imwrite(str(out / file_name), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+            depth_mm = np.clip(np.rint(depth_m * 1000.0), 0, 65535).astype(np.uint16)
+            cv2.imwrite(str(out / f"depth/{split}/{image_id}.png"), depth_mm)
             samples.append(
                 {
                     "image_id": image_id,
@@ -248,11 +251,13 @@ def draw_frame(
     world_from_camera: np.ndarray,
     crossings_world: np.ndarray,
     rng: np.random.Generator,
-) -> tuple[np.ndarray, list[dict]]:
-    """Draw one frame; return the RGB image and one keypoint record per crossing.
+) -> tuple[np.ndarray, list[dict], np.ndarray]:
+    """Draw one frame; return the RGB image, one keypoint record per crossing and the depth image.
 
     Keypoints follow the contract: COCO corner origin, visibility 0 outside the image, 1 under the plank,
-    2 visible, and a square box of four bar diameters (``box_size_px``).
+    2 visible, and a square box of four bar diameters (``box_size_px``). The depth image (float32 metres
+    of camera-frame z) is flat per surface: the ground, each bar direction's top at its height, the plank
+    above them; enough for the depth check to tell bars that lie on each other.
     """
     h, w, f = spec.height, spec.width, spec.focal_px
     cx, cy = w / 2, h / 2
@@ -269,6 +274,7 @@ def draw_frame(
         _draw_shadow(img, spec, pos, ext, rng, cam=cam)
     # direction-1 bars (along y) lie beneath, direction-0 bars (along x) on top of them; bars of one
     # direction never overlap, so each direction is painted on its own layer and laid over the ground
+    depth_img = _plane_depth(0.0, spec, world_from_camera)
     for y_dir, z_axis in ((1, d / 2), (0, 1.5 * d)):
         layer = np.zeros((h, w, 3), np.float32)
         for p in pos:
@@ -291,6 +297,7 @@ def draw_frame(
             )
         mask = layer.max(axis=2) > 0
         img[mask] = layer[mask]
+        depth_img[mask] = _plane_depth(z_axis + d / 2, spec, world_from_camera)[mask]
     crossings_world = _sight_points(crossings_world, d, world_from_camera[:3, 3])
     uv, z = _project(crossings_world, world_from_camera, f, cx, cy)
     inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
@@ -298,6 +305,9 @@ def draw_frame(
     if rng.uniform() < spec.occluder_fraction:
         plank = _plank(h, w, rng)
         cv2.fillConvexPoly(img, plank, (rng.uniform(60, 200),) * 3, lineType=cv2.LINE_AA)
+        covered = np.zeros((h, w), np.uint8)
+        cv2.fillConvexPoly(covered, plank, 1)
+        depth_img[covered > 0] = _plane_depth(4 * d, spec, world_from_camera)[covered > 0]
         for i in np.flatnonzero(inside):
             occluded[i] = cv2.pointPolygonTest(plank.astype(np.float32), tuple(uv[i] - 0.5), True) > -1.0
     img = _sensor(img, rng)
@@ -319,7 +329,19 @@ def draw_frame(
                 "crossing_id": i,
             }
         )
-    return img, records
+    return img, records, depth_img
+
+
+def _plane_depth(height_m: float, spec: SyntheticSpec, world_from_camera: np.ndarray) -> np.ndarray:
+    """(H, W) float32 camera-frame z at which each pixel centre's ray meets the plane z_world = height_m
+    (0 where it does not, in front of the camera)."""
+    h, w, f = spec.height, spec.width, spec.focal_px
+    u, v = np.meshgrid((np.arange(w) + 0.5 - w / 2) / f, (np.arange(h) + 0.5 - h / 2) / f)
+    R, C = world_from_camera[:3, :3], world_from_camera[:3, 3]
+    rise = R[2, 0] * u + R[2, 1] * v + R[2, 2]  # world z of each ray direction (camera z = 1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        z = (height_m - C[2]) / rise
+    return np.where(np.isfinite(z) & (z > 0), z, 0.0).astype(np.float32)
 
 
 def _sight_points(crossings_world: np.ndarray, d: float, camera_centre: np.ndarray) -> np.ndarray:
@@ -381,8 +403,8 @@ def _draw_shadow(
     img *= 1.0 - rng.uniform(0.35, 0.65) * np.clip(mask, 0, 1)
 
 
-def random_frame(spec: SyntheticSpec, rng: np.random.Generator) -> tuple[np.ndarray, list[dict]]:
-    """One frame from a random camera pose: the RGB image and its keypoint records."""
+def random_frame(spec: SyntheticSpec, rng: np.random.Generator) -> tuple[np.ndarray, list[dict], np.ndarray]:
+    """One frame from a random camera pose: the RGB image, its keypoint records and its depth image."""
     return draw_frame(spec, random_trajectory(spec, rng)[0], grid_crossings(spec), rng)
 
 

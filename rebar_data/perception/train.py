@@ -35,6 +35,9 @@ from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.data import Sample, check_dataset, load_split, read_image, read_info
+from rebar_data.perception.depth_check_train import DepthNet, train_depth_check
+from rebar_data.perception.depth_check_train import export_onnx as export_depth_check
+from rebar_data.perception.depth_check_train import save as save_depth_check
 from rebar_data.perception.evaluate import (
     CALIBRATION_FLOOR,
     calibrate_score_bias,
@@ -56,13 +59,20 @@ from rebar_data.perception.metrics import (
 from rebar_data.perception.model import STRIDE, KeypointNet, count_parameters
 from rebar_data.perception.refine_train import PatchNet, calibration_patches, mine_negatives, train_refiner
 from rebar_data.perception.refine_train import export_onnx as export_refiner
+from rebar_data.perception.refine_train import load as load_refiner
 from rebar_data.perception.refine_train import quantize_onnx as quantize_refiner
 from rebar_data.perception.refine_train import save as save_refiner
 from rebar_data.perception.schedule import warmup_cosine
 from rebar_data.perception.targets import encode
 
 EARLY_STOP_METRIC = "val_oks_ap"
-RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "refine"}  # settings a resumed run may change
+RESUMABLE_CHANGES = {
+    "epochs",
+    "patience",
+    "val_every",
+    "refine",
+    "depth_check",
+}  # settings a resumed run may change
 
 
 class WeightAverage:
@@ -462,15 +472,15 @@ def _run(
     batches = None  # stops the loader process
     if not (out / "best.pt").exists():  # no epoch had a finite validation score: keep the latest weights
         save_checkpoint(out / "best.pt", avg.net, {**base_meta, "epoch": state["epoch"]})
+
+    def negatives_of(images: list[np.ndarray]) -> list[np.ndarray]:  # the trained first stage's misses
+        first, _, _ = load_checkpoint(out / "best.pt")
+        return mine_negatives(
+            Detector.from_network(first), train_samples, cfg.refine, images=images, progress=progress
+        )
+
     refiner, refine_history = None, []
     if cfg.refine.enabled:
-
-        def negatives_of(images: list[np.ndarray]) -> list[np.ndarray]:  # the trained first stage's misses
-            first, _, _ = load_checkpoint(out / "best.pt")
-            return mine_negatives(
-                Detector.from_network(first), train_samples, cfg.refine, images=images, progress=progress
-            )
-
         refiner, refine_history = train_refiner(
             train_samples,
             out,
@@ -478,6 +488,16 @@ def _run(
             cfg.augment,
             seed=cfg.seed,
             negatives_of=negatives_of,
+            progress=progress,
+        )
+    depth_net, depth_history = None, []
+    if cfg.depth_check.enabled:
+        depth_net, depth_history = train_depth_check(
+            train_samples,
+            _negatives(out, train_samples, negatives_of),
+            out,
+            cfg.depth_check,
+            seed=cfg.seed,
             progress=progress,
         )
     train_s = time.perf_counter() - started
@@ -492,9 +512,23 @@ def _run(
         train_samples=train_samples,
         refiner=refiner,
         refine_history=refine_history,
+        depth_net=depth_net,
+        depth_history=depth_history,
         train_s=train_s,
         progress=progress,
     )
+
+
+def _negatives(out: Path, train_samples: list[Sample], negatives_of) -> list[np.ndarray]:
+    """The third stage's negatives: the second stage's mined ones, kept in its checkpoint, or mined now
+    when it has none (a run without a verifying second stage)."""
+    path = out / "refine_last.pt"
+    if path.exists():
+        _, _, payload = load_refiner(path)
+        found = payload.get("negatives")
+        if found is not None and len(found) == len(train_samples) and any(len(n) for n in found):
+            return found
+    return negatives_of([read_image(s.path) for s in train_samples])
 
 
 def _train_epoch(
@@ -585,6 +619,8 @@ def _finish(
     train_samples: list[Sample],
     refiner: PatchNet | None,
     refine_history: list[dict[str, float]],
+    depth_net: DepthNet | None,
+    depth_history: list[dict[str, float]],
     train_s: float,
     progress: bool,
 ) -> TrainResult:
@@ -592,8 +628,14 @@ def _finish(
     from rebar_data.perception import plots
 
     net, meta, _ = load_checkpoint(out / "best.pt")
-    meta = {k: v for k, v in meta.items() if k not in ("score_bias", "results", "refiner")}
-    for stale in (out / "best.refine.onnx", out / "best.refine.pt"):
+    stale_keys = ("score_bias", "score_bias_without_depth", "results", "refiner", "depth_check")
+    meta = {k: v for k, v in meta.items() if k not in stale_keys}
+    for stale in (
+        out / "best.refine.onnx",
+        out / "best.refine.pt",
+        out / "best.depth.onnx",
+        out / "best.depth.pt",
+    ):
         stale.unlink(missing_ok=True)
     if refiner is not None:
         save_refiner(out / "best.refine.pt", refiner, cfg.refine)
@@ -610,11 +652,27 @@ def _finish(
             "verify_power": cfg.refine.verify_power,
             "sha256": sha256_file(onnx_path),
         }
+    if depth_net is not None:
+        save_depth_check(out / "best.depth.pt", depth_net, cfg.depth_check)
+        depth_path = export_depth_check(depth_net, out / "best.depth.onnx")
+        meta["depth_check"] = {
+            "patch_px": cfg.depth_check.patch_px,
+            "scale_m": cfg.depth_check.scale_m,
+            "clip": cfg.depth_check.clip,
+            "power": cfg.depth_check.power,
+            "sha256": sha256_file(depth_path),
+        }
     detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)
     if val_samples:  # the operating point, chosen on val with the raw scores
-        meta["score_bias"] = detector.score_bias = calibrate_score_bias(
-            val_samples, predict(detector, val_samples, threshold=CALIBRATION_FLOOR, progress=progress)
-        )
+        raw = predict(detector, val_samples, threshold=CALIBRATION_FLOOR, progress=progress)
+        if detector.depth_check is not None:  # and the RGB stages' own, for calls without depth
+            rgb_only = predict(
+                detector, val_samples, threshold=CALIBRATION_FLOOR, depth=False, progress=progress
+            )
+            meta["score_bias_without_depth"] = calibrate_score_bias(val_samples, rgb_only)
+            detector.score_bias_without_depth = meta["score_bias_without_depth"]
+            _log(f"score bias without depth {meta['score_bias_without_depth']:+.3f}", progress)
+        meta["score_bias"] = detector.score_bias = calibrate_score_bias(val_samples, raw)
         _log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)", progress)
     results: dict[str, dict[str, float]] = {}
     curves = {}
@@ -632,6 +690,10 @@ def _finish(
         with detector.first_stage_only():
             first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
         _log(f"first stage alone on test: {format_summary(first_stage['test'])}", progress)
+    without_depth: dict[str, dict[str, float]] = {}
+    if detector.depth_check is not None and test_samples:  # what the depth check adds
+        without_depth["test"] = score(test_samples, predict(detector, test_samples, depth=False), sigma=sigma)
+        _log(f"without the depth check on test: {format_summary(without_depth['test'])}", progress)
     meta = {**meta, "results": results}
     save_checkpoint(out / "best.pt", net, meta)
     export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
@@ -647,12 +709,17 @@ def _finish(
         "train_seconds_total": float(
             sum(r.get("train_seconds", 0.0) for r in state["history"])
             + sum(r.get("seconds", 0.0) for r in refine_history)
+            + sum(r.get("seconds", 0.0) for r in depth_history)
         ),
         "refiner_parameters": count_parameters(refiner) if refiner is not None else 0,
         "refine_seconds": float(sum(r.get("seconds", 0.0) for r in refine_history)),
         "refine_history": refine_history,
+        "depth_check_parameters": count_parameters(depth_net) if depth_net is not None else 0,
+        "depth_check_seconds": float(sum(r.get("seconds", 0.0) for r in depth_history)),
+        "depth_check_history": depth_history,
         "results": results,
         "results_first_stage": first_stage,
+        "results_without_depth": without_depth,
     }
     (out / "results.json").write_text(json.dumps(summary_doc, indent=2, sort_keys=True) + "\n")
     if state["history"]:

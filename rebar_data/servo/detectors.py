@@ -25,8 +25,9 @@ CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 class Detector(Protocol):
-    def detect(self, rgb: np.ndarray) -> np.ndarray:
-        """Detections (N, 3): u, v (pixels, COCO corner origin) and a score in [0, 1]."""
+    def detect(self, rgb: np.ndarray, *, depth: np.ndarray | None = None) -> np.ndarray:
+        """Detections (N, 3): u, v (pixels, COCO corner origin) and a score in [0, 1]; ``depth`` is the
+        frame's metric depth (H, W), 0 = none, for a detector that checks its detections in depth."""
         ...
 
 
@@ -61,7 +62,7 @@ class GroundTruthDetector:
         self._margin = margin_px
         self.last_crossing_ids = np.zeros(0, np.int64)
 
-    def detect(self, rgb: np.ndarray) -> np.ndarray:
+    def detect(self, rgb: np.ndarray, *, depth: np.ndarray | None = None) -> np.ndarray:
         from rebar_data.labels.keypoints import label_frame
 
         world_from_camera = self._pose_fn()
@@ -103,9 +104,9 @@ class FaultyDetector:
         self._size = (width, height)
         self.dropped = False
 
-    def detect(self, rgb: np.ndarray) -> np.ndarray:
+    def detect(self, rgb: np.ndarray, *, depth: np.ndarray | None = None) -> np.ndarray:
         f, rng = self.faults, self._rng
-        det = np.asarray(self.inner.detect(rgb), float).reshape(-1, 3).copy()
+        det = np.asarray(self.inner.detect(rgb, depth=depth), float).reshape(-1, 3).copy()
         self.dropped = bool(rng.random() < f.drop_fraction)
         if self.dropped:
             return np.zeros((0, 3))
@@ -133,8 +134,8 @@ class _WithCamera:
         self.inner = inner
         self._camera = (camera.fx, camera.fy, camera.cx, camera.cy)
 
-    def detect(self, rgb: np.ndarray) -> np.ndarray:
-        return self.inner.detect(rgb, camera=self._camera)
+    def detect(self, rgb: np.ndarray, *, depth: np.ndarray | None = None) -> np.ndarray:
+        return self.inner.detect(rgb, camera=self._camera, depth=depth)
 
 
 def load_shipped_detector(path: str | Path | None = None, camera: CameraModel | None = None) -> Detector:

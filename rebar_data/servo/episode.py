@@ -173,7 +173,7 @@ class EpisodeRunner:
         dropped = False
         det = np.zeros((0, 3))
         if (self.frame_index - 1) % self.ctx.suite.tracker.detect_every == 0:
-            det = np.asarray(self.detector.detect(frame.rgb), float).reshape(-1, 3)
+            det = np.asarray(self.detector.detect(frame.rgb, depth=frame.depth_m), float).reshape(-1, 3)
             det = det[det[:, 2] >= self.ctx.suite.targets.min_score]
             dropped = bool(getattr(self.detector, "dropped", False))
         return Sensed(frame, det, dropped)

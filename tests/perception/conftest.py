@@ -25,6 +25,14 @@ TINY_TRAIN = {
         "batch_size": 32,
         "threads": 1,
     },
+    "depth_check": {
+        "patch_px": 16,
+        "widths": (4, 4, 8, 8),
+        "hidden": 8,
+        "epochs": 1,
+        "batch_size": 64,
+        "threads": 1,
+    },
 }
 
 

@@ -6,14 +6,16 @@ from rebar_data.perception.bench import detector_latency, drawn_frame
 from rebar_data.perception.infer import Detector
 
 
-def test_latency_counts_the_second_stages_candidates_apart_from_what_it_keeps(trained_run):
+def test_latency_counts_the_later_stages_candidates_apart_from_what_they_keep(trained_run):
     det = Detector.load(trained_run.out_dir, threads=1)
     assert det.refiner is not None
-    frame = drawn_frame()
-    lat = detector_latency(det, [frame, frame[:, ::-1].copy()], repeats=6)
+    assert det.depth_check is not None
+    rgb, depth = drawn_frame()
+    frames = [(rgb, depth), (rgb[:, ::-1].copy(), depth[:, ::-1].copy())]
+    lat = detector_latency(det, frames, repeats=6)
     with det.first_stage_only():
-        candidates = np.mean([len(det.detect(frame)), len(det.detect(frame[:, ::-1].copy()))])
-    kept = np.mean([len(det.detect(frame)), len(det.detect(frame[:, ::-1].copy()))])
+        candidates = np.mean([len(det.detect(c, depth=d)) for c, d in frames])
+    kept = np.mean([len(det.detect(c, depth=d)) for c, d in frames])  # the depth check counts too
     assert lat.frames == 2 and lat.candidates == candidates and lat.crossings == kept
     assert lat.first_stage_ms is not None and lat.second_stage_us_per_candidate is not None
     assert lat.p90_ms >= lat.median_ms > 0
@@ -21,7 +23,7 @@ def test_latency_counts_the_second_stages_candidates_apart_from_what_it_keeps(tr
 
 def test_a_one_stage_detector_has_no_second_stage_figure(trained_run):
     det = Detector.load(trained_run.out_dir, threads=1)
-    det.refiner = None
+    det.refiner = det.depth_check = None
     lat = detector_latency(det, [drawn_frame()], repeats=3)
     assert lat.first_stage_ms is None and lat.second_stage_us_per_candidate is None
     assert lat.candidates == lat.crossings

@@ -289,7 +289,7 @@ def test_the_second_stage_learns_to_tell_crossings_from_mined_negatives(drawn_da
 def test_mined_negatives_are_first_stage_detections_away_from_every_crossing(trained_run, drawn_dataset):
     samples = load_split(drawn_dataset, "train")
     det = Detector.load(trained_run.out_dir)
-    det.refiner = None
+    det.refiner = det.depth_check = None  # the first stage alone, as training mines with
     cfg = RefineConfig(negative_score=0.01, negative_gate_px=1.0)  # loose: a tiny network's detections
     images = [read_image(s.path) for s in samples]
     mined = mine_negatives(det, samples, cfg, images=images)

@@ -12,7 +12,7 @@ class _Fixed:
     def __init__(self, det):
         self.det = np.asarray(det, float)
 
-    def detect(self, rgb):
+    def detect(self, rgb, *, depth=None):
         return self.det.copy()
 
 
