@@ -55,8 +55,10 @@ def as_depth_m(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
         raise ConfigError(
             f"depth image of type {d.dtype} is not accepted; accepted: float metres or uint16 millimetres"
         )
-    d = d.astype(np.float32)
-    return np.where(np.isfinite(d) & (d > 0), d, 0.0).astype(np.float32)
+    out = np.array(d, dtype=np.float32, copy=True)
+    out[~(out > 0)] = 0.0  # negative, zero and NaN
+    out[np.isinf(out)] = 0.0
+    return out
 
 
 def encode(
