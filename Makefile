@@ -51,7 +51,7 @@ smoke: setup | $(DATA)
 # Train the detector on the default dataset (built first when missing) and its lower-mat supplement (720
 # images, about 5 minutes to build when missing), and ship it with its model card, scored also on the
 # planar-slab set (another config, built when missing: 90 images, a few minutes).
-# About 72 minutes of training on 2 cores. An interrupted run resumes from runs/train/paper-tunnel/last.pt;
+# About 77 minutes of training on 2 cores. An interrupted run resumes from runs/train/paper-tunnel/last.pt;
 # a finished one is re-scored and re-shipped.
 train: setup
 	@ver=$$(sed -n 's/^version: *//p' pipelines/paper-tunnel.yaml | head -1); ds=$(DATA)/paper-tunnel/v$$ver; \

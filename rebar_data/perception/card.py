@@ -140,7 +140,8 @@ def write_card(
         ),
         *(
             [
-                f"- Third stage, the depth check: `{depth_check.name}` (ONNX, {depth_check.stat().st_size / 1024:.0f} KiB, "
+                f"- Third stage, the depth check: `{depth_check.name}` (ONNX, "
+                f"{'int8, ' if dc.get('quantize', 'none') == 'int8' else ''}{depth_check.stat().st_size / 1024:.0f} KiB, "
                 f"{res.get('depth_check_parameters', 0) / 1e3:.0f} k parameters), beside the first. It reads the",
                 f"  depth image's {dc['patch_px']} px patch around each detection (depth relative to the patch centre's, "
                 f"in units of {dc['scale_m'] * 1000:g} mm,",
@@ -274,6 +275,15 @@ def write_card(
         "- Trained on rendered images only; no real photographs were seen.",
         "- One mesh (the paper's tunnel segment, 12 mm bars at 100 mm) and one focal length in training; the",
         "  other-config rows say how far that carries.",
+        *(
+            [
+                "- The depth check learned from mats with open space behind their bars (the element's far face, the",
+                "  mat beneath or the surroundings). Bars lying directly on a surface are outside what it saw: on the",
+                "  project's drawn test frames (bars on the ground) it doubts every crossing. Give such images no depth.",
+            ]
+            if dc
+            else []
+        ),
         "",
         "## Settings",
         "```json",

@@ -62,16 +62,18 @@ def as_depth_m(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def encode(
-    depth_patches: np.ndarray, *, scale_m: float, clip: float, gain: np.ndarray | None = None
+    depth_patches: np.ndarray, *, scale_m: float, clip: float, pool: int = 1, gain: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The network's input for (N, P, P) depth patches in metres (0 = no measurement).
 
     Channel 0 is the depth relative to the median of the patch's central ``CENTRE_PX`` square, in units
     of ``scale_m`` (times ``gain`` per patch when given), clipped to +-``clip``, 0 where there is no
-    measurement; channel 1 is 1 where there is one.
+    measurement; channel 1 is 1 where there is one. With ``pool`` > 1 each ``pool`` x ``pool`` block
+    becomes one cell: the mean relative depth of its measured pixels and the share of them measured.
 
     Returns:
-        (N, 2, P, P) float32 input and (N,) whether each patch's centre holds any measurement.
+        (N, 2, P / pool, P / pool) float32 input and (N,) whether each patch's centre holds any
+        measurement.
     """
     p = np.asarray(depth_patches, np.float32)
     n, size = p.shape[0], p.shape[1]
@@ -82,17 +84,26 @@ def encode(
     # the median of each row's measurements: sorted with the missing ones last (as np.nanmedian, 4x faster)
     ordered = np.sort(np.where(centre > 0, centre, np.inf), axis=1)
     rows = np.arange(n)
-    lo, hi = np.maximum(measured - 1, 0) // 2, np.maximum(measured, 1) // 2
-    ref = np.where(
-        has_centre, 0.5 * (ordered[rows, lo] + ordered[rows, np.minimum(hi, ordered.shape[1] - 1)]), 0.0
-    )
-    ref = ref.astype(np.float32)
-    valid = (p > 0).astype(np.float32)
-    k = np.float32(1.0 / scale_m)
+    a = np.maximum(measured - 1, 0) // 2
+    b = np.minimum(np.maximum(measured, 1) // 2, ordered.shape[1] - 1)
+    ref = np.where(has_centre, 0.5 * (ordered[rows, a] + ordered[rows, b]), 0.0).astype(np.float32)
+    valid = p > 0
+    rel = p - ref[:, None, None]  # in place from here on: a frame's patches take 0.3 ms, not 1.2
+    rel *= np.float32(1.0 / scale_m)
     if gain is not None:
-        k = k * np.asarray(gain, np.float32).reshape(n, 1, 1)
-    rel = np.clip((p - ref[:, None, None]) * k, -clip, clip) * valid
-    return np.stack([rel, valid], axis=1).astype(np.float32), has_centre
+        rel *= np.asarray(gain, np.float32).reshape(n, 1, 1)
+    np.clip(rel, -clip, clip, out=rel)
+    rel[~valid] = 0.0
+    share = valid.astype(np.float32)
+    if pool > 1:  # sums of strided views: several times faster than a reshape's sum over two axes
+        blocks = [(i, j) for i in range(pool) for j in range(pool)]
+        total = sum(rel[:, i::pool, j::pool] for i, j in blocks)
+        share = sum(share[:, i::pool, j::pool] for i, j in blocks)
+        rel = total / np.maximum(share, 1.0)
+        share *= np.float32(1.0 / (pool * pool))
+    out = np.empty((n, 2, *rel.shape[1:]), np.float32)
+    out[:, 0], out[:, 1] = rel, share
+    return out, has_centre
 
 
 class DepthCheck:
@@ -100,10 +111,17 @@ class DepthCheck:
     shows a crossing, +inf where the patch's centre holds no measurement (the check cannot say)."""
 
     def __init__(
-        self, run: Callable[[np.ndarray], np.ndarray], *, patch_px: int, scale_m: float, clip: float
+        self,
+        run: Callable[[np.ndarray], np.ndarray],
+        *,
+        patch_px: int,
+        scale_m: float,
+        clip: float,
+        pool: int = 1,
     ):
         self._run = run
         self.patch_px = patch_px
+        self.pool = pool
         self.scale_m = scale_m
         self.clip = clip
 
@@ -118,10 +136,10 @@ class DepthCheck:
             with torch.inference_mode():
                 return net(torch.from_numpy(x)).numpy()
 
-        return cls(run, patch_px=net.patch_px, scale_m=scale_m, clip=clip)
+        return cls(run, patch_px=net.patch_px, scale_m=scale_m, clip=clip, pool=net.pool)
 
     @classmethod
-    def load_onnx(cls, path: Path, *, threads: int, scale_m: float, clip: float) -> DepthCheck:
+    def load_onnx(cls, path: Path, *, threads: int, scale_m: float, clip: float, pool: int = 1) -> DepthCheck:
         from rebar_data.perception.infer import onnx_session
 
         sess = onnx_session(path, threads)
@@ -133,7 +151,7 @@ class DepthCheck:
         def run(x: np.ndarray) -> np.ndarray:
             return sess.run(None, {name: x})[0]
 
-        return cls(run, patch_px=size, scale_m=scale_m, clip=clip)
+        return cls(run, patch_px=size * pool, scale_m=scale_m, clip=clip, pool=pool)
 
     def logits(self, depth_m: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N,) logits for the (N, 2) points ``uv`` (pixels, COCO corner origin) of the float32 metres
@@ -142,7 +160,9 @@ class DepthCheck:
         out = np.full(len(uv), np.inf)
         if not len(uv):
             return out
-        x, has_centre = encode(patches(depth_m, uv, self.patch_px)[0], scale_m=self.scale_m, clip=self.clip)
+        x, has_centre = encode(
+            patches(depth_m, uv, self.patch_px)[0], scale_m=self.scale_m, clip=self.clip, pool=self.pool
+        )
         if has_centre.any():
             out[has_centre] = self._run(np.ascontiguousarray(x[has_centre])).astype(np.float64).reshape(-1)
         return out

@@ -30,7 +30,7 @@ from rebar_data.perception.schedule import warmup_cosine
 
 FORMAT = "rebar-keypoint-depth-check"
 FORMAT_VERSION = 1
-EXPORT_ONLY = {"power", "threads"}  # settings that leave training alone
+EXPORT_ONLY = {"power", "threads", "quantize", "calibration_patches"}  # settings that leave training alone
 CHECKPOINT = "depth_last.pt"
 
 
@@ -39,17 +39,18 @@ class DepthNet(nn.Module):
     that the patch shows a crossing: a 3x3 convolution at full resolution, three halvings to P / 8, two
     fully connected layers."""
 
-    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
+    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int, pool: int = 1):
         super().__init__()
         a, b, c, d = widths
         self.patch_px = patch_px
+        self.pool = pool
         self.features = nn.Sequential(
             conv_bn_relu(2, a),
             conv_bn_relu(a, b, stride=2),
             conv_bn_relu(b, c, stride=2),
             conv_bn_relu(c, d, stride=2),
         )
-        cells = -(-patch_px // 8)
+        cells = -(-(patch_px // pool) // 8)
         self.head = nn.Sequential(
             nn.Flatten(), nn.Linear(d * cells * cells, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1)
         )
@@ -60,7 +61,7 @@ class DepthNet(nn.Module):
 
 def build(cfg: DepthCheckConfig) -> DepthNet:
     """The network these settings describe."""
-    return DepthNet(cfg.patch_px, cfg.widths, cfg.hidden)
+    return DepthNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.pool)
 
 
 def save(path: Path, net: DepthNet, cfg: DepthCheckConfig, **extra: Any) -> None:
@@ -103,7 +104,7 @@ def export_onnx(net: DepthNet, path: Path) -> Path:
     """The network as ONNX: float32 (N, 2, P, P) encoded patches -> (N,) logits, N dynamic."""
     import warnings
 
-    size = net.patch_px
+    size = net.patch_px // net.pool
     tmp = path.with_name(path.name + ".tmp")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -119,6 +120,39 @@ def export_onnx(net: DepthNet, path: Path) -> Path:
         )
     tmp.replace(path)
     return path
+
+
+def calibration_inputs(
+    samples: list[Sample], cfg: DepthCheckConfig, *, seed: int, images_used: int = 64
+) -> np.ndarray:
+    """Encoded patches as the stage meets them at inference, to set the int8 file's value ranges: around
+    visible crossings of an even spread of ``images_used`` images, each point moved by the training
+    jitter; (``cfg.calibration_patches``, 2, P, P) float32 (fewer when the images hold fewer crossings)."""
+    from rebar_data.perception.refine import patches
+
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 4111]))
+    used = [s for s in samples if len(s.visible) and s.depth_path is not None]
+    used = [
+        used[i] for i in np.unique(np.linspace(0, len(used) - 1, min(images_used, len(used))).astype(int))
+    ]
+    each = -(-cfg.calibration_patches // max(1, len(used)))
+    out = []
+    for s in used:
+        pick = rng.choice(len(s.visible), size=min(each, len(s.visible)), replace=False)
+        uv = s.visible[pick] + rng.normal(0.0, cfg.jitter_px, (len(pick), 2))
+        out.append(
+            encode(
+                patches(read_depth(s.depth_path), uv, cfg.patch_px)[0],
+                scale_m=cfg.scale_m,
+                clip=cfg.clip,
+                pool=cfg.pool,
+            )[0]
+        )
+    if not out:
+        raise ConfigError(
+            "no visible crossings to calibrate the int8 depth check on; accepted: quantize: none"
+        )
+    return np.concatenate(out)[: cfg.calibration_patches]
 
 
 def check_depth(samples: list[Sample]) -> None:
@@ -180,7 +214,9 @@ def patch_batches(
             for t in range(1, 4):
                 cut[turns == t] = np.rot90(cut[turns == t], t, axes=(1, 2))
             cut[flips] = cut[flips][:, :, ::-1]
-            x, _ = encode(cut, scale_m=cfg.scale_m, clip=cfg.clip, gain=rng.uniform(*cfg.gain, len(rows)))
+            x, _ = encode(
+                cut, scale_m=cfg.scale_m, clip=cfg.clip, pool=cfg.pool, gain=rng.uniform(*cfg.gain, len(rows))
+            )
             yield torch.from_numpy(x), torch.from_numpy(rows[:, 2].astype(np.float32))
 
 

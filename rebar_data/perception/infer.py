@@ -220,9 +220,11 @@ class Detector:
             if verify is not None:
                 det[:, 2] = verified_score(det[:, 2], verify, power=self.verify_power)
         if checked and len(det):
-            det[:, 2] = verified_score(
-                det[:, 2], self.depth_check.logits(depth_m, det[:, :2]), power=self.depth_power
-            )
+            logit = self.depth_check.logits(depth_m, det[:, :2])
+            det[:, 2] = verified_score(det[:, 2], logit, power=self.depth_power)
+            # no measurement to check (too near or far for the sensor): scored as without depth
+            unchecked = ~np.isfinite(logit)
+            det[unchecked, 2] = shifted_score(det[unchecked, 2], self.score_bias_without_depth - bias)
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         h, w = image.shape[:2]
@@ -239,6 +241,12 @@ def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float 
     s = np.clip(np.asarray(score, np.float64), 1e-12, 1.0 - 1e-12)
     log_p = -np.logaddexp(0.0, -np.asarray(verify_logit, np.float64))
     return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + power * log_p)))
+
+
+def shifted_score(score: np.ndarray, shift: float) -> np.ndarray:
+    """sigmoid(logit(score) + shift): a score read with a score bias ``shift`` higher."""
+    s = np.clip(np.asarray(score, np.float64), 1e-12, 1.0 - 1e-12)
+    return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + shift)))
 
 
 def onnx_session(path: Path, threads: int):
@@ -272,9 +280,9 @@ def _load_depth_check(model: Path, meta: dict[str, Any], threads: int) -> DepthC
         return None
     path = depth_check_path(model)
     _check_beside(model, path, entry)
-    scale_m, clip = float(entry["scale_m"]), float(entry["clip"])
+    scale_m, clip, pool = float(entry["scale_m"]), float(entry["clip"]), int(entry.get("pool", 1))
     if path.suffix == ".onnx":
-        return DepthCheck.load_onnx(path, threads=threads, scale_m=scale_m, clip=clip)
+        return DepthCheck.load_onnx(path, threads=threads, scale_m=scale_m, clip=clip, pool=pool)
     from rebar_data.perception.depth_check_train import load
 
     net, _, _ = load(path)

@@ -189,10 +189,10 @@ def calibration_patches(
     return np.concatenate(out)[: cfg.calibration_patches]
 
 
-def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray) -> Path:
-    """The float refiner file ``src`` as int8 at ``dst``: ONNX Runtime's static quantization, int8
-    weights per output channel and uint8 activations, their ranges the min and max seen on
-    ``calibration`` (uint8 patches, N x P x P x 3)."""
+def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray, *, input_name: str = "patches") -> Path:
+    """The float file ``src`` (the refiner, or another patch network) as int8 at ``dst``: ONNX Runtime's
+    static quantization, int8 weights per output channel and uint8 activations, their ranges the min and
+    max seen on ``calibration`` (the network's input ``input_name``, such as uint8 patches N x P x P x 3)."""
     from onnxruntime.quantization import CalibrationDataReader
 
     class Batches(CalibrationDataReader):
@@ -201,7 +201,7 @@ def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray) -> Path:
 
         def get_next(self) -> dict[str, np.ndarray] | None:
             b = next(self._it, None)
-            return None if b is None else {"patches": np.ascontiguousarray(b)}
+            return None if b is None else {input_name: np.ascontiguousarray(b)}
 
     root_logger = logging.getLogger()
     level = root_logger.level

@@ -35,7 +35,7 @@ from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.data import Sample, check_dataset, load_split, read_image, read_info
-from rebar_data.perception.depth_check_train import DepthNet, train_depth_check
+from rebar_data.perception.depth_check_train import DepthNet, calibration_inputs, train_depth_check
 from rebar_data.perception.depth_check_train import export_onnx as export_depth_check
 from rebar_data.perception.depth_check_train import save as save_depth_check
 from rebar_data.perception.evaluate import (
@@ -60,7 +60,7 @@ from rebar_data.perception.model import STRIDE, KeypointNet, count_parameters
 from rebar_data.perception.refine_train import PatchNet, calibration_patches, mine_negatives, train_refiner
 from rebar_data.perception.refine_train import export_onnx as export_refiner
 from rebar_data.perception.refine_train import load as load_refiner
-from rebar_data.perception.refine_train import quantize_onnx as quantize_refiner
+from rebar_data.perception.refine_train import quantize_onnx as quantize_int8
 from rebar_data.perception.refine_train import save as save_refiner
 from rebar_data.perception.schedule import warmup_cosine
 from rebar_data.perception.targets import encode
@@ -642,7 +642,7 @@ def _finish(
         onnx_path = export_refiner(refiner, out / "best.refine.onnx")
         if cfg.refine.quantize == "int8":
             patches = calibration_patches(train_samples, cfg.refine, seed=cfg.seed)
-            quantize_refiner(onnx_path, onnx_path, patches)
+            quantize_int8(onnx_path, onnx_path, patches)
             _log(f"second stage quantized to int8 ({len(patches)} calibration patches)", progress)
         meta["refiner"] = {
             "patch_px": cfg.refine.patch_px,
@@ -655,11 +655,17 @@ def _finish(
     if depth_net is not None:
         save_depth_check(out / "best.depth.pt", depth_net, cfg.depth_check)
         depth_path = export_depth_check(depth_net, out / "best.depth.onnx")
+        if cfg.depth_check.quantize == "int8":
+            inputs = calibration_inputs(train_samples, cfg.depth_check, seed=cfg.seed)
+            quantize_int8(depth_path, depth_path, inputs, input_name="depth")
+            _log(f"depth check quantized to int8 ({len(inputs)} calibration patches)", progress)
         meta["depth_check"] = {
             "patch_px": cfg.depth_check.patch_px,
+            "pool": cfg.depth_check.pool,
             "scale_m": cfg.depth_check.scale_m,
             "clip": cfg.depth_check.clip,
             "power": cfg.depth_check.power,
+            "quantize": cfg.depth_check.quantize,
             "sha256": sha256_file(depth_path),
         }
     detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)

@@ -38,6 +38,16 @@ def test_a_patch_is_depth_relative_to_its_centre_with_a_mask_of_measurements():
     assert doubled[0, 0, 4, 0] == pytest.approx(8.0)
 
 
+def test_pooled_cells_hold_the_mean_of_their_measured_pixels_and_the_share_measured():
+    p = np.full((1, 8, 8), 1.0, np.float32)
+    p[0, 0, 0], p[0, 0, 1], p[0, 1, 0] = 1.1, 0.0, 0.0  # the top-left 2x2 block: 1.1, 1.0 and two holes
+    full, _ = encode(p, scale_m=0.05, clip=4.0)
+    x, has_centre = encode(p, scale_m=0.05, clip=4.0, pool=2)
+    assert x.shape == (1, 2, 4, 4) and has_centre.tolist() == [True]
+    assert x[0, 0, 0, 0] == pytest.approx((2.0 + 0.0) / 2) and x[0, 1, 0, 0] == pytest.approx(0.5)
+    np.testing.assert_allclose(x[0, :, 1:, 1:], full[0, :, 2:, 2:].reshape(2, 3, 2, 3, 2).mean(axis=(2, 4)))
+
+
 def test_the_reference_depth_is_the_median_of_the_centres_measurements():
     rng = np.random.default_rng(0)
     p = rng.uniform(0.5, 2.0, (300, 16, 16)).astype(np.float32)
@@ -94,7 +104,7 @@ def test_a_detection_with_no_depth_at_its_centre_keeps_its_score():
 
 def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
     torch.manual_seed(1)
-    net = build(DepthCheckConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8)).eval()
+    net = build(DepthCheckConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8, pool=2)).eval()
     with torch.no_grad():
         for m in net.modules():
             if isinstance(m, torch.nn.BatchNorm2d):
@@ -103,9 +113,9 @@ def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
     depth = np.random.default_rng(0).uniform(0.5, 1.0, (40, 50)).astype(np.float32)
     points = np.array([[10.0, 12.0], [25.5, 30.25], [0.5, 39.0]])
     onnx_check = DepthCheck.load_onnx(
-        export_onnx(net, tmp_path / "d.onnx"), threads=1, scale_m=0.05, clip=4.0
+        export_onnx(net, tmp_path / "d.onnx"), threads=1, scale_m=0.05, clip=4.0, pool=net.pool
     )
-    assert onnx_check.patch_px == 16
+    assert onnx_check.patch_px == 16 and net.pool == 2
     np.testing.assert_allclose(
         onnx_check.logits(depth, points),
         DepthCheck.from_network(net, scale_m=0.05, clip=4.0).logits(depth, points),
@@ -185,6 +195,10 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     np.testing.assert_allclose(det.detect(rgb, threshold=1e-4), own)
     assert det.detect(rgb, threshold=1e-4, depth=depth)[0, 2] > with_depth[0, 2]
     det.score_bias -= 3.0
+    # with no measurement anywhere (a camera nearer than its sensor's range) it is the RGB stages alone
+    det.score_bias += 1.0  # the two operating points apart, so that using the wrong one shows
+    np.testing.assert_allclose(det.detect(rgb, threshold=1e-4, depth=np.zeros_like(depth)), own)
+    det.score_bias -= 1.0
     with pytest.raises(ConfigError, match="registered to the colour image"):
         det.detect(rgb, depth=depth[:-1])
     with det.first_stage_only():
