@@ -24,6 +24,7 @@ TINY_TRAIN = {
         "epochs": 1,
         "batch_size": 32,
         "threads": 1,
+        "quantize": "int8",  # not the default (float), so the tests cover the int8 file too
     },
     "depth_check": {
         "patch_px": 16,

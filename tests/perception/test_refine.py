@@ -159,7 +159,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     assert (out / "best.refine.onnx").is_file() and (out / "best.refine.pt").is_file()
     det = Detector.load(out)
     assert det.refiner is not None and det.meta["refiner"]["patch_px"] == TINY_TRAIN["refine"]["patch_px"]
-    assert det.meta["refiner"]["quantize"] == "int8"  # the default: the shipped second stage is int8
+    assert det.meta["refiner"]["quantize"] == "int8"  # the tiny run's setting, so the int8 path is tested
     assert any(n.op_type == "QLinearConv" for n in onnx.load(out / "best.refine.onnx").graph.node)
     results = json.loads((out / "results.json").read_text())
     assert "test" in results["results_first_stage"] and results["refiner_parameters"] > 0
