@@ -35,7 +35,12 @@ from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.data import Sample, check_dataset, load_split, read_image, read_info
-from rebar_data.perception.depth_check_train import DepthNet, calibration_inputs, train_depth_check
+from rebar_data.perception.depth_check_train import (
+    DepthNet,
+    calibration_inputs,
+    check_depth,
+    train_depth_check,
+)
 from rebar_data.perception.depth_check_train import export_onnx as export_depth_check
 from rebar_data.perception.depth_check_train import save as save_depth_check
 from rebar_data.perception.evaluate import (
@@ -273,6 +278,8 @@ def train(
         raise ConfigError(f"{root}: the train split has no images; accepted: a dataset with training images")
     extra, supplement_meta = _supplement_images(supplements, trained_on=info.get("name"))
     train_samples = train_samples + extra
+    if cfg.depth_check.enabled:  # fail now, not after the first two stages have trained
+        check_depth(train_samples)
     val_samples = load_split(root, "val")
     test_samples = load_split(root, "test")
     out.mkdir(parents=True, exist_ok=True)

@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import json
 import math
+import shutil
 
 import numpy as np
 import pytest
@@ -97,6 +98,13 @@ def test_bad_settings_and_datasets_are_one_clear_error(drawn_dataset, tmp_path):
     (tmp_path / "empty").mkdir()
     with pytest.raises(ConfigError, match="tables/samples.parquet"):
         train(tmp_path / "empty", tmp_path / "r")
+    # a dataset without its depth images fails before training, and says how to train without them
+    no_depth = tmp_path / "no_depth"
+    shutil.copytree(drawn_dataset, no_depth)
+    shutil.rmtree(no_depth / "depth")
+    with pytest.raises(ConfigError, match=r"no depth image.*depth_check: \{enabled: false\}"):
+        train(no_depth, tmp_path / "r")
+    assert not (tmp_path / "r" / "last.pt").exists()
 
 
 def test_batches_are_the_same_with_or_without_a_loader_process(drawn_dataset):
