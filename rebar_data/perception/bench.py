@@ -216,7 +216,13 @@ def run(repeats: int = 100) -> list[str]:
             dense = detector_latency(det, [drawn_frame()], repeats=repeats)
             lines.append(
                 f"perception: the drawn frame dense with bars ({dense.candidates:.0f} candidates, "
-                f"{dense.crossings:.0f} kept): median {dense.median_ms:.1f} ms, p90 {dense.p90_ms:.1f} ms"
+                f"{dense.crossings:.0f} kept"
+                + (
+                    "; its bars lie on the ground, which the depth check has not seen"
+                    if det.depth_check is not None
+                    else ""
+                )
+                + f"): median {dense.median_ms:.1f} ms, p90 {dense.p90_ms:.1f} ms"
             )
             lines += _stages(dense)
         rgb = frames[0][0]
