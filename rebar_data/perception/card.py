@@ -83,10 +83,11 @@ def write_card(
         "sub-cell offset per cell) on a depthwise-separable encoder-decoder, trained from scratch on the",
         "project's synthetic data alone"
         + (
-            ", with a second stage that moves each detection to the crossing its full-resolution patch shows."
+            ", with a second stage that moves each detection to the crossing its full-resolution patch shows"
             if refine
-            else "."
-        ),
+            else ""
+        )
+        + (" and a third that checks each one in the depth image." if dc else "."),
         "Input: an RGB image of any size (uint8, H x W x 3) and, optionally, its intrinsics"
         + (" and its registered depth image" if dc else "")
         + ". Output: (u, v,",
@@ -147,7 +148,8 @@ def write_card(
                 f"in units of {dc['scale_m'] * 1000:g} mm,",
                 f"  clipped to +-{dc['clip']:g}) and gives the logit q that the two bars there touch, as at a crossing; a bar over the mat",
                 f"  beneath lies a mat's height behind. The score becomes sigmoid(logit + {depth_power:g} log q). It runs only",
-                "  when `detect` gets a depth image; a detection without a measurement at its centre keeps its score.",
+                "  when `detect` gets a depth image; a detection without a measurement at its centre is scored as without",
+                "  depth (the RGB stages' score and operating point).",
             ]
             if dc
             else []
@@ -264,8 +266,8 @@ def write_card(
         *(
             [
                 "- `without depth`: the same images given to `detect` without their depth images, as a folder of",
-                "  photographs would be: the two RGB stages alone, at the same operating threshold. Every other row",
-                "  gives the detector each image's depth image, as the robot's RGB-D camera does.",
+                "  photographs would be: the two RGB stages alone, at their own operating point. The other rows",
+                "  (but `first stage alone`) give the detector each image's depth image, as the robot's RGB-D camera does.",
             ]
             if dc
             else []

@@ -21,7 +21,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Iterator, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -71,13 +71,8 @@ from rebar_data.perception.schedule import warmup_cosine
 from rebar_data.perception.targets import encode
 
 EARLY_STOP_METRIC = "val_oks_ap"
-RESUMABLE_CHANGES = {
-    "epochs",
-    "patience",
-    "val_every",
-    "refine",
-    "depth_check",
-}  # settings a resumed run may change
+# settings a resumed run may change
+RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "refine", "depth_check"}
 
 
 class WeightAverage:
@@ -526,7 +521,9 @@ def _run(
     )
 
 
-def _negatives(out: Path, train_samples: list[Sample], negatives_of) -> list[np.ndarray]:
+def _negatives(
+    out: Path, train_samples: list[Sample], negatives_of: Callable[[list[np.ndarray]], list[np.ndarray]]
+) -> list[np.ndarray]:
     """The third stage's negatives: the second stage's mined ones, kept in its checkpoint, or mined now
     when it has none (a run without a verifying second stage)."""
     path = out / "refine_last.pt"
