@@ -196,8 +196,8 @@ class DepthCheckConfig(Strict):
     cell (``pool`` 2, 4x fewer multiply-adds) and the float second stage the same layers gave
     recall@P0.99 0.985 and PCK@2px 0.936 on paper-tunnel's test split (the RGB stages alone 0.960 and
     0.929) in 2.1 minutes of training and 0.7 ms for 45 patches, but on planar-slab (never trained on)
-    recall@P0.99 0.541 against 0.657 at full resolution (0.500 without depth), so full resolution
-    ships.
+    recall@P0.99 0.541 against 0.580 at full resolution behind the same second stage (0.500 without
+    depth), so full resolution ships.
 
     ``quantize = "int8"`` ships the file quantized as the second stage's is (``calibration_patches``
     encoded patches around training crossings set the ranges). It scored as the float file did
