@@ -49,14 +49,12 @@ def write_card(
     latency_source: str,
     extra_results: dict[str, dict] | None = None,
     load_average: float | None = None,
-    score_bias: float = 0.0,
-    score_bias_without_depth: float = 0.0,
-    verify_power: float = 1.0,
-    refiner: Path | None = None,
-    depth_check: Path | None = None,
-    depth_power: float = 1.0,
+    detector: Detector,
 ) -> Path:
-    """The model card: what the model is, what it was trained on, how it scores and how to reproduce it."""
+    """The model card: what the model is, what it was trained on, how it scores and how to reproduce it.
+    ``detector`` is ``model`` loaded: its stages, score biases and powers are what the card states."""
+    refiner = refiner_path(model) if detector.refiner is not None else None
+    depth_check = depth_check_path(model) if detector.depth_check is not None else None
     res = json.loads((run_dir / "results.json").read_text())
     cfg = json.loads((run_dir / "config.json").read_text())
     tc = cfg["train_config"]
@@ -128,7 +126,7 @@ def write_card(
                 *(
                     [
                         "  crossing at all. A detection's score becomes sigmoid(first-stage logit + "
-                        f"{verify_power:g} log p): the second",
+                        f"{detector.verify_power:g} log p): the second",
                         "  stage only lowers scores (of bars passing over the mat beneath, mostly).",
                     ]
                     if verifies
@@ -147,7 +145,7 @@ def write_card(
                 f"  depth image's {dc['patch_px']} px patch around each detection (depth relative to the patch centre's, "
                 f"in units of {dc['scale_m'] * 1000:g} mm,",
                 f"  clipped to +-{dc['clip']:g}) and gives the logit q that the two bars there touch, as at a crossing; a bar over the mat",
-                f"  beneath lies a mat's height behind. The score becomes sigmoid(logit + {depth_power:g} log q). It runs only",
+                f"  beneath lies a mat's height behind. The score becomes sigmoid(logit + {detector.depth_power:g} log q). It runs only",
                 "  when `detect` gets a depth image; a detection without a measurement at its centre is scored as without",
                 "  depth (the RGB stages' score and operating point).",
             ]
@@ -165,10 +163,10 @@ def write_card(
         )
         + ").",
         "  `rebar bench --only detector` measures it again beside a YOLOv8n-pose-shaped network.",
-        f"- Operating threshold: score 0.5, placed at the best F1 on the val split (a logit shift of {score_bias:+.2f}",
+        f"- Operating threshold: score 0.5, placed at the best F1 on the val split (a logit shift of {detector.score_bias:+.2f}",
         "  stored in the file; it changes no ranking, so AP and recall at a precision do not depend on it)"
         + (
-            f";\n  without a depth image the RGB stages' own, placed the same way ({score_bias_without_depth:+.2f})."
+            f";\n  without a depth image the RGB stages' own, placed the same way ({detector.score_bias_without_depth:+.2f})."
             if dc
             else "."
         ),
@@ -409,11 +407,6 @@ def ship(
         latency_source=latency_source,
         extra_results=rows,
         load_average=load,
-        score_bias=detector.score_bias,
-        score_bias_without_depth=detector.score_bias_without_depth,
-        verify_power=detector.verify_power,
-        refiner=refiner_path(dst) if detector.refiner is not None else None,
-        depth_check=depth_check_path(dst) if detector.depth_check is not None else None,
-        depth_power=detector.depth_power,
+        detector=detector,
     )
     return dst

@@ -27,6 +27,8 @@ from rebar_data.perception.data import Sample
 from rebar_data.perception.depth_check import MM_PER_M, encode, read_depth
 from rebar_data.perception.model import conv_bn_relu
 from rebar_data.perception.schedule import warmup_cosine
+from rebar_data.perception.stage_files import calibration_points, fit_weights, read_stage, save_stage
+from rebar_data.perception.stage_files import export_onnx as export_stage
 
 FORMAT = "rebar-keypoint-depth-check"
 FORMAT_VERSION = 1
@@ -65,89 +67,51 @@ def build(cfg: DepthCheckConfig) -> DepthNet:
 
 
 def save(path: Path, net: DepthNet, cfg: DepthCheckConfig, **extra: Any) -> None:
-    payload = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "depth_check_config": cfg.model_dump(mode="json"),
-        "state_dict": net.state_dict(),
-        **extra,
-    }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    save_stage(
+        path, fmt=FORMAT, version=FORMAT_VERSION, config_key="depth_check_config", cfg=cfg, net=net, **extra
+    )
 
 
 def load(path: str | Path) -> tuple[DepthNet, DepthCheckConfig, dict[str, Any]]:
     """Rebuild the network from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    path = Path(path)
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise ConfigError(
-            f"{path}: cannot be read as a depth-check checkpoint ({type(e).__name__})"
-        ) from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise ConfigError(f"{path}: is not a {FORMAT} checkpoint; accepted: a file written by `rebar train`")
+    payload = read_stage(path, fmt=FORMAT, what="depth-check")
     cfg = DepthCheckConfig.model_validate(payload["depth_check_config"])
-    net = build(cfg)
-    try:
-        net.load_state_dict(payload["state_dict"])
-    except RuntimeError:
-        raise ConfigError(
-            f"{path}: its weights do not fit the network its settings describe; accepted: a file written "
-            "by this version of `rebar train`"
-        ) from None
-    return net.eval(), cfg, payload
+    return fit_weights(build(cfg), payload, path), cfg, payload
 
 
 def export_onnx(net: DepthNet, path: Path) -> Path:
     """The network as ONNX: float32 (N, 2, P, P) encoded patches -> (N,) logits, N dynamic."""
-    import warnings
-
     size = net.patch_px // net.pool
-    tmp = path.with_name(path.name + ".tmp")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(
-            net.eval(),
-            (torch.zeros((4, 2, size, size), dtype=torch.float32),),
-            str(tmp),
-            input_names=["depth"],
-            output_names=["logit"],
-            dynamic_axes={"depth": {0: "n"}, "logit": {0: "n"}},
-            opset_version=17,
-            dynamo=False,
-        )
-    tmp.replace(path)
-    return path
+    example = torch.zeros((4, 2, size, size), dtype=torch.float32)
+    return export_stage(net, example, path, input_name="depth", output_name="logit")
 
 
 def calibration_inputs(
     samples: list[Sample], cfg: DepthCheckConfig, *, seed: int, images_used: int = 64
 ) -> np.ndarray:
     """Encoded patches as the stage meets them at inference, to set the int8 file's value ranges: around
-    visible crossings of an even spread of ``images_used`` images, each point moved by the training
-    jitter; (``cfg.calibration_patches``, 2, P, P) float32 (fewer when the images hold fewer crossings)."""
+    :func:`~rebar_data.perception.stage_files.calibration_points` of the samples with a depth image;
+    (``cfg.calibration_patches``, 2, P / pool, P / pool) float32 (fewer when the images hold fewer
+    crossings)."""
     from rebar_data.perception.refine import patches
 
     rng = np.random.default_rng(np.random.SeedSequence([seed, 4111]))
-    used = [s for s in samples if len(s.visible) and s.depth_path is not None]
-    used = [
-        used[i] for i in np.unique(np.linspace(0, len(used) - 1, min(images_used, len(used))).astype(int))
+    points = calibration_points(
+        [s for s in samples if s.depth_path is not None],
+        count=cfg.calibration_patches,
+        jitter_px=cfg.jitter_px,
+        rng=rng,
+        images_used=images_used,
+    )
+    out = [
+        encode(
+            patches(read_depth(s.depth_path), uv, cfg.patch_px)[0],
+            scale_m=cfg.scale_m,
+            clip=cfg.clip,
+            pool=cfg.pool,
+        )[0]
+        for s, uv in points
     ]
-    each = -(-cfg.calibration_patches // max(1, len(used)))
-    out = []
-    for s in used:
-        pick = rng.choice(len(s.visible), size=min(each, len(s.visible)), replace=False)
-        uv = s.visible[pick] + rng.normal(0.0, cfg.jitter_px, (len(pick), 2))
-        out.append(
-            encode(
-                patches(read_depth(s.depth_path), uv, cfg.patch_px)[0],
-                scale_m=cfg.scale_m,
-                clip=cfg.clip,
-                pool=cfg.pool,
-            )[0]
-        )
     if not out:
         raise ConfigError(
             "no visible crossings to calibrate the int8 depth check on; accepted: quantize: none"

@@ -238,12 +238,11 @@ def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float 
     says why the shipped power is below 1). It only lowers scores (p <= 1), so a threshold applied to
     the first stage's scores loses nothing, and a shift of the first stage's logits (the score bias)
     shifts the final logits alike."""
-    s = np.clip(np.asarray(score, np.float64), 1e-12, 1.0 - 1e-12)
     log_p = -np.logaddexp(0.0, -np.asarray(verify_logit, np.float64))
-    return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + power * log_p)))
+    return shifted_score(score, power * log_p)
 
 
-def shifted_score(score: np.ndarray, shift: float) -> np.ndarray:
+def shifted_score(score: np.ndarray, shift: float | np.ndarray) -> np.ndarray:
     """sigmoid(logit(score) + shift): a score read with a score bias ``shift`` higher."""
     s = np.clip(np.asarray(score, np.float64), 1e-12, 1.0 - 1e-12)
     return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + shift)))

@@ -31,6 +31,8 @@ from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image
 from rebar_data.perception.refine_data import patch_batches, steps_per_epoch
 from rebar_data.perception.schedule import warmup_cosine
+from rebar_data.perception.stage_files import calibration_points, fit_weights, read_stage, save_stage
+from rebar_data.perception.stage_files import export_onnx as export_stage
 
 FORMAT = "rebar-keypoint-refiner"
 FORMAT_VERSION = 1
@@ -102,69 +104,35 @@ def build(cfg: RefineConfig) -> PatchNet:
 
 
 def save(path: Path, net: PatchNet, cfg: RefineConfig, **extra: Any) -> None:
-    payload = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "refine_config": cfg.model_dump(mode="json"),
-        "state_dict": net.state_dict(),
-        **extra,
-    }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    save_stage(
+        path, fmt=FORMAT, version=FORMAT_VERSION, config_key="refine_config", cfg=cfg, net=net, **extra
+    )
 
 
 def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
     """Rebuild a refiner from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    path = Path(path)
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise ConfigError(f"{path}: cannot be read as a refiner checkpoint ({type(e).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise ConfigError(f"{path}: is not a {FORMAT} checkpoint; accepted: a file written by `rebar train`")
+    payload = read_stage(path, fmt=FORMAT, what="refiner")
     settings = dict(payload["refine_config"])
     settings.setdefault("verify", False)  # written before the second stage could verify
     cfg = RefineConfig.model_validate(settings)
-    net = build(cfg)
-    try:
-        net.load_state_dict(payload["state_dict"])
-    except RuntimeError:  # weights of another shape than its settings describe (an older layout)
-        raise ConfigError(
-            f"{path}: its weights do not fit the network its settings describe; accepted: a file written "
-            "by this version of `rebar train` (train the second stage again)"
-        ) from None
-    return net.eval(), cfg, payload
+    net = fit_weights(build(cfg), payload, path, retrain=" (train the second stage again)")
+    return net, cfg, payload
 
 
 def export_onnx(net: PatchNet, path: Path) -> Path:
-    """The refiner as ONNX: uint8 patches (N, P, P, 3) -> offsets (N, 2), N dynamic."""
-    import warnings
-
+    """The refiner as ONNX: uint8 patches (N, P, P, 3) -> offsets (N, 2), or (N, 3) with the
+    verification logit; N dynamic."""
     size = net.patch_px
-    tmp = path.with_name(path.name + ".tmp")
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        torch.onnx.export(
-            PatchExportWrapper(net.eval()),
-            (torch.zeros((4, size, size, 3), dtype=torch.uint8),),
-            str(tmp),
-            input_names=["patches"],
-            output_names=["offset"],  # (N, 2), or (N, 3) with the verification logit
-            dynamic_axes={"patches": {0: "n"}, "offset": {0: "n"}},
-            opset_version=17,
-            dynamo=False,
-        )
-    tmp.replace(path)
-    return path
+    example = torch.zeros((4, size, size, 3), dtype=torch.uint8)
+    return export_stage(PatchExportWrapper(net), example, path, input_name="patches", output_name="offset")
 
 
 def calibration_patches(
     samples: list[Sample], cfg: RefineConfig, *, seed: int, images_used: int = 64
 ) -> np.ndarray:
     """Patches as the refiner meets them at inference, to set the int8 file's value ranges: cut on the
-    pixel grid (:func:`~rebar_data.perception.refine.patches`) around visible crossings of an even spread
-    of ``images_used`` images, each point moved by the training jitter (Gaussian, ``jitter_px``).
+    pixel grid (:func:`~rebar_data.perception.refine.patches`) around
+    :func:`~rebar_data.perception.stage_files.calibration_points`.
 
     Returns:
         (``cfg.calibration_patches``, P, P, 3) uint8 patches (fewer when the images hold fewer crossings).
@@ -172,16 +140,10 @@ def calibration_patches(
     from rebar_data.perception.refine import patches
 
     rng = np.random.default_rng(np.random.SeedSequence([seed, 4099]))
-    used = [s for s in samples if len(s.visible)]
-    used = [
-        used[i] for i in np.unique(np.linspace(0, len(used) - 1, min(images_used, len(used))).astype(int))
-    ]
-    each = -(-cfg.calibration_patches // max(1, len(used)))
-    out = []
-    for s in used:
-        pick = rng.choice(len(s.visible), size=min(each, len(s.visible)), replace=False)
-        uv = s.visible[pick] + rng.normal(0.0, cfg.jitter_px, (len(pick), 2))
-        out.append(patches(read_image(s.path), uv, cfg.patch_px)[0])
+    points = calibration_points(
+        samples, count=cfg.calibration_patches, jitter_px=cfg.jitter_px, rng=rng, images_used=images_used
+    )
+    out = [patches(read_image(s.path), uv, cfg.patch_px)[0] for s, uv in points]
     if not out:
         raise ConfigError(
             "no visible crossings to calibrate the int8 second stage on; accepted: quantize: none"
