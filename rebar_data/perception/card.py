@@ -132,6 +132,14 @@ def write_card(
                     if verifies
                     else []
                 ),
+                *(
+                    [
+                        "  Beyond the image's border its patch is blank, with a fourth channel that marks the image, so it",
+                        "  can place a crossing whose centre lies just outside the frame; such a detection is dropped.",
+                    ]
+                    if refine.get("border", "mirror") == "mask"
+                    else []
+                ),
                 "  `Detector.load` loads both; set `detector.refiner = None` for the first stage alone.",
             ]
             if refine
@@ -200,6 +208,16 @@ def write_card(
                 "  learn from the labels alone, not from the first stage's outputs.",
                 *(
                     [
+                        f"  {refine['border_fraction']:.0%} of the patches get a border of their own, a straight edge within "
+                        f"{refine['border_reach_px']:g} px",
+                        "  of the crossing on either side of it, beyond which the patch is blank: so it learns to place",
+                        "  a crossing from its part inside the frame.",
+                    ]
+                    if refine.get("border", "mirror") == "mask"
+                    else []
+                ),
+                *(
+                    [
                         f"  Its verification also learns from negatives: the trained first stage's detections (score >= "
                         f"{refine['negative_score']:g})",
                         f"  on the training images farther than {refine['negative_gate_px']:g} px from every "
@@ -242,8 +260,9 @@ def write_card(
         "  the figure to quote. `val`: the scenes that chose the epoch.",
         f"- `test, crossings >= {BORDER_BAND_PX:g} px inside the frame`: the test split with the crossings within "
         f"{BORDER_BAND_PX:g} px of the",
-        "  image border set aside (ignore regions), and the detections there. At the border a crossing just",
-        "  inside the frame looks like one just outside it, which the labels count as no crossing.",
+        "  image border set aside (ignore regions), and the detections there. At the border only part of a",
+        "  crossing is in view, and one just outside the frame, which the labels count as no crossing, looks",
+        "  much like one just inside it.",
         "- `test, scenes with (without) a lower mat`: the test scenes with a second mat beneath the bars",
         f"  (the samples table's `{LOWER_MAT_COLUMN}`), where a bar passing over the mat beneath looks like a",
         "  crossing; and the others.",

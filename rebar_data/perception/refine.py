@@ -23,28 +23,49 @@ import numpy as np
 
 from rebar_data.config import ConfigError
 
+BORDERS = ("mirror", "mask")  # how a patch shows what lies beyond the image's border
 
-def patches(image: np.ndarray, centres: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+
+def patches(
+    image: np.ndarray, centres: np.ndarray, size: int, *, border: str = "mirror"
+) -> tuple[np.ndarray, np.ndarray]:
     """Patches of ``image`` around each (u, v) of ``centres``, cut on the pixel grid.
 
     Each patch is centred on the pixel corner nearest its point, so it is a plain copy of pixels (no
     resampling: cutting 130 patches takes 0.1 ms instead of 2.4 ms with a sub-pixel warp, and the
-    refiner scores the same either way); the refiner's offset is measured from that corner. Beyond the
-    image's border the pixels are mirrored, as in training.
+    refiner scores the same either way); the refiner's offset is measured from that corner.
+
+    Beyond the image's border, with ``border = "mirror"`` the pixels are mirrored (a crossing d pixels
+    outside the frame then looks like one d pixels inside it); with ``"mask"`` they are 0 and each patch
+    gets a fourth channel, 255 on the image and 0 beyond it, so a network can tell where the frame ends
+    and place a crossing whose centre lies outside it (:class:`~rebar_data.perception.config.RefineConfig`
+    ``border``). ``"mask"`` needs an (H, W, 3) image.
 
     Returns:
-        (N, size, size, 3) patches (N, size, size for a one-channel (H, W) image, such as a depth image) of
-        the image's type, and (N, 2) the corners they are centred on (COCO corner origin).
+        (N, size, size, C) patches of the image's type (C = 3, or 4 with ``"mask"``; (N, size, size) for a
+        one-channel (H, W) image, such as a depth image), and (N, 2) the corners they are centred on (COCO
+        corner origin).
     """
+    if border not in BORDERS:
+        raise ConfigError(f"border = {border!r} is not accepted; accepted: one of {', '.join(BORDERS)}")
     centres = np.asarray(centres, float).reshape(-1, 2)
     h, w = image.shape[:2]
     half = size // 2
     corners = np.clip(np.floor(centres + 0.5), 0, [w, h]).astype(np.int64)
-    padded = cv2.copyMakeBorder(image, half, half, half, half, cv2.BORDER_REFLECT)
+    if border == "mask" and (image.ndim != 3 or image.shape[2] != 3):
+        raise ConfigError(f"a masked patch needs an (H, W, 3) image, not {image.shape}")
+    mode = cv2.BORDER_CONSTANT if border == "mask" else cv2.BORDER_REFLECT
+    padded = cv2.copyMakeBorder(image, half, half, half, half, mode, value=0)
     windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1))
-    cut_out = windows[corners[:, 1], corners[:, 0]]  # (N, [3,] size, size): the window axes come last
+    cut_out = windows[corners[:, 1], corners[:, 0]]  # (N, [C,] size, size): the window axes come last
     if cut_out.ndim == 4:
         cut_out = cut_out.transpose(0, 2, 3, 1)
+    if border == "mask":
+        offsets = np.arange(size) - half  # a patch's pixel k lies at corner + k - half
+        cols = (corners[:, None, 0] + offsets >= 0) & (corners[:, None, 0] + offsets < w)  # (N, size)
+        rows = (corners[:, None, 1] + offsets >= 0) & (corners[:, None, 1] + offsets < h)
+        mask = (rows[:, :, None] & cols[:, None, :]).astype(image.dtype) * 255
+        cut_out = np.concatenate([cut_out, mask[..., None]], axis=3)
     return np.ascontiguousarray(cut_out), corners.astype(np.float64)
 
 
@@ -54,10 +75,17 @@ class Refiner:
     (``verifies``)."""
 
     def __init__(
-        self, run: Callable[[np.ndarray], np.ndarray], *, patch_px: int, iterations: int, verifies: bool
+        self,
+        run: Callable[[np.ndarray], np.ndarray],
+        *,
+        patch_px: int,
+        iterations: int,
+        verifies: bool,
+        border: str = "mirror",
     ):
         self._run = run
         self.patch_px = patch_px
+        self.border = border
         self.iterations = iterations
         self.verifies = verifies
 
@@ -68,13 +96,13 @@ class Refiner:
 
         from rebar_data.perception.refine_train import PatchExportWrapper
 
-        wrapped = PatchExportWrapper(net.eval())  # uint8 (N, P, P, 3) in, as the ONNX file takes them
+        wrapped = PatchExportWrapper(net.eval())  # uint8 (N, P, P, C) in, as the ONNX file takes them
 
         def run(x: np.ndarray) -> np.ndarray:
             with torch.inference_mode():
                 return wrapped(torch.from_numpy(x)).numpy()
 
-        return cls(run, patch_px=net.patch_px, iterations=iterations, verifies=net.verify)
+        return cls(run, patch_px=net.patch_px, iterations=iterations, verifies=net.verify, border=net.border)
 
     @classmethod
     def load_onnx(cls, path: Path, *, threads: int, iterations: int = 1) -> Refiner:
@@ -90,7 +118,9 @@ class Refiner:
             return sess.run(None, {name: x})[0]
 
         columns = sess.get_outputs()[0].shape[-1]  # 2: offsets; 3: offsets and the verification logit
-        return cls(run, patch_px=size, iterations=iterations, verifies=columns == 3)
+        channels = sess.get_inputs()[0].shape[-1]  # 3: RGB, mirrored beyond the border; 4: RGB and the mask
+        border = "mask" if channels == 4 else "mirror"
+        return cls(run, patch_px=size, iterations=iterations, verifies=columns == 3, border=border)
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N, 2) refined positions of the (N, 2) points ``uv`` in ``image`` (pixels, COCO corner origin)."""
@@ -104,7 +134,7 @@ class Refiner:
             return uv, (np.zeros(0) if self.verifies else None)
         logit = None
         for it in range(self.iterations):
-            x, corners = patches(image, uv, self.patch_px)
+            x, corners = patches(image, uv, self.patch_px, border=self.border)
             out = self._run(x).astype(np.float64)
             if it == 0 and self.verifies:
                 logit = out[:, 2].copy()

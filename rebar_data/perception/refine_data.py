@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 
+import cv2
 import numpy as np
 import torch
 
@@ -20,7 +21,8 @@ from rebar_data.perception.augment import apply_affine, photometric_batch, rando
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image
 
-Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor]  # uint8 patches, offsets, is a crossing
+# uint8 patches, offsets, has an offset (a labelled crossing), is a crossing in the frame (verification)
+Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
 
 
 def patch_geometry(cfg: RefineConfig, aug: AugmentConfig) -> AugmentConfig:
@@ -40,7 +42,11 @@ def training_patch(
 ) -> tuple[np.ndarray, np.ndarray]:
     """One patch around a labelled crossing, before colour changes, and the crossing's offset from its
     centre; ``geometry`` is :func:`patch_geometry`'s. ``uniform = False`` draws the centre's error from the
-    Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing)."""
+    Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing).
+
+    With ``cfg.border = "mask"`` the patch has a fourth channel, 255 where it shows the image (0 and 0 in
+    colour beyond the image's border, as :func:`~rebar_data.perception.refine.patches` cuts them), and a
+    ``cfg.border_fraction`` of patches get a border of their own (:func:`_own_border`)."""
     if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
     else:
@@ -52,8 +58,36 @@ def training_patch(
         target=np.array([size / 2, size / 2]),
         cfg=geometry,
     )
-    x = warp(image, patch_from_image, size, fill=None)
-    return x, apply_affine(crossing, patch_from_image)[0] - size / 2
+    offset = apply_affine(crossing, patch_from_image)[0] - size / 2
+    if cfg.border == "mirror":
+        return warp(image, patch_from_image, size, fill=None), offset
+    x = warp(image, patch_from_image, size, fill=0.0)
+    on_image = _on_image(patch_from_image, size, image.shape[1], image.shape[0])
+    if rng.uniform() < cfg.border_fraction:
+        on_image &= _own_border(rng, size / 2 + offset, size, cfg.border_reach_px)
+    x[~on_image] = 0
+    return np.concatenate([x, (on_image * np.uint8(255))[..., None]], axis=2), offset
+
+
+def _on_image(patch_from_image: np.ndarray, size: int, width: int, height: int) -> np.ndarray:
+    """(size, size) bool: which of the patch's pixel centres map inside the image."""
+    c = np.arange(size) + 0.5
+    qx, qy = np.meshgrid(c, c, indexing="xy")
+    inv = cv2.invertAffineTransform(patch_from_image)
+    u = inv[0, 0] * qx + inv[0, 1] * qy + inv[0, 2]
+    v = inv[1, 0] * qx + inv[1, 1] * qy + inv[1, 2]
+    return (u >= 0) & (u < width) & (v >= 0) & (v < height)
+
+
+def _own_border(rng: np.random.Generator, point: np.ndarray, size: int, reach: float) -> np.ndarray:
+    """(size, size) bool: the side of a random straight edge, along a patch axis within ``reach`` of
+    ``point`` (patch pixels), that holds the patch centre; the other side is beyond the frame. At
+    inference a patch is centred on a point inside the frame, so its centre is always on the image."""
+    axis = int(rng.integers(2))
+    edge = point[axis] + rng.uniform(-reach, reach)
+    c = np.arange(size) + 0.5
+    keep = c < edge if edge > size / 2 else c > edge
+    return np.broadcast_to(keep[None, :] if axis == 0 else keep[:, None], (size, size))
 
 
 def patch_keys(samples: list[Sample], negatives: list[np.ndarray]) -> np.ndarray:
@@ -78,8 +112,10 @@ def patch_batch(
     cfg: RefineConfig,
     aug: AugmentConfig,
 ) -> Batch:
-    """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, 3) uint8, their (B, 2)
-    offsets of the crossing from the centre (meaningless for negatives) and (B,) whether each is one."""
+    """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, C) uint8, their (B, 2)
+    offsets of the crossing from the centre (meaningless for negatives), (B,) whether each is around a
+    labelled crossing, and (B,) whether that crossing lies on the image the patch shows (the
+    verification's label: with the border mask, not one beyond the patch's own border)."""
     geometry = patch_geometry(cfg, aug)
     xs, ys = [], []
     for i, k, positive in rows:
@@ -87,11 +123,25 @@ def patch_batch(
         x, y = training_patch(image_of(i), centre, rng, cfg, geometry, uniform=bool(positive))
         xs.append(x)
         ys.append(y)
-    x = photometric_batch(np.stack(xs), rng, aug)
+    x, y = np.stack(xs), np.stack(ys)
+    positive = rows[:, 2].astype(bool)
+    crossing = positive.copy()
+    if x.shape[3] == 4:
+        # colour changes for the colour channels; beyond the border stays 0
+        x[..., :3] = photometric_batch(np.ascontiguousarray(x[..., :3]), rng, aug) * (x[..., 3:] > 0)
+        # a crossing beyond the frame's edge is no crossing to the labels (as a mined negative just inside
+        # a real border, near a crossing just outside it, is not): its offset still trains, its
+        # verification learns "no"
+        size = x.shape[1]
+        j, i = np.clip(np.floor(size / 2 + y).astype(np.int64), 0, size - 1).T
+        crossing &= x[np.arange(len(x)), i, j, 3] > 0
+    else:
+        x = photometric_batch(x, rng, aug)
     return (
         torch.from_numpy(x),
-        torch.from_numpy(np.stack(ys)).float(),
-        torch.from_numpy(rows[:, 2].astype(bool)),
+        torch.from_numpy(y).float(),
+        torch.from_numpy(positive),
+        torch.from_numpy(crossing),
     )
 
 

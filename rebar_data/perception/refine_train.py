@@ -47,7 +47,8 @@ def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 
 class PatchNet(nn.Module):
-    """(N, 3, P, P) RGB patches, values 0-255 -> (N, 2) offset (x, y) of the crossing from the patch centre,
+    """(N, C, P, P) patches, values 0-255 (RGB, and with ``border = "mask"`` a fourth channel that marks the
+    pixels on the image) -> (N, 2) offset (x, y) of the crossing from the patch centre,
     in the patch's pixels, and with ``verify`` a third column: the logit that the patch shows a crossing
     near its centre at all.
 
@@ -65,12 +66,14 @@ class PatchNet(nn.Module):
         blocks: tuple[int, int, int] = (1, 1, 1),
         *,
         verify: bool = False,
+        border: str = "mirror",
     ):
         super().__init__()
         a, b, c, d = widths
         self.patch_px = patch_px
         self.verify = verify
-        layers = [_conv(3, a)]
+        self.border = border
+        layers = [_conv(4 if border == "mask" else 3, a)]
         for cin, cout, n in ((a, b, blocks[0]), (b, c, blocks[1]), (c, d, blocks[2])):
             layers += [_conv(cin, cout, 2), *[_conv(cout, cout) for _ in range(n)]]
         self.features = nn.Sequential(*layers)
@@ -87,7 +90,7 @@ class PatchNet(nn.Module):
 
 
 class PatchExportWrapper(nn.Module):
-    """What the refiner's ONNX file holds: uint8 RGB patches (N, P, P, 3) in, offsets (N, 2) out (with the
+    """What the refiner's ONNX file holds: uint8 patches (N, P, P, C) in (C = 4 with the border mask), offsets (N, 2) out (with the
     verification logit as a third column, (N, 3), when the network has one)."""
 
     def __init__(self, net: PatchNet):
@@ -100,7 +103,7 @@ class PatchExportWrapper(nn.Module):
 
 def build(cfg: RefineConfig) -> PatchNet:
     """The refiner network these settings describe."""
-    return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks, verify=cfg.verify)
+    return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks, verify=cfg.verify, border=cfg.border)
 
 
 def save(path: Path, net: PatchNet, cfg: RefineConfig, **extra: Any) -> None:
@@ -114,16 +117,17 @@ def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
     payload = read_stage(path, fmt=FORMAT, what="refiner")
     settings = dict(payload["refine_config"])
     settings.setdefault("verify", False)  # written before the second stage could verify
+    settings.setdefault("border", "mirror")  # written before it could see the border
     cfg = RefineConfig.model_validate(settings)
     net = fit_weights(build(cfg), payload, path, retrain=" (train the second stage again)")
     return net, cfg, payload
 
 
 def export_onnx(net: PatchNet, path: Path) -> Path:
-    """The refiner as ONNX: uint8 patches (N, P, P, 3) -> offsets (N, 2), or (N, 3) with the
-    verification logit; N dynamic."""
+    """The refiner as ONNX: uint8 patches (N, P, P, C) -> offsets (N, 2), or (N, 3) with the
+    verification logit; N dynamic; C = 4 with the border mask, else 3."""
     size = net.patch_px
-    example = torch.zeros((4, size, size, 3), dtype=torch.uint8)
+    example = torch.zeros((4, size, size, 4 if net.border == "mask" else 3), dtype=torch.uint8)
     return export_stage(PatchExportWrapper(net), example, path, input_name="patches", output_name="offset")
 
 
@@ -135,7 +139,7 @@ def calibration_patches(
     :func:`~rebar_data.perception.stage_files.calibration_points`.
 
     Returns:
-        (``cfg.calibration_patches``, P, P, 3) uint8 patches (fewer when the images hold fewer crossings).
+        (``cfg.calibration_patches``, P, P, C) uint8 patches (fewer when the images hold fewer crossings).
     """
     from rebar_data.perception.refine import patches
 
@@ -143,7 +147,7 @@ def calibration_patches(
     points = calibration_points(
         samples, count=cfg.calibration_patches, jitter_px=cfg.jitter_px, rng=rng, images_used=images_used
     )
-    out = [patches(read_image(s.path), uv, cfg.patch_px)[0] for s, uv in points]
+    out = [patches(read_image(s.path), uv, cfg.patch_px, border=cfg.border)[0] for s, uv in points]
     if not out:
         raise ConfigError(
             "no visible crossings to calibrate the int8 second stage on; accepted: quantize: none"
@@ -352,12 +356,12 @@ def _epochs(
             step = (epoch - 1) * steps + b
             for g in opt.param_groups:
                 g["lr"] = learning_rate(step, total, cfg)
-            patches, y, is_crossing = next(batches)
+            patches, y, labelled, is_crossing = next(batches)
             x = patches.permute(0, 3, 1, 2).float().contiguous(memory_format=torch.channels_last)
             pred = net(x)
-            offset = pred[is_crossing, :2]
+            offset = pred[labelled, :2]
             loss = (
-                F.smooth_l1_loss(offset, y[is_crossing], beta=cfg.loss_beta_px)
+                F.smooth_l1_loss(offset, y[labelled], beta=cfg.loss_beta_px)
                 if len(offset)
                 else pred.sum() * 0.0  # a batch of negatives alone
             )
@@ -374,7 +378,7 @@ def _epochs(
             opt.step()
             loss_sum += loss.item()
             if len(offset):
-                err_sum += float((offset.detach() - y[is_crossing]).norm(dim=1).mean())
+                err_sum += float((offset.detach() - y[labelled]).norm(dim=1).mean())
             bar.set_postfix(loss=f"{loss.item():.3f}")
         row = {
             "epoch": epoch,
