@@ -1,12 +1,14 @@
 from __future__ import annotations
 
+import json
 import shutil
 
 import pyarrow.parquet as pq
 import yaml
 
 from rebar_data.cli import main
-from rebar_data.perception.data import load_split
+from rebar_data.perception.data import load_split, read_info
+from rebar_data.perception.metrics import DEFAULT_OKS_SIGMA
 
 from .conftest import TINY_TRAIN
 
@@ -94,3 +96,22 @@ def test_user_errors_are_one_line_and_exit_2(tmp_path, capsys):
     bad.write_text("epochs: -3\n")
     (tmp_path / "ds").mkdir()
     assert main(["train", str(tmp_path / "ds"), "--config", str(bad)]) == 2
+
+
+def test_detect_scores_at_a_given_oks_sigma(drawn_dataset, tmp_path, capsys):
+    def run(*extra: str) -> dict:
+        metrics = tmp_path / "m.json"
+        args = ["detect", str(drawn_dataset), "--out", str(tmp_path / "p.parquet"), "--metrics", str(metrics)]
+        assert main([*args, "--no-depth", "--quiet", *extra]) == 0  # the shipped model
+        return json.loads(metrics.read_text())
+
+    stated, loose = run(), run("--oks-sigma", "1.0")
+    assert stated["oks_sigma"] == read_info(drawn_dataset).get("oks_sigma", DEFAULT_OKS_SIGMA)
+    assert loose["oks_sigma"] == 1.0 and stated["pck5"] > 0.5
+    assert loose["pck2"] == stated["pck2"]  # pixel figures do not depend on the sigma
+    assert loose["oks_ap"] > stated["oks_ap"]  # a looser sigma forgives larger errors
+    capsys.readouterr()
+    assert main(["detect", str(drawn_dataset), "--out", str(tmp_path / "q.parquet"), "--oks-sigma", "0"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--oks-sigma 0.0 is not accepted" in err[0]
+    assert not (tmp_path / "q.parquet").exists()
