@@ -66,9 +66,9 @@ def run_detect(args: argparse.Namespace) -> None:
 
 def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError
-    from rebar_data.perception.data import SPLITS, read_info
+    from rebar_data.perception.data import SPLITS, stated_oks_sigma
     from rebar_data.perception.evaluate import LOW_THRESHOLD, load_splits, predict, score, write_predictions
-    from rebar_data.perception.metrics import DEFAULT_OKS_SIGMA, format_summary
+    from rebar_data.perception.metrics import format_summary
 
     out = Path(args.out)
     if out.suffix != ".parquet":
@@ -85,11 +85,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
     threshold = args.threshold if args.threshold is not None else LOW_THRESHOLD
     preds = predict(detector, samples, threshold=threshold, depth=not args.no_depth, progress=not args.quiet)
     write_predictions(out, [s.image_id for s in samples], preds)
-    sigma = (
-        args.oks_sigma
-        if args.oks_sigma is not None
-        else float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))
-    )
+    sigma = args.oks_sigma if args.oks_sigma is not None else stated_oks_sigma(root)
     metrics = score(samples, preds, sigma=sigma)
     print(f"{args.split}: {format_summary(metrics)}", file=sys.stderr)
     if args.metrics:
@@ -196,7 +192,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--oks-sigma",
         type=float,
         help="score OKS AP at this sigma instead of the one the dataset states (info.json); 1.0 is "
-        "Ultralytics' default for a single keypoint, the metric behind the paper's mAP@0.5 (dataset input)",
+        "Ultralytics' default for a single keypoint, the sigma behind the paper's mAP@0.5 (dataset input)",
     )
     d.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
     d.add_argument("--quiet", action="store_true", help="no progress bar")

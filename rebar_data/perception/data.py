@@ -18,6 +18,7 @@ import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
+from rebar_data.dataset.config import DEFAULT_OKS_SIGMA
 
 SPLITS = ("train", "val", "test")
 _SAMPLE_COLUMNS = ("image_id", "split", "file_name", "width", "height", "fx", "fy", "cx", "cy")
@@ -65,6 +66,11 @@ def read_info(root: str | Path) -> dict:
     """The dataset's ``meta/info.json`` (an empty dict when it has none)."""
     p = Path(root) / "meta/info.json"
     return json.loads(p.read_text()) if p.exists() else {}
+
+
+def stated_oks_sigma(root: str | Path) -> float:
+    """The OKS sigma the dataset states in its info.json (the project's default when it states none)."""
+    return float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))
 
 
 def check_dataset(root: str | Path) -> Path:

@@ -10,10 +10,10 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from rebar_data.perception.data import SPLITS, Sample, load_split, read_image, read_info
+from rebar_data.perception.data import SPLITS, Sample, load_split, read_image, stated_oks_sigma
 from rebar_data.perception.depth_check import read_depth
 from rebar_data.perception.infer import Detector
-from rebar_data.perception.metrics import DEFAULT_OKS_SIGMA, Truth, pixel_metrics, summary
+from rebar_data.perception.metrics import Truth, pixel_metrics, summary
 
 LOW_THRESHOLD = 0.05  # predictions kept for scoring: enough of the tail for AP and precision-recall curves
 RANDOM_SPLIT_FRACTION = 0.2  # the paper's frame-level 80:20 split
@@ -120,8 +120,7 @@ def score_dataset(
 ) -> dict[str, float]:
     """The headline metrics of ``detector`` over the given splits of a dataset, at the dataset's OKS sigma."""
     samples = load_splits(root, splits)
-    sigma = float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))
-    return score(samples, predict(detector, samples, progress=progress), sigma=sigma)
+    return score(samples, predict(detector, samples, progress=progress), sigma=stated_oks_sigma(root))
 
 
 def set_border_aside(

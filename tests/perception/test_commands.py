@@ -7,8 +7,7 @@ import pyarrow.parquet as pq
 import yaml
 
 from rebar_data.cli import main
-from rebar_data.perception.data import load_split, read_info
-from rebar_data.perception.metrics import DEFAULT_OKS_SIGMA
+from rebar_data.perception.data import load_split, stated_oks_sigma
 
 from .conftest import TINY_TRAIN
 
@@ -106,7 +105,7 @@ def test_detect_scores_at_a_given_oks_sigma(drawn_dataset, tmp_path, capsys):
         return json.loads(metrics.read_text())
 
     stated, loose = run(), run("--oks-sigma", "1.0")
-    assert stated["oks_sigma"] == read_info(drawn_dataset).get("oks_sigma", DEFAULT_OKS_SIGMA)
+    assert stated["oks_sigma"] == stated_oks_sigma(drawn_dataset)
     assert loose["oks_sigma"] == 1.0 and stated["pck5"] > 0.5
     assert loose["pck2"] == stated["pck2"]  # pixel figures do not depend on the sigma
     assert loose["oks_ap"] > stated["oks_ap"]  # a looser sigma forgives larger errors
