@@ -57,7 +57,62 @@ def run() -> list[str]:
                 f"paper dataset (1200 images) would take {1200 / rates[cores] / 60:.1f} min (goal: >= 3 img/s, < 7 min)"
             )
         lines += _ray_lines(cfg, Path(tmp), cores, rates[cores])
+        lines += _breakdown_lines(cfg, Path(tmp))
     return lines
+
+
+# the stages of a frame in a build worker, in order; "render" holds the renderer's own three
+FRAME_STAGES = ("scene", "render", "labels", "png", "write")
+RENDER_STAGES = ("filament", "rays", "sensor")
+
+
+def _breakdown_lines(cfg_path: Path, tmp: Path, *, trajectories: int = 3) -> list[str]:
+    """Where a frame's time goes in one build worker process (one core, as in a build with a worker a
+    core): its stages' seconds a frame, measured after the worker has rendered one trajectory."""
+    import multiprocessing as mp
+
+    from rebar_data.dataset.build import prepare_staging
+    from rebar_data.dataset.config import load_pipeline
+    from rebar_data.dataset.plan import make_plan
+    from rebar_data.dataset.worker import init_process, run_in_process, stage_seconds_in_process
+    from rebar_data.geometry.build import build_rebar_mesh
+
+    cfg = load_pipeline(cfg_path)
+    rm = build_rebar_mesh(cfg.mesh_config())
+    plan = make_plan(cfg, rm)
+    staging = prepare_staging(cfg, tmp / "breakdown", force=True, resume=False)
+    tasks = [
+        (t.trajectory_id, plan.scenes[t.scene_index], plan.samples_of(t.trajectory_id))
+        for t in plan.trajectories[: trajectories + 1]
+    ]
+    with mp.get_context("spawn").Pool(1, initializer=init_process, initargs=(cfg, staging, None)) as pool:
+        pool.apply(run_in_process, (tasks[0],))  # warm: first shadowed frame, texture cache
+        before = pool.apply(stage_seconds_in_process)
+        frames = sum(len(pool.apply(run_in_process, (t,))[1]) for t in tasks[1:])
+        after = pool.apply(stage_seconds_in_process)
+
+    def per_frame(group: str, stage: str) -> float:
+        return (after[group].get(stage, (0.0, 0))[0] - before[group].get(stage, (0.0, 0))[0]) / frames
+
+    total = sum(per_frame("frame", k) for k in FRAME_STAGES)
+    render = {k: per_frame("render", k) for k in RENDER_STAGES}
+    frame = {k: per_frame("frame", k) for k in FRAME_STAGES}
+    other = frame["render"] - sum(render.values())
+    parts = [f"Filament render {render['filament'] * 1000:.0f} ms ({render['filament'] / total:.0%})"]
+    parts += [
+        f"depth/instance rays {render['rays'] * 1000:.0f} ms",
+        f"sensor effects {render['sensor'] * 1000:.0f} ms",
+    ]
+    parts += [f"labels {frame['labels'] * 1000:.0f} ms", f"PNG encoding {frame['png'] * 1000:.0f} ms"]
+    parts += [f"file writes {frame['write'] * 1000:.0f} ms", f"scene changes {frame['scene'] * 1000:.0f} ms"]
+    if other > 0.0005:
+        parts.append(f"rest {other * 1000:.0f} ms")
+    return [
+        f"a frame in one build worker (one core, {frames} frames): {total * 1000:.0f} ms = "
+        + " + ".join(parts),
+        f"  -> {1 / total:.2f} img/s a worker; the render (Filament, rays, sensor) is "
+        f"{frame['render'] / total:.0%} of a frame",
+    ]
 
 
 def _ray_lines(cfg: Path, tmp: Path, cores: int, local_rate: float) -> list[str]:

@@ -36,6 +36,7 @@ from rebar_data.scene.sample import SceneSample, SensorSample
 from rebar_data.scene.surroundings import SceneObject, build_surroundings
 from rebar_data.scene.texture_folders import load_texture_set
 from rebar_data.scene.textures import TextureCache, ground_maps, rebar_fields, rebar_maps, rebar_tint
+from rebar_data.timing import StageTimer
 
 __all__ = ["Frame", "RenderConfig", "Renderer"]
 
@@ -124,11 +125,13 @@ class Renderer:
         self._lights: list[str] = []
         self._ibl: str | None = None
         self._raycast = None
-        self._geom_lut = np.zeros(1, np.int64)  # instance id of each ray-cast geometry (0: the rebar)
+        # instance id of each ray-cast geometry (0: the rebar), then the id of a miss
+        self._geom_lut = np.array([0, NOTHING_ID], np.int32)
         self._render_from_world = np.eye(4)
         self._shadows_on = False
         self._pixel_xy = self._camera_rays(intrinsics)
         self._rays = np.empty((len(self._pixel_xy), 6), np.float32)
+        self.timer = StageTimer()  # seconds per stage of render(): filament, rays, sensor
         _OPEN.append(self)
 
     # --- set-up ---------------------------------------------------------------------------------------
@@ -355,7 +358,7 @@ class Renderer:
             )
             ids.append(obj.instance_id)
         self._raycast = rs
-        self._geom_lut = np.array(ids, np.int64)
+        self._geom_lut = np.array([*ids, NOTHING_ID], np.int32)  # the last entry: nothing hit
 
     # --- per frame ------------------------------------------------------------------------------------
 
@@ -381,13 +384,12 @@ class Renderer:
 
         hit = self._raycast.cast_rays(o3d.core.Tensor.from_numpy(rays))
         t = hit["t_hit"].numpy()
-        geom = hit["geometry_ids"].numpy().astype(np.int64)
-        prim = hit["primitive_ids"].numpy().astype(np.int64)
-        missed = geom >= len(self._geom_lut)  # Open3D marks a miss with the largest id
-        geom = np.where(missed, 0, geom)
-        tri_part = self._rm.triangle_part_id
-        inst = np.where(geom == 0, tri_part[np.clip(prim, 0, len(tri_part) - 1)], self._geom_lut[geom])
-        inst = np.where(missed, NOTHING_ID, inst).astype(np.int32)
+        geom = hit["geometry_ids"].numpy()  # uint32; Open3D marks a miss with the largest value
+        # one look-up for every geometry (a miss reads the extra last entry), then the rebar's hits get
+        # their part's id from the triangle they hit
+        inst = self._geom_lut[np.minimum(geom, len(self._geom_lut) - 1)]
+        rebar = geom == 0
+        inst[rebar] = self._rm.triangle_part_id[hit["primitive_ids"].numpy()[rebar]]
         return t, inst
 
     def render_raw(self, world_from_camera: np.ndarray) -> np.ndarray:
@@ -424,16 +426,19 @@ class Renderer:
         np.multiply(self._pixel_xy[:, :1], R[:, 0], out=rays[:, 3:])
         rays[:, 3:] += self._pixel_xy[:, 1:] * R[:, 1]
         rays[:, 3:] += R[:, 2]
-        t, inst = self._cast_rays(rays)  # directions have camera z = 1, so t is z
-        depth = np.where(np.isfinite(t), t, 0.0).astype(np.float32)
+        depth, inst = self._cast_rays(rays)  # directions have camera z = 1, so t is z
+        depth[np.isinf(depth)] = 0.0
         return depth.reshape(k.height, k.width), inst.reshape(k.height, k.width)
 
     def render(self, world_from_camera: np.ndarray, sensor: SensorSample, rng: np.random.Generator) -> Frame:
         """RGB (after ``sensor`` effects, noise from ``rng``), depth and instance ids of one camera pose."""
-        raw = self.render_raw(world_from_camera)
-        depth, inst = self.depth_and_instance(world_from_camera)
+        with self.timer("filament"):
+            raw = self.render_raw(world_from_camera)
+        with self.timer("rays"):
+            depth, inst = self.depth_and_instance(world_from_camera)
         k = self.intrinsics
-        rgb = apply_sensor(raw, sensor, rng, principal_point=(k.cx, k.cy))
+        with self.timer("sensor"):
+            rgb = apply_sensor(raw, sensor, rng, principal_point=(k.cx, k.cy))
         return Frame(rgb, depth, inst)
 
     def close(self) -> None:
