@@ -84,9 +84,10 @@ def write_predictions(path: str | Path, image_ids: Sequence[str], predictions: S
     return path
 
 
-def load_splits(root: str | Path, splits: Sequence[str] = SPLITS) -> list[Sample]:
-    """Every image of the given splits, split by split in the samples table's order."""
-    return [s for split in splits for s in load_split(root, split)]
+def load_splits(root: str | Path, splits: Sequence[str] = SPLITS, *, truth: str = "sight") -> list[Sample]:
+    """Every image of the given splits, split by split in the samples table's order (``truth``: see
+    :data:`rebar_data.perception.data.TRUTHS`)."""
+    return [s for split in splits for s in load_split(root, split, truth=truth)]
 
 
 def random_frames(

@@ -1,0 +1,76 @@
+"""Scoring against the projected 3D crossing points (``--truth crossing``) as well as the labels' own pixels."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pyarrow.parquet as pq
+import pytest
+
+from rebar_data.cli import main
+from rebar_data.config import ConfigError
+from rebar_data.perception.data import load_split
+from tests.dataset.conftest import TINY, write_config
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """A rendered dataset (the tests' tiny planar pipeline, tilted views): its tables have the 3D points."""
+    from rebar_data.dataset.build import build_dataset
+
+    tmp = tmp_path_factory.mktemp("truth")
+    return build_dataset(write_config(tmp, {**TINY, "name": "truth"}), tmp / "data", workers=1)
+
+
+def test_crossing_truth_is_the_3d_crossing_point_projected_by_the_frames_camera(rendered):
+    samples = pq.read_table(rendered / "tables/samples.parquet").to_pandas().set_index("image_id")
+    kp = pq.read_table(rendered / "tables/keypoints.parquet").to_pandas()
+    moved = []
+    pairs = zip(load_split(rendered, "train"), load_split(rendered, "train", truth="crossing"), strict=True)
+    for sight, crossing in pairs:
+        assert sight.image_id == crossing.image_id and len(sight.visible) == len(crossing.visible)
+        row = samples.loc[sight.image_id]
+        camera_from_world = np.linalg.inv(np.asarray(row.world_from_camera, float).reshape(4, 4))
+        rvec, _ = cv2.Rodrigues(camera_from_world[:3, :3])
+        K = np.array([[row.fx, 0, row.cx], [0, row.fy, row.cy], [0, 0, 1]], float)
+        rows = kp[(kp.image_id == sight.image_id) & (kp.visibility == 2)]
+        xyz = rows[["x_crossing", "y_crossing", "z_crossing"]].to_numpy(float)
+        expected, _ = cv2.projectPoints(xyz, rvec, camera_from_world[:3, 3], K, None)
+        np.testing.assert_allclose(crossing.visible, expected.reshape(-1, 2), atol=1e-6)
+        np.testing.assert_array_equal(sight.visible, rows[["u", "v"]].to_numpy(float))
+        moved.append(np.linalg.norm(crossing.visible - sight.visible, axis=1))
+    moved = np.concatenate(moved)
+    # the bars lie one on the other: the 3D point, between their centerlines, projects beside the sight point
+    assert moved.max() > 0.3 and np.median(moved) < 10.0
+
+
+def test_detect_scores_against_the_chosen_truth(rendered, tmp_path, capsys):
+    figures = {}
+    for truth in ("sight", "crossing"):
+        metrics = tmp_path / f"{truth}.json"
+        args = ["detect", str(rendered), "--split", "all", "--no-depth", "--quiet"]
+        args += ["--out", str(tmp_path / f"{truth}.parquet"), "--metrics", str(metrics), "--truth", truth]
+        assert main(args) == 0
+        figures[truth] = json.loads(metrics.read_text())
+        assert figures[truth]["truth"] == truth
+    assert "projected 3D crossing points" in capsys.readouterr().err
+    assert figures["sight"]["n_gt"] == figures["crossing"]["n_gt"] > 0
+    assert figures["sight"]["mean_px"] != figures["crossing"]["mean_px"]
+    preds = [pq.read_table(tmp_path / f"{t}.parquet").to_pandas() for t in ("sight", "crossing")]
+    assert preds[0].equals(preds[1])  # the same detections, scored twice
+
+
+def test_crossing_truth_needs_the_3d_points(rendered, tmp_path):
+    import shutil
+
+    copy = tmp_path / "copy"
+    shutil.copytree(rendered, copy)
+    kp = pq.read_table(copy / "tables/keypoints.parquet").drop(["x_crossing"])
+    pq.write_table(kp, copy / "tables/keypoints.parquet")
+    with pytest.raises(ConfigError, match="x_crossing"):
+        load_split(copy, "test", truth="crossing")
+    assert load_split(copy, "test")  # the labels' own pixels need no 3D point
+    with pytest.raises(ConfigError, match="accepted: one of sight, crossing"):
+        load_split(copy, "test", truth="midpoint")
