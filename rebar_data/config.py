@@ -1,8 +1,9 @@
 """Typed pipeline configs. A bad config is one clear message naming the field, the value and what is accepted.
 
 A pipeline file (``pipelines/<name>.yaml``) has the dataset's identity (``name``, ``version``,
-``seed``), the rebar mesh (``mesh``, ``realism``) and, for datasets, the rendering sections defined in
-:mod:`rebar_data.scene.config`. Unknown keys are errors: a typo must never be silently ignored.
+``seed``), the rebar mesh (``mesh``, ``realism``) and the rendering sections defined in
+:mod:`rebar_data.scene.config`; :mod:`rebar_data.dataset.config` reads the whole file, for every command
+that takes one. Unknown keys are errors: a typo must never be silently ignored.
 """
 
 from __future__ import annotations
@@ -242,13 +243,6 @@ UNION_TAGS = {"planar", "tunnel_segment", "orbit_arc", "straight_pass", "approac
 
 def _is_union_tag(x: object) -> bool:
     return isinstance(x, str) and x in UNION_TAGS
-
-
-def load_mesh_config(path: str | Path) -> MeshConfig:
-    """The mesh part of a pipeline file (the other sections are checked by the dataset config)."""
-    data = read_yaml(path)
-    keys = {k: data[k] for k in ("seed", "mesh", "realism", "pose") if k in data}
-    return validate(MeshConfig, keys, str(path))
 
 
 def semver(value: str) -> str:

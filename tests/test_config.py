@@ -12,6 +12,7 @@ GOOD = {
     "version": "0.1.0",
     "seed": 1,
     "mesh": {"kind": "planar", "width_m": 1.0, "height_m": 0.6},
+    "camera": {"intrinsics": "square_640"},
 }
 
 

@@ -86,3 +86,9 @@ class PipelineConfig(MeshConfig):
 def load_pipeline(path: str | Path) -> PipelineConfig:
     """Read and check a pipeline file; every problem is one ConfigError naming the field."""
     return validate(PipelineConfig, read_yaml(path), str(path))
+
+
+def load_mesh_config(path: str | Path) -> MeshConfig:
+    """The mesh part of a pipeline file, read after the whole file is checked: a command that needs only
+    the mesh (``rebar mesh``, the servo world) accepts and refuses exactly the files a build does."""
+    return load_pipeline(path).mesh_config()

@@ -6,7 +6,8 @@ import time
 
 import numpy as np
 
-from rebar_data.config import PAPER_PIPELINE, load_mesh_config
+from rebar_data.config import PAPER_PIPELINE
+from rebar_data.dataset.config import load_mesh_config
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.solids import build_parts, merge

@@ -10,7 +10,7 @@ from pathlib import Path
 
 
 def run_mesh(args: argparse.Namespace) -> None:
-    from rebar_data.config import load_mesh_config
+    from rebar_data.dataset.config import load_mesh_config
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.geometry.export import write_mesh_outputs
 

@@ -221,8 +221,11 @@ class TrainResult:
     results: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
-def resolve_config(config: TrainConfig | dict | None, overrides: dict[str, Any]) -> TrainConfig:
-    """Settings from a TrainConfig or dict with keyword overrides applied (None values are left out)."""
+def resolve_config(
+    config: TrainConfig | dict | None, overrides: dict[str, Any], *, source: str = "train settings"
+) -> TrainConfig:
+    """Settings from a TrainConfig or dict with keyword overrides applied (None values are left out);
+    ``source`` names where they came from in an error (the settings file, for ``rebar train --config``)."""
     base = config.model_dump() if isinstance(config, TrainConfig) else dict(config or {})
     base.update({k: v for k, v in overrides.items() if v is not None})
     try:
@@ -231,7 +234,7 @@ def resolve_config(config: TrainConfig | dict | None, overrides: dict[str, Any])
         from pydantic import ValidationError
 
         if isinstance(e, ValidationError):
-            raise ConfigError(format_validation_error(e, "train settings", base)) from None
+            raise ConfigError(format_validation_error(e, source, base)) from None
         raise
 
 

@@ -35,7 +35,8 @@ def _rss_mb() -> float:
 
 
 def _paper_mesh():
-    from rebar_data.config import PAPER_PIPELINE, load_mesh_config
+    from rebar_data.config import PAPER_PIPELINE
+    from rebar_data.dataset.config import load_mesh_config
     from rebar_data.geometry.build import build_rebar_mesh
 
     return build_rebar_mesh(load_mesh_config(PAPER_PIPELINE))

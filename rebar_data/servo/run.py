@@ -22,6 +22,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError
+from rebar_data.dataset.config import load_pipeline
 from rebar_data.servo.camera import CameraModel
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.detectors import GroundTruthDetector, load_shipped_detector
@@ -119,6 +120,8 @@ def run_suite(
 ) -> dict:
     """Run every episode of a suite and write the outputs to ``out``; returns the summary."""
     suite = load_suite(suite_path)
+    # the pipeline the world's mesh comes from is checked whole before anything is written
+    load_pipeline(resolve_path(suite.world.mesh_config, suite_path))
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
