@@ -10,7 +10,7 @@ from pathlib import Path
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
-from rebar_data.perception.data import check_dataset, load_split, read_info
+from rebar_data.perception.data import check_dataset, load_split, read_info, stated_oks_sigma
 from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, predict
 from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector, depth_check_path, refiner_path
 from rebar_data.perception.metrics import oks_radius_px
@@ -333,6 +333,7 @@ def evaluation_rows(
     from rebar_data.perception.evaluate import (
         RANDOM_SPLIT_FRACTION,
         breakdown,
+        load_splits,
         random_frames,
         score,
         score_dataset,
@@ -357,8 +358,21 @@ def evaluation_rows(
     for path in evaluate_on:
         path = check_dataset(path)
         info = read_info(path)
-        name = f"{info.get('name') or path.parent.name} v{info.get('version', '?')} (all splits)"
-        rows[name] = score_dataset(detector, path, progress=progress)
+        label = f"{info.get('name') or path.parent.name} v{info.get('version', '?')}"
+        engine = (info.get("renderer") or {}).get("engine", "open3d")
+        if engine == "open3d":
+            rows[f"{label} (all splits)"] = score_dataset(detector, path, progress=progress)
+            continue
+        # another renderer's images stand for a user's camera: scored from RGB alone, against the labels
+        # and against the projected 3D crossing points (what labels made from the 3D point alone expect)
+        sigma = stated_oks_sigma(path)
+        samples = load_splits(path)
+        preds = predict(detector, samples, depth=False, progress=progress)
+        rows[f"{label}, {engine} renderer, RGB only"] = score(samples, preds, sigma=sigma)
+        crossing = load_splits(path, truth="crossing")
+        rows[f"{label}, {engine} renderer, RGB only, vs 3D crossing points"] = score(
+            crossing, preds, sigma=sigma
+        )
     return rows
 
 

@@ -27,3 +27,28 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
 def test_ship_refuses_an_unfinished_run(tmp_path):
     with pytest.raises(ConfigError, match="finished"):
         ship(tmp_path, models_dir=tmp_path / "models")
+
+
+def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trained_run, tmp_path):
+    """A dataset whose info.json names another engine gets RGB-only rows, against the labels and against
+    the projected 3D crossing points; one from the project's renderer keeps its single row."""
+    import json
+    import shutil
+
+    from rebar_data.dataset.build import build_dataset
+    from rebar_data.perception.card import evaluation_rows
+    from tests.dataset.conftest import TINY, write_config
+
+    own = build_dataset(write_config(tmp_path, {**TINY, "name": "own"}), tmp_path / "data", workers=1)
+    other = tmp_path / "other" / "v0.0.1"
+    shutil.copytree(own, other)
+    info = json.loads((other / "meta/info.json").read_text())
+    info.update(name="other", renderer={"engine": "cycles"})
+    (other / "meta/info.json").write_text(json.dumps(info))
+    det = Detector.load(trained_run.out_dir)
+    rows = evaluation_rows(det, trained_run.out_dir, evaluate_on=[own, other], random_split=False)
+    assert "own v0.0.1 (all splits)" in rows
+    rgb = rows["other v0.0.1, cycles renderer, RGB only"]
+    vs_3d = rows["other v0.0.1, cycles renderer, RGB only, vs 3D crossing points"]
+    assert rgb["n_gt"] == vs_3d["n_gt"] == rows["own v0.0.1 (all splits)"]["n_gt"] > 0
+    assert rgb["mean_px"] != vs_3d["mean_px"]
