@@ -23,7 +23,7 @@ from pathlib import Path
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.build import Task, build_dataset
-from rebar_data.dataset.config import PipelineConfig
+from rebar_data.dataset.config import PipelineConfig, load_pipeline
 from rebar_data.dataset.worker import FrameRecord, FrameWorker
 from rebar_data.geometry.build import RebarMesh
 
@@ -205,6 +205,7 @@ def build_dataset_ray(
     resume: bool = False,
 ) -> Path:
     """``build_dataset`` with its shards run on a Ray cluster; the same dataset, byte for byte, in its labels."""
+    load_pipeline(config)  # a broken pipeline is the first thing reported, before Ray or the cluster
     import_ray()
     runner = RayRunner(address=address, actors=actors)
     runner.check_address()

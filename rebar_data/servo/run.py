@@ -123,7 +123,6 @@ def run_suite(
     # the pipeline the world's mesh comes from is checked whole before anything is written
     load_pipeline(resolve_path(suite.world.mesh_config, suite_path))
     out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
     ctx = build_context(suite, suite_path)
     try:
@@ -137,6 +136,8 @@ def _run_episodes(suite, ctx, out: Path, t0: float, recorder_factory, progress: 
     plan = plan_episodes(suite, ctx)
     if limit_episodes is not None:
         plan = plan[:limit_episodes]
+    # only now, with the model loaded and every start pose reachable, does the run write anything
+    out.parent.mkdir(parents=True, exist_ok=True)
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.tmp-") as tmp:
         tmpdir = Path(tmp) / "run"
         tmpdir.mkdir()

@@ -6,6 +6,7 @@ import sys
 
 import pyarrow.parquet as pq
 import pytest
+import yaml
 
 from rebar_data.cli import main
 from rebar_data.dataset.validate import validate_dataset
@@ -35,6 +36,20 @@ def test_without_ray_the_backend_is_one_clear_message(tiny_config, tmp_path, mon
     assert code == 2 and len(err) == 1
     assert "pip install" in err[0] and ".[ray]" in err[0]
     assert not (tmp_path / "tiny").exists()
+
+
+def test_a_broken_pipeline_is_reported_before_ray_is_looked_for(tiny_config, tmp_path, monkeypatch, capsys):
+    monkeypatch.setitem(sys.modules, "ray", None)  # without Ray, the pipeline's own error still comes first
+    data = yaml.safe_load(tiny_config.read_text())
+    data["camera"]["trajectories"][0]["count"] = "not-a-number"
+    broken = tmp_path / "broken.yaml"
+    broken.write_text(yaml.safe_dump(data))
+    out = tmp_path / "out"
+    code = main(["dataset", "build", str(broken), "--out", str(out), "--backend", "ray", "--address", "auto"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert "camera.trajectories.0.count = 'not-a-number'" in err[0] and "pip install" not in err[0]
+    assert not out.exists()
 
 
 def test_address_without_the_ray_backend_is_refused(tiny_config, tmp_path, capsys):

@@ -97,6 +97,23 @@ def test_user_errors_are_one_line_and_exit_2(tmp_path, capsys):
     assert main(["train", str(tmp_path / "ds"), "--config", str(bad)]) == 2
 
 
+def test_train_checks_its_settings_file_whole_even_where_a_flag_overrides(drawn_dataset, tmp_path, capsys):
+    out = tmp_path / "runs" / "t"
+    for settings, flags, words in (
+        ({"epochs": "ten"}, ["--epochs", "1"], ["epochs = 'ten'", "valid integer"]),
+        ({"epochs": 1, "model": {"chanels": [8, 8, 16, 16]}}, [], ["unknown key", "'model.chanels'"]),
+        ({"epochs": 1, "lr": -0.1}, [], ["lr = -0.1", "greater than 0"]),
+    ):
+        cfg = tmp_path / "train.yaml"
+        cfg.write_text(yaml.safe_dump(settings))
+        args = ["train", str(drawn_dataset), "--config", str(cfg), "--out", str(out), "--quiet", *flags]
+        assert main(args) == 2
+        err = capsys.readouterr().err.strip()
+        assert err.count("\n") == 0 and err.startswith(f"error: {cfg}: "), err
+        assert all(w in err for w in words), err
+        assert not (tmp_path / "runs").exists()
+
+
 def test_detect_scores_at_a_given_oks_sigma(drawn_dataset, tmp_path, capsys):
     def run(*extra: str) -> dict:
         metrics = tmp_path / "m.json"

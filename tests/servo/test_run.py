@@ -173,3 +173,29 @@ def test_bad_suites_are_one_clear_error(tmp_path, capsys, change, words):
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and all(w in err for w in words), err
     assert not (tmp_path / "o").exists()
+
+
+def test_a_broken_episode_beyond_those_run_is_still_refused(tmp_path, capsys):
+    episodes = suite_dict()["episodes"] + [{"mode": "visual", "targets": 1}]
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump(suite_dict(episodes=episodes)))
+    out = tmp_path / "runs" / "o"
+    assert main(["servo", "run", str(path), "--out", str(out), "--episodes", "1", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "episodes.1.mode = 'visual'" in err and "'ibvs' or 'pbvs'" in err, err
+    assert not (tmp_path / "runs").exists()
+
+
+def test_a_missing_model_writes_nothing_not_even_the_parent_of_out(tmp_path, root, capsys):
+    suite = suite_dict(
+        detector="shipped",
+        detector_path=str(tmp_path / "nowhere.onnx"),
+        world={"mesh_config": str(root / "pipelines/smoke.yaml")},
+    )
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump(suite))
+    out = tmp_path / "runs" / "o"
+    assert main(["servo", "run", str(path), "--out", str(out), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "nowhere.onnx" in err, err
+    assert not (tmp_path / "runs").exists()
