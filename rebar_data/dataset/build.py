@@ -34,6 +34,7 @@ from rebar_data.dataset.writers.manifest import write_manifest
 from rebar_data.dataset.writers.tables import keypoints_table, samples_table, write_tables
 from rebar_data.dataset.writers.yolo import write_data_yaml, write_yolo
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
+from rebar_data.render.engines import check_engine, engine_record
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample
 
@@ -173,6 +174,7 @@ def build_dataset(
     staging folder, resume and finalize are the same whatever runs them.
     """
     cfg = load_pipeline(config)
+    check_engine(cfg.render)
     final = layout.dataset_dir(Path(out_root), cfg.name, cfg.version).resolve()
     workers = workers or os.cpu_count() or 1
     runner = runner or LocalRunner(workers)
@@ -272,6 +274,7 @@ def make_info(cfg: PipelineConfig, plan: Plan, records: dict[str, FrameRecord]) 
             "instance_png": "uint16 instance id + 3: 0 distractor, 1 ground/background, 2 nothing, 3+ rebar part id + 3",
         },
         description=cfg.description,
+        renderer=engine_record(cfg.render),
     )
 
 

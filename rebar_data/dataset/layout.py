@@ -11,7 +11,7 @@ import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-SCHEMA_VERSION = "2.0.0"
+SCHEMA_VERSION = "2.1.0"  # 2.1: info.json records the renderer
 SPLITS = ("train", "val", "test")
 KEYPOINT_NAMES = ["intersection"]
 CATEGORY = "rebar_crossing"
@@ -72,11 +72,14 @@ class DatasetInfo:
     oks_area: str
     conventions: dict
     description: str = ""
+    renderer: dict = field(default_factory=dict)  # {"engine", its version, settings}; absent before 2.1
     extra: dict = field(default_factory=dict)
 
     def to_dict(self) -> dict:
         d = asdict(self)
         extra = d.pop("extra")
+        if not d["renderer"]:
+            d.pop("renderer")
         d.update(extra)
         return d
 

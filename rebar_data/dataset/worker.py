@@ -38,7 +38,7 @@ class FrameWorker:
     """Owns one renderer and the mesh; renders a trajectory's frames into ``staging``."""
 
     def __init__(self, cfg: PipelineConfig, staging: Path, rm: RebarMesh | None = None):
-        from rebar_data.render.renderer import Renderer
+        from rebar_data.render.engines import renderer_class
 
         self.cfg = cfg
         self.staging = Path(staging)
@@ -46,7 +46,7 @@ class FrameWorker:
         self.parts = CrossingParts.of(self.rm)
         self.intrinsics = intrinsics_from_config(cfg.camera)
         self.rule = LabelRule(**cfg.labels.model_dump())
-        self.renderer = Renderer(self.intrinsics, cfg.render)
+        self.renderer = renderer_class(cfg.render)(self.intrinsics, cfg.render)
         self.renderer.set_mesh(self.rm)
         self.timer = StageTimer()  # seconds per stage of a frame: render, labels, png, write (for the bench)
 

@@ -183,9 +183,7 @@ def dataset_card(
         f"- Seed {info.seed}; config sha256 `{info.config_hash}`; dataset schema {info.schema_version}.",
         "- Geometry: a parametric rebar mesh (bars as swept tubes, tie-wire loops, position noise, missing "
         "bars as configured); crossings computed analytically from the bar centerlines.",
-        "- Rendering: Open3D's offscreen rasterizer with physically based materials, randomized lights, "
-        "rebar materials (rust, mill scale, dust), surroundings (formwork, ground, spacers, loose wire) and "
-        "sensor effects (noise, blur, vignetting, exposure).",
+        _rendering(info.renderer),
         "- Every random draw comes from the seed through NumPy `SeedSequence` streams planned before "
         "rendering: the same config gives byte-identical labels and images whatever the number of workers "
         "or machines.",
@@ -294,3 +292,20 @@ def dataset_card(
         "",
     ]
     return "\n".join(lines)
+
+
+def _rendering(renderer: dict) -> str:
+    """The card's rendering line, for the engine info.json records (datasets before schema 2.1: Open3D)."""
+    if renderer.get("engine") == "cycles":
+        return (
+            f"- Rendering: Blender {renderer.get('blender')} Cycles path tracing on the CPU "
+            f"({renderer.get('samples')} samples, {renderer.get('max_bounces')} bounces, denoiser "
+            f"{renderer.get('denoiser')}) with procedural steel, rust, mill scale and epoxy, wet and dry "
+            "grounds, sun and sky at noon, dusk or overcast, and the same sensor effects (noise, blur, "
+            "vignetting, exposure); depth, instance ids and labels from the same ray cast as Open3D's renderer."
+        )
+    return (
+        "- Rendering: Open3D's offscreen rasterizer with physically based materials, randomized lights, "
+        "rebar materials (rust, mill scale, dust), surroundings (formwork, ground, spacers, loose wire) and "
+        "sensor effects (noise, blur, vignetting, exposure)."
+    )

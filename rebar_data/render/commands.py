@@ -14,18 +14,19 @@ def run_render(args: argparse.Namespace) -> None:
 
     from rebar_data.dataset.config import load_pipeline
     from rebar_data.geometry.build import build_rebar_mesh
-    from rebar_data.render.renderer import Renderer
+    from rebar_data.render.engines import check_engine, renderer_class
     from rebar_data.scene.cameras import intrinsics_from_config, trajectory_poses
     from rebar_data.scene.sample import sample_scene, sample_sensor
 
     cfg = load_pipeline(args.config)
+    check_engine(cfg.render)
     rm = build_rebar_mesh(cfg.mesh_config())
     k = intrinsics_from_config(cfg.camera)
     rng = np.random.default_rng(cfg.seed if args.seed is None else args.seed)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     thumbs = []
-    with Renderer(k, cfg.render) as renderer:
+    with renderer_class(cfg.render)(k, cfg.render) as renderer:
         renderer.set_mesh(rm)
         for i in tqdm(range(args.frames), desc="render", unit="frame", file=sys.stderr):
             renderer.set_scene(sample_scene(cfg.scene, rng))

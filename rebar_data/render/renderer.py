@@ -3,8 +3,8 @@
 One :class:`Renderer` per process: it creates Open3D's ``OffscreenRenderer`` once and reuses it for every
 mesh, scene and frame, so memory stays flat over thousands of frames. Per frame it renders the RGB image
 (linear, no Filament post-processing unless asked), casts one ray through every pixel centre against the
-same triangles (``open3d.t.geometry.RaycastingScene``) for metric depth and instance ids, and applies the
-frame's sensor effects.
+same triangles (``open3d.t.geometry.RaycastingScene``, through :class:`rebar_data.render.raycast.SceneRaycast`,
+which the Cycles renderer shares) for metric depth and instance ids, and applies the frame's sensor effects.
 
 Instance ids: ``>= 0`` the part of ``rm.parts`` (primitive ids of the merged mesh mapped through
 ``rm.triangle_part_id``), ``-1`` nothing, ``-2`` ground, ``-3`` distractors. Depth is the ray cast's
@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.render.raycast import SceneRaycast
 from rebar_data.render.sensor import apply_sensor
 from rebar_data.render.uv import bar_corner_uv_m
 from rebar_data.scene.cameras import Intrinsics
@@ -40,7 +41,6 @@ from rebar_data.timing import StageTimer
 
 __all__ = ["Frame", "RenderConfig", "Renderer"]
 
-NOTHING_ID = -1
 NEAR_M, FAR_M = 0.05, 10.0  # clipping planes: cameras work at 0.3-1 m and see the ground within 7 m
 
 
@@ -99,7 +99,7 @@ def _render_from_world(normal: np.ndarray, centre: np.ndarray, rotation_deg: flo
     return T
 
 
-class Renderer:
+class Renderer(SceneRaycast):
     """Renders frames of one rebar mesh in a sampled scene; reuse it for every frame of a worker."""
 
     def __init__(self, intrinsics: Intrinsics, cfg: RenderConfig | None = None):
@@ -124,24 +124,13 @@ class Renderer:
         self._geometry: list[str] = []  # names in the Open3D scene
         self._lights: list[str] = []
         self._ibl: str | None = None
-        self._raycast = None
-        # instance id of each ray-cast geometry (0: the rebar), then the id of a miss
-        self._geom_lut = np.array([0, NOTHING_ID], np.int32)
+        self._init_raycast(intrinsics)
         self._render_from_world = np.eye(4)
         self._shadows_on = False
-        self._pixel_xy = self._camera_rays(intrinsics)
-        self._rays = np.empty((len(self._pixel_xy), 6), np.float32)
         self.timer = StageTimer()  # seconds per stage of render(): filament, rays, sensor
         _OPEN.append(self)
 
     # --- set-up ---------------------------------------------------------------------------------------
-
-    @staticmethod
-    def _camera_rays(k: Intrinsics) -> np.ndarray:
-        """(x, y) of the ray through every pixel centre in the camera frame at z = 1, shape (H*W, 2)."""
-        v, u = np.mgrid[0 : k.height, 0 : k.width].astype(np.float64)
-        xy = np.stack([(u + 0.5 - k.cx) / k.fx, (v + 0.5 - k.cy) / k.fy], axis=-1)
-        return xy.reshape(-1, 2).astype(np.float32)
 
     def set_mesh(self, rm: RebarMesh) -> None:
         """Use ``rm`` for the rebar (once per mesh); call :meth:`set_scene` before rendering."""
@@ -341,56 +330,7 @@ class Renderer:
         view.set_shadowing(bool(shadows), view_type)
         self._shadows_on = bool(shadows)
 
-    def _build_raycast(self, objects: list[SceneObject]) -> None:
-        import open3d as o3d
-
-        rs = o3d.t.geometry.RaycastingScene()
-        rm = self._rm
-        rs.add_triangles(
-            o3d.core.Tensor(np.asarray(rm.mesh.vertices, np.float32)),
-            o3d.core.Tensor(np.asarray(rm.mesh.faces, np.uint32)),
-        )
-        ids = [0]  # the rebar's ids come from its triangles
-        for obj in objects:
-            rs.add_triangles(
-                o3d.core.Tensor(obj.shape.vertices.astype(np.float32)),
-                o3d.core.Tensor(obj.shape.triangles.astype(np.uint32)),
-            )
-            ids.append(obj.instance_id)
-        self._raycast = rs
-        self._geom_lut = np.array([*ids, NOTHING_ID], np.int32)  # the last entry: nothing hit
-
     # --- per frame ------------------------------------------------------------------------------------
-
-    def cast_rays(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """First hit of each world ray against everything in the scene: distance in metres along the
-        (normalised) direction, ``inf`` when nothing is hit, and the instance id there."""
-        if self._raycast is None:
-            raise RuntimeError("set_mesh(rm) and set_scene(scene) must come before cast_rays")
-        d = np.asarray(directions, np.float64)
-        d = d / np.linalg.norm(d, axis=1, keepdims=True)
-        t, inst = self._cast(np.asarray(origins, np.float64), d)
-        return t.astype(np.float64), inst
-
-    def _cast(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rays = np.empty((len(directions), 6), np.float32)
-        rays[:, :3] = origins
-        rays[:, 3:] = directions
-        return self._cast_rays(rays)
-
-    def _cast_rays(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Hit distances (in ray-direction lengths, inf = miss) and instance ids of (N, 6) float32 rays."""
-        import open3d as o3d
-
-        hit = self._raycast.cast_rays(o3d.core.Tensor.from_numpy(rays))
-        t = hit["t_hit"].numpy()
-        geom = hit["geometry_ids"].numpy()  # uint32; Open3D marks a miss with the largest value
-        # one look-up for every geometry (a miss reads the extra last entry), then the rebar's hits get
-        # their part's id from the triangle they hit
-        inst = self._geom_lut[np.minimum(geom, len(self._geom_lut) - 1)]
-        rebar = geom == 0
-        inst[rebar] = self._rm.triangle_part_id[hit["primitive_ids"].numpy()[rebar]]
-        return t, inst
 
     def render_raw(self, world_from_camera: np.ndarray) -> np.ndarray:
         """The rendered image before sensor effects: (H, W, 3) float32, linear light in [0, 1]."""
@@ -414,21 +354,6 @@ class Renderer:
         if not _SHADOWS_WARM and self._shadows_on:
             self._o3d.render_to_image()
             _SHADOWS_WARM = True
-
-    def depth_and_instance(self, world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Exact depth (z, metres, 0 = nothing) and instance ids of every pixel, by ray cast."""
-        k = self.intrinsics
-        T = np.asarray(world_from_camera, float)
-        R = T[:3, :3].astype(np.float32)
-        rays = self._rays  # reused every frame
-        rays[:, :3] = T[:3, 3]
-        # direction = R @ (x, y, 1), written out: a (N, 3) @ (3, 3) matmul is several times slower
-        np.multiply(self._pixel_xy[:, :1], R[:, 0], out=rays[:, 3:])
-        rays[:, 3:] += self._pixel_xy[:, 1:] * R[:, 1]
-        rays[:, 3:] += R[:, 2]
-        depth, inst = self._cast_rays(rays)  # directions have camera z = 1, so t is z
-        depth[np.isinf(depth)] = 0.0
-        return depth.reshape(k.height, k.width), inst.reshape(k.height, k.width)
 
     def render(self, world_from_camera: np.ndarray, sensor: SensorSample, rng: np.random.Generator) -> Frame:
         """RGB (after ``sensor`` effects, noise from ``rng``), depth and instance ids of one camera pose."""

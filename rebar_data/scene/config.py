@@ -410,8 +410,27 @@ class SceneConfig(Strict):
     sensor: SensorConfig = SensorConfig()
 
 
+class CyclesConfig(Strict):
+    """Blender Cycles settings, used when ``render.engine`` is ``cycles`` (the optional ``bpy`` package).
+
+    Cycles path-traces on the CPU: ``samples`` per pixel at most (adaptive sampling stops earlier where a
+    pixel's noise is below ``adaptive_threshold``), ``max_bounces`` of indirect light (diffuse and glossy
+    each), OpenImageDenoise on the result when ``denoise``, ``threads`` render threads (0: every core).
+    """
+
+    samples: Annotated[int, Field(ge=1, le=4096)] = 32
+    adaptive_threshold: Annotated[float, Field(gt=0.0, le=1.0)] = 0.05
+    max_bounces: Annotated[int, Field(ge=0, le=32)] = 4
+    denoise: bool = True
+    threads: Annotated[int, Field(ge=0, le=1024)] = 0
+
+
 class RenderConfig(Strict):
     """The pipeline's ``render`` section: how frames are rendered (not what is in them).
+
+    ``engine`` picks the renderer of the RGB image: ``open3d`` (the project's own, Filament rasterised)
+    or ``cycles`` (Blender's path tracer, settings in ``cycles``; for validation sets rendered by another
+    renderer). Depth, instance ids and labels come from the same ray cast whichever engine is used.
 
     ``shadows: false`` turns every shadow off whatever the scene draws (about 0.05-0.1 s a frame less on
     a CPU). ``post_processing`` turns on Open3D's own tone mapping and FXAA, which cost about 0.3 s a frame
@@ -424,6 +443,8 @@ class RenderConfig(Strict):
     ground kinds and variants), and this size sets what each costs.
     """
 
+    engine: Literal["open3d", "cycles"] = "open3d"
+    cycles: CyclesConfig = CyclesConfig()
     shadows: bool = True
     post_processing: bool = False
     texture_size_px: Literal[256, 512, 1024, 2048] = 512
