@@ -94,9 +94,9 @@ def _breakdown_lines(cfg_path: Path, tmp: Path, *, trajectories: int = 3) -> lis
     def per_frame(group: str, stage: str) -> float:
         return (after[group].get(stage, (0.0, 0))[0] - before[group].get(stage, (0.0, 0))[0]) / frames
 
-    total = sum(per_frame("frame", k) for k in FRAME_STAGES)
     render = {k: per_frame("render", k) for k in RENDER_STAGES}
     frame = {k: per_frame("frame", k) for k in FRAME_STAGES}
+    total = sum(frame.values())
     other = frame["render"] - sum(render.values())
     parts = [f"Filament render {render['filament'] * 1000:.0f} ms ({render['filament'] / total:.0%})"]
     parts += [

@@ -20,11 +20,8 @@ def run_train(args: argparse.Namespace) -> None:
         raise ConfigError("--eval scores the model for its card; accepted: --eval together with --ship")
     for path in args.eval or ():  # scored after training: fail before it (train checks supplements itself)
         check_dataset(path)
-    config = (
-        resolve_config(read_yaml(args.config), {}, source=str(args.config))
-        if args.config
-        else resolve_config(None, {})
-    )
+    settings = read_yaml(args.config) if args.config else None
+    config = resolve_config(settings, {}, source=str(args.config or "train settings"))
     out = (
         Path(args.out)
         if args.out

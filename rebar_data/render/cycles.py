@@ -38,15 +38,14 @@ import numpy as np
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.render import cycles_looks as looks
-from rebar_data.render.raycast import SceneRaycast
-from rebar_data.render.renderer import Frame
-from rebar_data.render.sensor import apply_sensor
+from rebar_data.render.raycast import Frame, SceneRaycast
 from rebar_data.scene.cameras import Intrinsics
 from rebar_data.scene.config import RenderConfig
 from rebar_data.scene.lighting import direction_in_frame, kelvin_to_rgb
 from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.scene.sample import SceneSample, SensorSample
 from rebar_data.scene.surroundings import SceneObject, build_surroundings
+from rebar_data.scene.textures import bar_tints
 from rebar_data.timing import StageTimer
 
 __all__ = ["CyclesRenderer", "blender_version", "require_bpy"]
@@ -292,9 +291,7 @@ class CyclesRenderer(SceneRaycast):
         """Per-bar tint (as the Open3D renderer's: darker bars a little warmer) and a random number."""
         rng = np.random.default_rng(scene.rebar.tint_seed)
         counts = self._bar_vertex_counts
-        k = scene.rebar.colour_variation * np.clip(rng.normal(0.0, 1.0, (len(counts), 1)), -2.0, 2.0)
-        rgb = 1.0 + k * np.array([0.8, 0.9, 1.0])
-        rgb = rgb / rgb.max()
+        rgb = bar_tints(scene.rebar, len(counts), rng)
         rand = rng.uniform(0.0, 1.0, len(counts))
         _point_attribute(obj.data, "bar_tint", np.repeat(rgb, counts, axis=0))
         _point_attribute(obj.data, "bar_random", np.repeat(rand, counts))
@@ -346,37 +343,14 @@ class CyclesRenderer(SceneRaycast):
             e = lamp.illuminance_lux * scale  # on a surface facing the lamp, at the mat's centre
             colour = kelvin_to_rgb(lamp.temperature_k)
             if lamp.kind == "area":
-                size = max(lamp.size_m, 0.05)
-                self._light(
-                    f"lamp{i}",
-                    "AREA",
-                    colour=colour,
-                    energy=e * np.pi * d**2,
-                    position=pos,
-                    facing=-pos / d,
-                    size=size,
-                )
-            elif lamp.kind == "spot":
-                self._light(
-                    f"lamp{i}",
-                    "SPOT",
-                    colour=colour,
-                    energy=e * 4.0 * np.pi * d**2,
-                    position=pos,
-                    facing=-pos / d,
-                    spot_size=float(np.radians(lamp.cone_deg)),
-                    radius=0.05,
-                )
+                kind, energy, shape = "AREA", e * np.pi * d**2, {"size": max(lamp.size_m, 0.05)}
             else:
-                self._light(
-                    f"lamp{i}",
-                    "POINT",
-                    colour=colour,
-                    energy=e * 4.0 * np.pi * d**2,
-                    position=pos,
-                    facing=-pos / d,
-                    radius=0.05,
-                )
+                kind, energy, shape = lamp.kind.upper(), e * 4.0 * np.pi * d**2, {"radius": 0.05}
+                if lamp.kind == "spot":
+                    shape["spot_size"] = float(np.radians(lamp.cone_deg))
+            self._light(
+                f"lamp{i}", kind, colour=colour, energy=energy, position=pos, facing=-pos / d, **shape
+            )
 
     def _light(
         self,
@@ -441,12 +415,7 @@ class CyclesRenderer(SceneRaycast):
         """RGB (after ``sensor`` effects, noise from ``rng``), depth and instance ids of one camera pose."""
         with self.timer("cycles"):
             raw = self.render_raw(world_from_camera, seed=int(rng.integers(2**31 - 1)))
-        with self.timer("rays"):
-            depth, inst = self.depth_and_instance(world_from_camera)
-        k = self.intrinsics
-        with self.timer("sensor"):
-            rgb = apply_sensor(raw, sensor, rng, principal_point=(k.cx, k.cy))
-        return Frame(rgb, depth, inst)
+        return self._finish_frame(raw, world_from_camera, sensor, rng)
 
     def close(self) -> None:
         """Drop this renderer's Blender data and temporary files."""

@@ -12,30 +12,45 @@ Instance ids: ``>= 0`` the part of ``rm.parts`` (primitive ids of the merged mes
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.render.sensor import apply_sensor
 from rebar_data.scene.cameras import Intrinsics
+from rebar_data.scene.sample import SensorSample
 from rebar_data.scene.surroundings import SceneObject
+from rebar_data.timing import StageTimer
 
 NOTHING_ID = -1
+
+
+@dataclass
+class Frame:
+    """What a renderer gives for one camera pose, whichever engine drew the image."""
+
+    rgb: np.ndarray  # (H, W, 3) uint8, after sensor effects
+    depth_m: np.ndarray  # (H, W) float32, metric z in the camera frame, 0 where nothing was hit
+    instance: np.ndarray  # (H, W) int32: >= 0 part id; -1 nothing; -2 ground; -3 distractors
 
 
 class SceneRaycast:
     """Ray casts against the rebar and the scene's objects; a renderer mixes it in.
 
     The renderer calls :meth:`_init_raycast` once, keeps its mesh in ``self._rm`` and calls
-    :meth:`_build_raycast` with the scene's objects in ``set_scene``.
+    :meth:`_build_raycast` with the scene's objects in ``set_scene``; its ``render`` draws the linear image
+    and hands it to :meth:`_finish_frame`.
     """
 
     _rm: RebarMesh | None
     intrinsics: Intrinsics
+    timer: StageTimer  # seconds per stage of render(): the engine's own, rays, sensor
 
     def _init_raycast(self, intrinsics: Intrinsics) -> None:
         self._raycast = None
-        self._geom_lut = np.array(
-            [0, NOTHING_ID], np.int32
-        )  # instance id of each ray-cast geometry, then a miss
+        # instance id of each ray-cast geometry (0: the rebar), then the id of a miss
+        self._geom_lut = np.array([0, NOTHING_ID], np.int32)
         self._pixel_xy = self._camera_rays(intrinsics)
         self._rays = np.empty((len(self._pixel_xy), 6), np.float32)
 
@@ -109,3 +124,15 @@ class SceneRaycast:
         depth, inst = self._cast_rays(rays)  # directions have camera z = 1, so t is z
         depth[np.isinf(depth)] = 0.0
         return depth.reshape(k.height, k.width), inst.reshape(k.height, k.width)
+
+    def _finish_frame(
+        self, raw: np.ndarray, world_from_camera: np.ndarray, sensor: SensorSample, rng: np.random.Generator
+    ) -> Frame:
+        """The frame of a rendered linear image ``raw``: depth and instance ids by ray cast, then the
+        ``sensor``'s effects (noise from ``rng``)."""
+        with self.timer("rays"):
+            depth, inst = self.depth_and_instance(world_from_camera)
+        k = self.intrinsics
+        with self.timer("sensor"):
+            rgb = apply_sensor(raw, sensor, rng, principal_point=(k.cx, k.cy))
+        return Frame(rgb, depth, inst)

@@ -20,14 +20,12 @@ from __future__ import annotations
 
 import os
 from collections import OrderedDict
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from rebar_data.geometry.build import RebarMesh
-from rebar_data.render.raycast import SceneRaycast
-from rebar_data.render.sensor import apply_sensor
+from rebar_data.render.raycast import Frame, SceneRaycast
 from rebar_data.render.uv import bar_corner_uv_m
 from rebar_data.scene.cameras import Intrinsics
 from rebar_data.scene.config import RenderConfig
@@ -36,19 +34,19 @@ from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.scene.sample import SceneSample, SensorSample
 from rebar_data.scene.surroundings import SceneObject, build_surroundings
 from rebar_data.scene.texture_folders import load_texture_set
-from rebar_data.scene.textures import TextureCache, ground_maps, rebar_fields, rebar_maps, rebar_tint
+from rebar_data.scene.textures import (
+    TextureCache,
+    bar_tints,
+    ground_maps,
+    rebar_fields,
+    rebar_maps,
+    rebar_tint,
+)
 from rebar_data.timing import StageTimer
 
 __all__ = ["Frame", "RenderConfig", "Renderer"]
 
 NEAR_M, FAR_M = 0.05, 10.0  # clipping planes: cameras work at 0.3-1 m and see the ground within 7 m
-
-
-@dataclass
-class Frame:
-    rgb: np.ndarray  # (H, W, 3) uint8, after sensor effects
-    depth_m: np.ndarray  # (H, W) float32, metric z in the camera frame, 0 where nothing was hit
-    instance: np.ndarray  # (H, W) int32: >= 0 part id; -1 nothing; -2 ground; -3 distractors
 
 
 _OFFSCREEN = None  # (width, height, OffscreenRenderer): one per process, reused
@@ -204,11 +202,9 @@ class Renderer(SceneRaycast):
     def _bar_tints(self, scene: SceneSample) -> np.ndarray:
         """Per-vertex colour of the merged bar mesh: one tint per bar, drawn from the scene's seed (a
         darker bar is a little warmer), scaled so the brightest is 1."""
-        rng = np.random.default_rng(scene.rebar.tint_seed)
         bars = [p for p in self._rm.parts if p.kind == "bar"]
-        k = scene.rebar.colour_variation * np.clip(rng.normal(0.0, 1.0, (len(bars), 1)), -2.0, 2.0)
-        rgb = 1.0 + k * np.array([0.8, 0.9, 1.0])
-        return np.repeat(rgb / rgb.max(), [len(p.mesh.vertices) for p in bars], axis=0)
+        rgb = bar_tints(scene.rebar, len(bars), np.random.default_rng(scene.rebar.tint_seed))
+        return np.repeat(rgb, [len(p.mesh.vertices) for p in bars], axis=0)
 
     def _add(self, name: str, mesh, material, *, cast: bool) -> None:
         scene = self._o3d.scene
@@ -359,12 +355,7 @@ class Renderer(SceneRaycast):
         """RGB (after ``sensor`` effects, noise from ``rng``), depth and instance ids of one camera pose."""
         with self.timer("filament"):
             raw = self.render_raw(world_from_camera)
-        with self.timer("rays"):
-            depth, inst = self.depth_and_instance(world_from_camera)
-        k = self.intrinsics
-        with self.timer("sensor"):
-            rgb = apply_sensor(raw, sensor, rng, principal_point=(k.cx, k.cy))
-        return Frame(rgb, depth, inst)
+        return self._finish_frame(raw, world_from_camera, sensor, rng)
 
     def close(self) -> None:
         """Drop this renderer's geometry and lights; the process keeps the OffscreenRenderer for reuse."""

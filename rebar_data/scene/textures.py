@@ -230,6 +230,15 @@ def rebar_maps(m, fields: dict[str, np.ndarray]) -> Maps:
     }
 
 
+def bar_tints(m, count: int, rng: np.random.Generator) -> np.ndarray:
+    """(count, 3) linear RGB multiplier of each bar of a scene's rebar ``m``: one tint a bar around the
+    scene's ``colour_variation`` (a darker bar is a little warmer), scaled so the brightest is 1. Every
+    renderer draws them from ``default_rng(m.tint_seed)``, so the same bar gets the same tint in each."""
+    k = m.colour_variation * np.clip(rng.normal(0.0, 1.0, (count, 1)), -2.0, 2.0)
+    rgb = 1.0 + k * np.array([0.8, 0.9, 1.0])
+    return rgb / rgb.max()
+
+
 def rebar_tint(m) -> np.ndarray:
     """Linear RGB multiplier of a scene's rebar: its hue shift (yellower rust for positive values, redder
     for negative) and brightness, applied on top of the maps so they need no new texture."""
