@@ -103,8 +103,8 @@ clean:
 # Cross-renderer validation sets (pipelines/crossval-*.yaml): the same meshes, cameras and labels as a training
 # set, the RGB images rendered by Blender Cycles (installed by setup), every image in the test split. Builds each
 # set when missing (24 images, about 6 minutes on 2 cores), validates and audits it, then scores the shipped
-# detector on it from RGB alone, against the labels and against the projected 3D crossing points
-# (predictions and metrics in $(CROSSVAL_OUT)).
+# detector on it from RGB alone: its sight points against the labels and against the projected 3D crossing
+# points, and its crossing-point stage's points against the 3D points (predictions and metrics in $(CROSSVAL_OUT)).
 CROSSVAL := crossval-planar crossval-tunnel
 CROSSVAL_OUT ?= runs/crossval
 .PHONY: crossval
@@ -116,8 +116,8 @@ crossval: setup | $(DATA)
 	  if [ ! -d "$$ds" ]; then $(REBAR) dataset build pipelines/$$p.yaml --out $(DATA) --workers 1 || exit 1; fi; \
 	  $(REBAR) dataset validate "$$ds" || exit 1; \
 	  $(REBAR) dataset audit "$$ds" || exit 1; \
-	  for t in sight crossing; do \
-	    $(REBAR) detect "$$ds" --split test --no-depth --truth $$t --quiet --out $(CROSSVAL_OUT)/$$p.parquet \
-	      --metrics $(CROSSVAL_OUT)/$$p.$$t.json >/dev/null || exit 1; \
+	  for tp in sight:sight crossing:sight crossing:crossing; do t=$${tp%:*}; pt=$${tp#*:}; \
+	    $(REBAR) detect "$$ds" --split test --no-depth --truth $$t --point $$pt --quiet \
+	      --out $(CROSSVAL_OUT)/$$p.$$pt.parquet --metrics $(CROSSVAL_OUT)/$$p.$$t-truth.$$pt-points.json >/dev/null || exit 1; \
 	  done; \
 	done

@@ -12,7 +12,14 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
 from rebar_data.perception.data import check_dataset, load_split, read_info, stated_oks_sigma
 from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, predict
-from rebar_data.perception.infer import MODELS_DIR, SHIPPED_MODEL, Detector, depth_check_path, refiner_path
+from rebar_data.perception.infer import (
+    MODELS_DIR,
+    SHIPPED_MODEL,
+    Detector,
+    crossing_point_path,
+    depth_check_path,
+    refiner_path,
+)
 from rebar_data.perception.metrics import oks_radius_px
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
@@ -373,6 +380,11 @@ def evaluation_rows(
         rows[f"{label}, {engine} renderer, RGB only, vs 3D crossing points"] = score(
             crossing, preds, sigma=sigma
         )
+        if detector.crossing_point is not None:  # the same, with the crossing-point stage's output
+            found = predict(detector, samples, depth=False, progress=progress, point="crossing")
+            rows[f"{label}, {engine} renderer, RGB only, crossing points vs 3D crossing points"] = score(
+                crossing, found, sigma=sigma
+            )
     return rows
 
 
@@ -404,7 +416,8 @@ def ship(
         raise ConfigError(
             f"{run_dir}: no best.onnx and results.json; accepted: a finished `rebar train` run folder"
         )
-    size = sum(p.stat().st_size for p in (src, refiner_path(src), depth_check_path(src)) if p.exists())
+    stages = (refiner_path, depth_check_path, crossing_point_path)
+    size = sum(p.stat().st_size for p in (src, *(f(src) for f in stages)) if p.exists())
     if size > MAX_SHIPPED_BYTES:
         raise ConfigError(
             f"{src}: {size / 2**20:.1f} MiB (with its later stages) is over the "
@@ -415,7 +428,7 @@ def ship(
     models_dir.mkdir(parents=True, exist_ok=True)
     dst = models_dir / SHIPPED_MODEL.name
     pairs = [(src, dst)]
-    for beside in (refiner_path, depth_check_path):
+    for beside in stages:
         if beside(src).exists():
             pairs.append((beside(src), beside(dst)))
         else:

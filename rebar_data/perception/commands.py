@@ -49,6 +49,27 @@ def run_train(args: argparse.Namespace) -> None:
     print(out)
 
 
+def run_add_crossing_point(args: argparse.Namespace) -> None:
+    from rebar_data.config import read_yaml
+    from rebar_data.perception.crossing_point_train import attach
+    from rebar_data.perception.data import check_dataset, load_split, read_info
+    from rebar_data.perception.infer import resolve_model_path
+    from rebar_data.perception.train import _supplement_images, resolve_config
+
+    root = check_dataset(args.dataset)
+    model = resolve_model_path(args.model)
+    settings = read_yaml(args.config) if args.config else None
+    cfg = resolve_config(settings, {}, source=str(args.config or "train settings"))
+    extra, _ = _supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
+    samples = load_split(root, "train") + extra
+    out = Path(args.out)
+    stage = attach(
+        model, samples, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=not args.quiet
+    )
+    print(f"crossing-point stage beside {model}: {stage}", file=sys.stderr)
+    print(stage)
+
+
 def run_detect(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError
     from rebar_data.perception.infer import Detector
@@ -84,14 +105,18 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
     if not samples:
         raise ConfigError(f"{root}: the {args.split} split has no images; accepted: a split with images")
     threshold = args.threshold if args.threshold is not None else LOW_THRESHOLD
-    preds = predict(detector, samples, threshold=threshold, depth=not args.no_depth, progress=not args.quiet)
+    point = args.point or args.truth
+    preds = predict(
+        detector, samples, threshold=threshold, depth=not args.no_depth, progress=not args.quiet, point=point
+    )
     write_predictions(out, [s.image_id for s in samples], preds)
     sigma = args.oks_sigma if args.oks_sigma is not None else stated_oks_sigma(root)
     metrics = score(samples, preds, sigma=sigma)
     against = "" if args.truth == "sight" else " (against the projected 3D crossing points)"
-    print(f"{args.split}{against}: {format_summary(metrics)}", file=sys.stderr)
+    found = "" if point == args.truth else f", the detector's {point} points"
+    print(f"{args.split}{against}{found}: {format_summary(metrics)}", file=sys.stderr)
     if args.metrics:
-        record = {"split": args.split, "dataset": str(root), "truth": args.truth, **metrics}
+        record = {"split": args.split, "dataset": str(root), "truth": args.truth, "point": point, **metrics}
         Path(args.metrics).write_text(json.dumps(record, indent=2) + "\n")
     print(out)
 
@@ -124,7 +149,7 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
     preds, ids = [], []
     for f in files:
         rgb = read_image(f)
-        det = detector.detect(rgb, threshold=threshold)
+        det = detector.detect(rgb, threshold=threshold, point=args.point or "sight")
         overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
         cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
         preds.append(det)
@@ -162,6 +187,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     t.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
     t.set_defaults(func=run_train)
+
+    a = sub.add_parser(
+        "add-crossing-point",
+        help="train the crossing-point stage alone and put it beside a model trained without it",
+    )
+    a.add_argument("dataset", help="the dataset the model trained on (its train split trains the stage)")
+    a.add_argument("--model", help="the model's .onnx file (default: the shipped model)")
+    a.add_argument("--out", required=True, help="folder for the stage's checkpoint (resumes there)")
+    a.add_argument(
+        "--supplement", action="append", metavar="DATASET", help="as for `rebar train` (repeatable)"
+    )
+    a.add_argument(
+        "--config", help="YAML of training settings, as for `rebar train` (its crossing_point and seed)"
+    )
+    a.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
+    a.set_defaults(func=run_add_crossing_point)
 
     d = sub.add_parser(
         "detect", help="detect crossings in a dataset split (to Parquet) or in images (overlays)"
@@ -202,6 +243,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="what a crossing's pixel is when scoring (dataset input): sight (default), the labels' u, v where "
         "the image shows the bars cross; crossing, the projected 3D crossing point (the centerlines' "
         "midpoint, inside the steel), how labels made from the 3D point alone score a detector",
+    )
+    d.add_argument(
+        "--point",
+        choices=("sight", "crossing"),
+        help="what each detection's u, v stands for: sight, where the image shows the bars cross (the "
+        "labels' convention); crossing, where the 3D crossing point projects, from the model's "
+        "crossing-point stage; default: as --truth for a dataset, sight for images",
     )
     d.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
     d.add_argument("--quiet", action="store_true", help="no progress bar")

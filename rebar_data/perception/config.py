@@ -252,6 +252,45 @@ class DepthCheckConfig(Strict):
     calibration_patches: PositiveInt = 2048
 
 
+class CrossingPointConfig(Strict):
+    """The crossing-point stage (``rebar_data.perception.crossing_point``): a small network that reads the
+    full-resolution patch around each detection and gives where the 3D crossing point (the midpoint of
+    the two centerlines, inside the steel) projects, as an offset from the detection in pixels.
+
+    Why: the detector finds the sight point, where the image shows the two bars cross (the labels' u, v).
+    The 3D crossing point lies half the bars' combined diameter behind the top bar's centerline, so under
+    an oblique view it projects a few pixels away (a mean 3.5 px on paper-tunnel's test frames, up to 11),
+    in the direction the mat leans. A test set labelled from the 3D point alone, and a robot that ties
+    at the 3D point from an image without depth, need that point: ``Detector.detect(..., point=
+    "crossing")`` and ``rebar detect --point crossing`` add this stage's offset to each detection. The
+    patch shows what the offset depends on: the bars' width in pixels (their diameter over their
+    distance), which bar lies on top and which of its sides the camera sees.
+
+    Each training patch is the ``context_px`` square around a visible crossing, centred with a Gaussian
+    error of ``jitter_px`` (the second stage's error is about 0.5 px), cut at a random scale in ``scale``
+    (other bar sizes and distances; the offset scales with it) to ``patch_px``, turned by quarter turns
+    and flipped with its offset and its viewing ray alike (a mirrored or rolled camera sees a mirrored or
+    rolled scene), with the first stage's colour, blur and noise changes. The network sees the patch's
+    viewing ray ((u - cx) / fx, (v - cy) / fy) beside it. It trains on the labels alone (independent of
+    the other stages' weights), with an L1 loss on the offset.
+    """
+
+    enabled: bool = True
+    patch_px: Annotated[int, Field(ge=16, multiple_of=8)] = 48
+    context_px: Annotated[int, Field(ge=16, multiple_of=2)] = 72
+    pool: Literal[1, 2, 3, 4] = 1
+    scale: tuple[Positive, Positive] = (0.75, 1.35)
+    widths: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 32, 48, 64)
+    hidden: PositiveInt = 128
+    epochs: PositiveInt = 8
+    batch_size: PositiveInt = 256
+    lr: Positive = 2e-3
+    weight_decay: NonNegative = 1e-4
+    jitter_px: NonNegative = 1.0
+    max_per_image: PositiveInt = 20
+    threads: PositiveInt = 2
+
+
 class TrainConfig(Strict):
     """One training run.
 
@@ -296,3 +335,4 @@ class TrainConfig(Strict):
     augment: AugmentConfig = AugmentConfig()
     refine: RefineConfig = RefineConfig()
     depth_check: DepthCheckConfig = DepthCheckConfig()
+    crossing_point: CrossingPointConfig = CrossingPointConfig()

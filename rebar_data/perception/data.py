@@ -46,6 +46,9 @@ class Sample:
         occluded_box_size_px: (M,) their box sides.
         camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin.
         depth_path: The registered depth image (uint16 millimetres), None when the dataset has none.
+        crossings: (N, 2) projected 3D crossing point of each visible crossing (the centerlines'
+            midpoint, row for row with ``visible``; NaN where the dataset does not record it), None
+            when the dataset's tables lack the 3D points.
     """
 
     image_id: str
@@ -58,6 +61,7 @@ class Sample:
     occluded_box_size_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     camera: tuple[float, float, float, float] | None = None
     depth_path: Path | None = None
+    crossings: np.ndarray | None = None
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -109,9 +113,10 @@ def load_split(root: str | Path, split: str, *, truth: str = "sight") -> list[Sa
     kp = pq.read_table(root / "tables/keypoints.parquet").to_pydict()
     _require(kp, _KEYPOINT_COLUMNS, root / "tables/keypoints.parquet")
     ids = np.asarray(kp["image_id"]).astype(str)
-    uv = np.c_[np.asarray(kp["u"], float), np.asarray(kp["v"], float)]
-    if truth == "crossing":
-        uv = _projected_crossings(root, samples, kp, ids)
+    sight = np.c_[np.asarray(kp["u"], float), np.asarray(kp["v"], float)]
+    has_points = all(c in kp for c in _CROSSING_COLUMNS) and "world_from_camera" in samples
+    points = _projected_crossings(root, samples, kp, ids) if has_points or truth == "crossing" else None
+    uv = points if truth == "crossing" else sight
     vis = np.asarray(kp["visibility"], int)
     box = np.asarray(kp["box_size_px"], float)
     order = np.argsort(ids, kind="stable")
@@ -137,6 +142,7 @@ def load_split(root: str | Path, split: str, *, truth: str = "sight") -> list[Sa
                 occluded_box_size_px=box[rows][v == 1],
                 camera=tuple(float(samples[k][i]) for k in ("fx", "fy", "cx", "cy")),
                 depth_path=depth if depth.exists() else None,
+                crossings=points[rows][v == 2] if points is not None else None,
             )
         )
     return out

@@ -38,15 +38,18 @@ def predict(
     images: Sequence[np.ndarray] | None = None,
     depth: bool = True,
     progress: bool = False,
+    point: str = "sight",
 ) -> list[np.ndarray]:
     """Detections (N, 3) for each sample's image, read from disk unless ``images`` are given; with
-    ``depth`` each sample's depth image too, when it has one and the detector has a depth check."""
+    ``depth`` each sample's depth image too, when it has one and the detector has a depth check;
+    ``point`` says what each detection's u, v stands for (:meth:`~rebar_data.perception.infer.Detector.
+    detect`)."""
     out = []
     use_depth = depth and detector.depth_check is not None
     for k, s in enumerate(tqdm(samples, desc="detect", unit="img", disable=not progress, leave=False)):
         rgb = images[k] if images is not None else read_image(s.path)
         d = read_depth(s.depth_path) if use_depth and s.depth_path is not None else None
-        out.append(detector.detect(rgb, threshold=threshold, camera=s.camera, depth=d))
+        out.append(detector.detect(rgb, threshold=threshold, camera=s.camera, depth=d, point=point))
     return out
 
 

@@ -106,6 +106,25 @@ def export_onnx(
     return path
 
 
+def update_onnx_meta(path: str | Path, changes: dict[str, Any]) -> Path:
+    """Rewrite the ``meta`` of an ONNX file from :func:`export_onnx` with ``changes`` merged in (atomically;
+    the network is untouched)."""
+    import onnx
+
+    path = Path(path)
+    model = onnx.load(str(path))
+    entries = [e for e in model.metadata_props if e.key == META_KEY]
+    if not entries:
+        raise ConfigError(
+            f"{path}: carries no detector metadata; accepted: a model file written by `rebar train`"
+        )
+    entries[0].value = json.dumps({**json.loads(entries[0].value), **changes}, sort_keys=True)
+    tmp = path.with_name(path.name + ".tmp")
+    onnx.save(model, str(tmp))
+    tmp.replace(path)
+    return path
+
+
 def onnx_meta(path: str | Path) -> dict[str, Any]:
     """The ``meta`` stored in an ONNX file by :func:`export_onnx` (empty if it has none)."""
     import onnxruntime as ort

@@ -16,6 +16,7 @@ from typing import Any
 import numpy as np
 
 from rebar_data.config import ConfigError
+from rebar_data.perception.crossing_point import CrossingPoint, check_point
 from rebar_data.perception.depth_check import DepthCheck, as_depth_m
 from rebar_data.perception.metrics import OPERATING_THRESHOLD
 from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
@@ -69,6 +70,9 @@ class Detector:
         depth_check: The third stage, which lowers the scores of detections whose depth patch shows no
             crossing (:mod:`rebar_data.perception.depth_check`); used when ``detect`` gets a depth image.
         depth_power: How hard the third stage counts (``meta["depth_check"]["power"]``).
+        crossing_point: The stage that gives where each detection's 3D crossing point projects
+            (:mod:`rebar_data.perception.crossing_point`); used when ``detect`` is asked for
+            ``point="crossing"``.
     """
 
     def __init__(
@@ -92,6 +96,7 @@ class Detector:
         self.refiner: Refiner | None = None
         self.depth_check: DepthCheck | None = None
         self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
+        self.crossing_point: CrossingPoint | None = None
 
     @classmethod
     def load(cls, path: str | Path | None = None, *, threads: int = 2) -> Detector:
@@ -111,6 +116,7 @@ class Detector:
         det = cls.from_network(net, meta=meta, path=p)
         det.refiner = _load_refiner(p, det.meta, threads)
         det.depth_check = _load_depth_check(p, det.meta, threads)
+        det.crossing_point = _load_crossing_point(p, det.meta, threads)
         return det
 
     @classmethod
@@ -130,6 +136,7 @@ class Detector:
         det = cls(run, meta=json.loads(raw) if raw else {}, backend="onnxruntime", path=path)
         det.refiner = _load_refiner(path, det.meta, threads)
         det.depth_check = _load_depth_check(path, det.meta, threads)
+        det.crossing_point = _load_crossing_point(path, det.meta, threads)
         return det
 
     @classmethod
@@ -192,6 +199,7 @@ class Detector:
         camera: tuple[float, float, float, float] | None = None,
         depth: np.ndarray | None = None,
         max_detections: int = 1000,
+        point: str = "sight",
     ) -> np.ndarray:
         """Crossings in an RGB image.
 
@@ -203,12 +211,20 @@ class Detector:
             camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin; None assumes the principal
                 point at the centre and the training data's focal length for this width.
             max_detections: Most crossings returned.
+            point: What u, v stand for: ``"sight"``, where the image shows the two bars cross (the
+                dataset's labels); ``"crossing"``, where the 3D crossing point (the centerlines' midpoint,
+                inside the steel) projects, from the crossing-point stage (the model must have one).
 
         Returns:
             (N, 3) float64 array of u, v, score, best first; u, v in the image's pixels (COCO corner origin).
         """
         if not 0.0 < threshold < 1.0:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
+        if check_point(point) == "crossing" and self.crossing_point is None:
+            raise ConfigError(
+                f"{self.path or 'this detector'}: has no crossing-point stage; accepted: point='sight', or a "
+                "model trained with one (crossing_point: {enabled: true}, as `make train` ships)"
+            )
         image = _check_image(rgb)
         depth_m = as_depth_m(depth, image.shape[:2]) if depth is not None else None
         checked = depth_m is not None and self.depth_check is not None
@@ -229,7 +245,11 @@ class Detector:
         det = det[np.argsort(-det[:, 2], kind="stable")]
         h, w = image.shape[:2]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
-        return det[inside]
+        det = det[inside]  # a crossing seen inside the frame stays, wherever its 3D point projects
+        if point == "crossing" and len(det):
+            cam = tuple(float(c) for c in camera) if camera is not None else self.default_camera(h, w)
+            det[:, :2] = self.crossing_point.points(image, det[:, :2], cam)
+        return det
 
 
 def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:
@@ -304,6 +324,27 @@ def _check_beside(model: Path, path: Path, entry: dict[str, Any]) -> None:
                 f"{path}: is not the stage {model.name} was exported with (its SHA-256 differs); "
                 "accepted: the files from the same `rebar train` run"
             )
+
+
+def crossing_point_path(model: Path) -> Path:
+    """Where a model file's crossing-point stage lives: beside it, ``<stem>.crossing.onnx`` (or ``.pt``)."""
+    return model.with_name(f"{model.stem}.crossing{model.suffix}")
+
+
+def _load_crossing_point(model: Path, meta: dict[str, Any], threads: int) -> CrossingPoint | None:
+    """The crossing-point stage a model file names in its meta (None when it names none)."""
+    entry = meta.get("crossing_point")
+    if not entry:
+        return None
+    path = crossing_point_path(model)
+    _check_beside(model, path, entry)
+    pool = int(entry.get("pool", 1))
+    if path.suffix == ".onnx":
+        return CrossingPoint.load_onnx(path, threads=threads, pool=pool)
+    from rebar_data.perception.crossing_point_train import load
+
+    net, _, _ = load(path)
+    return CrossingPoint.from_network(net, pool=pool)
 
 
 def refiner_path(model: Path) -> Path:

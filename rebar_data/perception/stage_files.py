@@ -62,19 +62,27 @@ def fit_weights(net: nn.Module, payload: dict[str, Any], path: str | Path, *, re
 
 
 def export_onnx(
-    module: nn.Module, example: torch.Tensor, path: Path, *, input_name: str, output_name: str
+    module: nn.Module,
+    example: torch.Tensor | tuple[torch.Tensor, ...],
+    path: Path,
+    *,
+    input_name: str | tuple[str, ...],
+    output_name: str,
 ) -> Path:
-    """``module`` as ONNX at ``path`` (written atomically), its batch axis dynamic."""
+    """``module`` as ONNX at ``path`` (written atomically), its batch axis dynamic; a tuple of examples
+    gives it as many inputs, named by ``input_name``'s tuple."""
+    examples = example if isinstance(example, tuple) else (example,)
+    names = list(input_name) if isinstance(input_name, tuple) else [input_name]
     tmp = path.with_name(path.name + ".tmp")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         torch.onnx.export(
             module.eval(),
-            (example,),
+            examples,
             str(tmp),
-            input_names=[input_name],
+            input_names=names,
             output_names=[output_name],
-            dynamic_axes={input_name: {0: "n"}, output_name: {0: "n"}},
+            dynamic_axes={**{n: {0: "n"} for n in names}, output_name: {0: "n"}},
             opset_version=17,
             dynamo=False,
         )

@@ -298,6 +298,7 @@ def draw_frame(
         mask = layer.max(axis=2) > 0
         img[mask] = layer[mask]
         depth_img[mask] = _plane_depth(z_axis + d / 2, spec, world_from_camera)[mask]
+    midpoints = crossings_world  # the 3D crossing points, as the dataset's x_crossing, y_crossing, z_crossing
     crossings_world = _sight_points(crossings_world, d, world_from_camera[:3, 3])
     uv, z = _project(crossings_world, world_from_camera, f, cx, cy)
     inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
@@ -327,6 +328,9 @@ def draw_frame(
                 "depth_m": float(depth),
                 "box_size_px": float(4 * d * f / depth),
                 "crossing_id": i,
+                "x_crossing": float(midpoints[i, 0]),
+                "y_crossing": float(midpoints[i, 1]),
+                "z_crossing": float(midpoints[i, 2]),
             }
         )
     return img, records, depth_img
@@ -456,6 +460,9 @@ def _write_tables(out: Path, samples: list[dict], keypoints: list[dict]) -> None
             ("depth_m", pa.float64()),
             ("box_size_px", pa.float64()),
             ("crossing_id", pa.int32()),
+            ("x_crossing", pa.float64()),
+            ("y_crossing", pa.float64()),
+            ("z_crossing", pa.float64()),
         ]
     )
     pq.write_table(pa.Table.from_pylist(keypoints, schema=k_schema), out / "tables/keypoints.parquet")

@@ -22,7 +22,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -34,6 +34,9 @@ from rebar_data.config import ConfigError, format_validation_error
 from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
+from rebar_data.perception.crossing_point_train import CrossingNet, train_crossing_point
+from rebar_data.perception.crossing_point_train import export_onnx as export_crossing_point
+from rebar_data.perception.crossing_point_train import save as save_crossing_point
 from rebar_data.perception.data import Sample, check_dataset, load_split, read_image, read_info
 from rebar_data.perception.depth_check_train import (
     DepthNet,
@@ -72,7 +75,7 @@ from rebar_data.perception.targets import encode
 
 EARLY_STOP_METRIC = "val_oks_ap"
 # settings a resumed run may change
-RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "refine", "depth_check"}
+RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "refine", "depth_check", "crossing_point"}
 
 
 class WeightAverage:
@@ -505,6 +508,11 @@ def _run(
             seed=cfg.seed,
             progress=progress,
         )
+    crossing_net, crossing_history = None, []
+    if cfg.crossing_point.enabled:
+        crossing_net, crossing_history = train_crossing_point(
+            train_samples, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=progress
+        )
     train_s = time.perf_counter() - started
     return _finish(
         out,
@@ -519,6 +527,8 @@ def _run(
         refine_history=refine_history,
         depth_net=depth_net,
         depth_history=depth_history,
+        crossing_net=crossing_net,
+        crossing_history=crossing_history,
         train_s=train_s,
         progress=progress,
     )
@@ -628,6 +638,8 @@ def _finish(
     refine_history: list[dict[str, float]],
     depth_net: DepthNet | None,
     depth_history: list[dict[str, float]],
+    crossing_net: CrossingNet | None = None,
+    crossing_history: list[dict[str, float]] = (),
     train_s: float,
     progress: bool,
 ) -> TrainResult:
@@ -635,13 +647,22 @@ def _finish(
     from rebar_data.perception import plots
 
     net, meta, _ = load_checkpoint(out / "best.pt")
-    stale_keys = ("score_bias", "score_bias_without_depth", "results", "refiner", "depth_check")
+    stale_keys = (
+        "score_bias",
+        "score_bias_without_depth",
+        "results",
+        "refiner",
+        "depth_check",
+        "crossing_point",
+    )
     meta = {k: v for k, v in meta.items() if k not in stale_keys}
     for stale in (
         out / "best.refine.onnx",
         out / "best.refine.pt",
         out / "best.depth.onnx",
         out / "best.depth.pt",
+        out / "best.crossing.onnx",
+        out / "best.crossing.pt",
     ):
         stale.unlink(missing_ok=True)
     if refiner is not None:
@@ -675,6 +696,13 @@ def _finish(
             "quantize": cfg.depth_check.quantize,
             "sha256": sha256_file(depth_path),
         }
+    if crossing_net is not None:
+        save_crossing_point(out / "best.crossing.pt", crossing_net, cfg.crossing_point)
+        meta["crossing_point"] = {
+            "patch_px": cfg.crossing_point.patch_px,
+            "pool": cfg.crossing_point.pool,
+            "sha256": sha256_file(export_crossing_point(crossing_net, out / "best.crossing.onnx")),
+        }
     detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)
     if val_samples:  # the operating point, chosen on val with the raw scores
         raw = predict(detector, val_samples, threshold=CALIBRATION_FLOOR, progress=progress)
@@ -707,6 +735,18 @@ def _finish(
     if detector.depth_check is not None and test_samples:  # what the depth check adds
         without_depth["test"] = score(test_samples, predict(detector, test_samples, depth=False), sigma=sigma)
         _log(f"without the depth check on test: {format_summary(without_depth['test'])}", progress)
+    against_points: dict[str, dict[str, float]] = {}
+    if detector.crossing_point is not None and test_samples and test_samples[0].crossings is not None:
+        # the 3D crossing points as truth, found from RGB alone: the sight points and the stage's output
+        points = [replace(s, visible=s.crossings) for s in test_samples]
+        for name, point in (("sight points", "sight"), ("crossing points", "crossing")):
+            preds = predict(detector, test_samples, depth=False, point=point)
+            against_points[name] = score(points, preds, sigma=sigma)
+            _log(
+                f"against the 3D crossing points on test, RGB only, {name}: "
+                f"{format_summary(against_points[name])}",
+                progress,
+            )
     meta = {**meta, "results": results}
     save_checkpoint(out / "best.pt", net, meta)
     export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
@@ -723,6 +763,7 @@ def _finish(
             sum(r.get("train_seconds", 0.0) for r in state["history"])
             + sum(r.get("seconds", 0.0) for r in refine_history)
             + sum(r.get("seconds", 0.0) for r in depth_history)
+            + sum(r.get("seconds", 0.0) for r in crossing_history)
         ),
         "refiner_parameters": count_parameters(refiner) if refiner is not None else 0,
         "refine_seconds": float(sum(r.get("seconds", 0.0) for r in refine_history)),
@@ -730,7 +771,11 @@ def _finish(
         "depth_check_parameters": count_parameters(depth_net) if depth_net is not None else 0,
         "depth_check_seconds": float(sum(r.get("seconds", 0.0) for r in depth_history)),
         "depth_check_history": depth_history,
+        "crossing_point_parameters": count_parameters(crossing_net) if crossing_net is not None else 0,
+        "crossing_point_seconds": float(sum(r.get("seconds", 0.0) for r in crossing_history)),
+        "crossing_point_history": list(crossing_history),
         "results": results,
+        "results_against_crossing_points": against_points,
         "results_first_stage": first_stage,
         "results_without_depth": without_depth,
     }

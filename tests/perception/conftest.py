@@ -34,6 +34,15 @@ TINY_TRAIN = {
         "batch_size": 64,
         "threads": 1,
     },
+    "crossing_point": {
+        "patch_px": 16,
+        "context_px": 24,
+        "widths": (4, 4, 8, 8),
+        "hidden": 8,
+        "epochs": 1,
+        "batch_size": 64,
+        "threads": 1,
+    },
 }
 
 
