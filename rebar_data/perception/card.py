@@ -39,6 +39,21 @@ def _supplement_lines(supplements: list[dict]) -> list[str]:
     ]
 
 
+def _crossing_point_lines(model: Path, detector: Detector, res: dict) -> list[str]:
+    """The card's words on the crossing-point stage, if the model has one."""
+    if detector.crossing_point is None:
+        return []
+    path = crossing_point_path(model)
+    params = res.get("crossing_point_parameters")
+    size = f"{path.stat().st_size / 1024:.0f} KiB" + (f", {params / 1e3:.0f} k parameters" if params else "")
+    return [
+        f"- Crossing-point stage: `{path.name}` (ONNX, {size}), beside the first. It reads the",
+        f"  {detector.crossing_point.patch_px} px patch around each detection with its viewing ray and gives the offset to where",
+        "  the 3D crossing point (the centerlines' midpoint, inside the steel) projects; used only when asked",
+        '  (`detect(rgb, point="crossing")`, `rebar detect --point crossing`). Trained on the labels alone.',
+    ]
+
+
 def _row(name: str, m: dict) -> str:
     return (
         f"| {name} | {int(m['n_gt'])} | {m['oks_ap50']:.4f} | {m['oks_ap']:.4f} | {m['pck1']:.3f} | {m['pck2']:.3f} | "
@@ -167,6 +182,7 @@ def write_card(
             if dc
             else []
         ),
+        *_crossing_point_lines(model, detector, res),
         f"- Latency: {latency.median_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
         f"  (median, measured when shipped{load}, over {latency_source}: {latency.candidates:.0f} candidates",
         f"  and {latency.crossings:.0f} crossings found a frame on average"

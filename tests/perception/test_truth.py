@@ -48,18 +48,28 @@ def test_crossing_truth_is_the_3d_crossing_point_projected_by_the_frames_camera(
 
 def test_detect_scores_against_the_chosen_truth(rendered, tmp_path, capsys):
     figures = {}
-    for truth in ("sight", "crossing"):
-        metrics = tmp_path / f"{truth}.json"
-        args = ["detect", str(rendered), "--split", "all", "--no-depth", "--quiet"]
-        args += ["--out", str(tmp_path / f"{truth}.parquet"), "--metrics", str(metrics), "--truth", truth]
-        assert main(args) == 0
-        figures[truth] = json.loads(metrics.read_text())
-        assert figures[truth]["truth"] == truth
+    for truth, point in (("sight", "sight"), ("crossing", "sight"), ("crossing", None)):
+        name = f"{truth}-{point}"
+        metrics = tmp_path / f"{name}.json"
+        args = ["detect", str(rendered), "--split", "all", "--no-depth", "--quiet", "--truth", truth]
+        args += ["--out", str(tmp_path / f"{name}.parquet"), "--metrics", str(metrics)]
+        assert main(args + (["--point", point] if point else [])) == 0
+        figures[name] = json.loads(metrics.read_text())
+        assert figures[name]["truth"] == truth and figures[name]["point"] == (point or truth)
     assert "projected 3D crossing points" in capsys.readouterr().err
-    assert figures["sight"]["n_gt"] == figures["crossing"]["n_gt"] > 0
-    assert figures["sight"]["mean_px"] != figures["crossing"]["mean_px"]
-    preds = [pq.read_table(tmp_path / f"{t}.parquet").to_pandas() for t in ("sight", "crossing")]
+    sight, against, found = figures["sight-sight"], figures["crossing-sight"], figures["crossing-None"]
+    assert sight["n_gt"] == against["n_gt"] == found["n_gt"] > 0
+    assert sight["mean_px"] != against["mean_px"]
+    preds = [
+        pq.read_table(tmp_path / f"{n}.parquet").to_pandas()
+        for n in ("sight-sight", "crossing-sight", "crossing-None")
+    ]
     assert preds[0].equals(preds[1])  # the same detections, scored twice
+    # against the 3D points the default is the detector's own crossing points: the same detections, each
+    # moved by the crossing-point stage a few pixels (the 3D point lies a bar radius behind the sight point)
+    assert preds[2]["score"].equals(preds[0]["score"])
+    moved = np.hypot(preds[2]["u"] - preds[0]["u"], preds[2]["v"] - preds[0]["v"])
+    assert 0.3 < np.median(moved) < 10.0 and found["mean_px"] != against["mean_px"]
 
 
 def test_crossing_truth_needs_the_3d_points(rendered, tmp_path):
