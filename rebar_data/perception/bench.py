@@ -212,6 +212,20 @@ def run(repeats: int = 100) -> list[str]:
             f"{'met' if med <= BUDGET_MS else 'MISSED'})"
         )
         lines += _stages(lat)
+        if det.crossing_point is not None:  # the 3D crossing points as well, on the same frames
+            each = max(3, -(-repeats // len(frames)))
+            both = np.concatenate(
+                [
+                    _time_ms(
+                        lambda f=f: det.detect(f[0], depth=f[1], point="crossing"), repeats=each, warmup=2
+                    )
+                    for f in frames
+                ]
+            )
+            lines.append(
+                f"perception:   with the crossing points (point='crossing'): median {np.median(both):.1f} ms "
+                f"({np.median(both) / med:.2f}x the sight points' call)"
+            )
         if len(frames) > 1:  # the worst case beside the typical one
             dense = detector_latency(det, [drawn_frame()], repeats=repeats)
             lines.append(
