@@ -11,7 +11,7 @@ from pathlib import Path
 from rebar_data.config import ConfigError
 from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
 from rebar_data.perception.data import check_dataset, load_split, read_info, stated_oks_sigma
-from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, predict
+from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, at_crossing_points, predict
 from rebar_data.perception.infer import (
     MODELS_DIR,
     SHIPPED_MODEL,
@@ -397,7 +397,7 @@ def evaluation_rows(
             crossing, preds, sigma=sigma
         )
         if detector.crossing_point is not None:  # the same, with the crossing-point stage's output
-            found = predict(detector, samples, depth=False, progress=progress, point="crossing")
+            found = at_crossing_points(detector, samples, preds)
             rows[f"{label}, {engine} renderer, RGB only, crossing points vs 3D crossing points"] = score(
                 crossing, found, sigma=sigma
             )

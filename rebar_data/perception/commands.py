@@ -54,13 +54,13 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
     from rebar_data.perception.crossing_point_train import attach
     from rebar_data.perception.data import check_dataset, load_split, read_info
     from rebar_data.perception.infer import resolve_model_path
-    from rebar_data.perception.train import _supplement_images, resolve_config
+    from rebar_data.perception.train import resolve_config, supplement_images
 
     root = check_dataset(args.dataset)
     model = resolve_model_path(args.model)
     settings = read_yaml(args.config) if args.config else None
     cfg = resolve_config(settings, {}, source=str(args.config or "train settings"))
-    extra, _ = _supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
+    extra, _ = supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
     samples = load_split(root, "train") + extra
     out = Path(args.out)
     stage = attach(

@@ -31,7 +31,7 @@ from rebar_data.perception.refine import patches
 from rebar_data.perception.refine_train import _conv
 from rebar_data.perception.schedule import warmup_cosine
 from rebar_data.perception.stage_files import export_onnx as export_stage
-from rebar_data.perception.stage_files import fit_weights, read_stage, save_stage
+from rebar_data.perception.stage_files import fit_weights, read_stage, resume_stage, save_stage
 
 FORMAT = "rebar-keypoint-crossing-point"
 FORMAT_VERSION = 1
@@ -225,16 +225,8 @@ def train_crossing_point(
     torch.manual_seed(seed)
     net = build(cfg)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    history: list[dict[str, float]] = []
-    if last.exists():
-        try:
-            _, saved, payload = load(last)
-        except ConfigError:
-            saved = None  # an unreadable or older file: train afresh
-        if saved is not None and _settings(saved) == _settings(cfg):
-            net.load_state_dict(payload["state_dict"])
-            opt.load_state_dict(payload["optimizer"])
-            history = payload["history"]
+    payload = resume_stage(last, net, opt, load=load, settings=_settings, want=_settings(cfg))
+    history: list[dict[str, float]] = payload["history"] if payload else []
     if len(history) >= cfg.epochs:
         return net.eval(), history
     threads_before = torch.get_num_threads()

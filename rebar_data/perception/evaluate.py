@@ -53,6 +53,22 @@ def predict(
     return out
 
 
+def at_crossing_points(
+    detector: Detector, samples: Sequence[Sample], predictions: Sequence[np.ndarray]
+) -> list[np.ndarray]:
+    """``predictions`` of the sight points (as :func:`predict` gives them) with each u, v moved to where
+    the crossing-point stage puts its 3D crossing point: what ``predict(..., point="crossing")`` gives,
+    without running the other stages again."""
+    out = []
+    for s, p in zip(samples, predictions, strict=True):
+        moved = np.array(p, dtype=np.float64, copy=True).reshape(-1, 3)
+        if len(moved):
+            camera = s.camera or detector.default_camera(s.height, s.width)
+            moved[:, :2] = detector.crossing_point.points(read_image(s.path), moved[:, :2], camera)
+        out.append(moved)
+    return out
+
+
 def score(
     samples: Sequence[Sample],
     predictions: Sequence[np.ndarray],

@@ -226,7 +226,9 @@ class Detector:
                 "model trained with one (crossing_point: {enabled: true}, as `make train` ships)"
             )
         image = _check_image(rgb)
-        depth_m = as_depth_m(depth, image.shape[:2]) if depth is not None else None
+        h, w = image.shape[:2]
+        camera = tuple(float(c) for c in camera) if camera is not None else self.default_camera(h, w)
+        depth_m = as_depth_m(depth, (h, w)) if depth is not None else None
         checked = depth_m is not None and self.depth_check is not None
         out = self.raw(image, camera=camera)
         bias = self.score_bias if checked else self.score_bias_without_depth
@@ -243,12 +245,10 @@ class Detector:
             det[unchecked, 2] = shifted_score(det[unchecked, 2], self.score_bias_without_depth - bias)
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
-        h, w = image.shape[:2]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
         det = det[inside]  # a crossing seen inside the frame stays, wherever its 3D point projects
         if point == "crossing" and len(det):
-            cam = tuple(float(c) for c in camera) if camera is not None else self.default_camera(h, w)
-            det[:, :2] = self.crossing_point.points(image, det[:, :2], cam)
+            det[:, :2] = self.crossing_point.points(image, det[:, :2], camera)
         return det
 
 
@@ -294,11 +294,10 @@ def depth_check_path(model: Path) -> Path:
 
 def _load_depth_check(model: Path, meta: dict[str, Any], threads: int) -> DepthCheck | None:
     """The third stage a model file names in its meta (None when it names none)."""
-    entry = meta.get("depth_check")
-    if not entry:
+    found = _stage_file(model, meta, "depth_check", depth_check_path)
+    if found is None:
         return None
-    path = depth_check_path(model)
-    _check_beside(model, path, entry)
+    path, entry = found
     scale_m, clip, pool = float(entry["scale_m"]), float(entry["clip"]), int(entry.get("pool", 1))
     if path.suffix == ".onnx":
         return DepthCheck.load_onnx(path, threads=threads, scale_m=scale_m, clip=clip, pool=pool)
@@ -308,9 +307,16 @@ def _load_depth_check(model: Path, meta: dict[str, Any], threads: int) -> DepthC
     return DepthCheck.from_network(net, scale_m=scale_m, clip=clip)
 
 
-def _check_beside(model: Path, path: Path, entry: dict[str, Any]) -> None:
-    """Raise ConfigError unless the later stage ``path`` that ``model`` names is beside it, and is the
+def _stage_file(
+    model: Path, meta: dict[str, Any], key: str, beside: Callable[[Path], Path]
+) -> tuple[Path, dict[str, Any]] | None:
+    """The later stage that ``model``'s meta names under ``key``: its file (``beside(model)``) and its meta
+    entry; None when the meta names none. ConfigError unless the file is beside the model, and is the
     file it was exported with."""
+    entry = meta.get(key)
+    if not entry:
+        return None
+    path = beside(model)
     if not path.exists():
         raise ConfigError(
             f"{model}: its stage {path.name} is missing beside it; accepted: the files together, "
@@ -324,6 +330,7 @@ def _check_beside(model: Path, path: Path, entry: dict[str, Any]) -> None:
                 f"{path}: is not the stage {model.name} was exported with (its SHA-256 differs); "
                 "accepted: the files from the same `rebar train` run"
             )
+    return path, entry
 
 
 def crossing_point_path(model: Path) -> Path:
@@ -333,11 +340,10 @@ def crossing_point_path(model: Path) -> Path:
 
 def _load_crossing_point(model: Path, meta: dict[str, Any], threads: int) -> CrossingPoint | None:
     """The crossing-point stage a model file names in its meta (None when it names none)."""
-    entry = meta.get("crossing_point")
-    if not entry:
+    found = _stage_file(model, meta, "crossing_point", crossing_point_path)
+    if found is None:
         return None
-    path = crossing_point_path(model)
-    _check_beside(model, path, entry)
+    path, entry = found
     pool = int(entry.get("pool", 1))
     if path.suffix == ".onnx":
         return CrossingPoint.load_onnx(path, threads=threads, pool=pool)
@@ -354,11 +360,10 @@ def refiner_path(model: Path) -> Path:
 
 def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | None:
     """The refiner a model file names in its meta (None when it names none)."""
-    entry = meta.get("refiner")
-    if not entry:
+    found = _stage_file(model, meta, "refiner", refiner_path)
+    if found is None:
         return None
-    path = refiner_path(model)
-    _check_beside(model, path, entry)
+    path, entry = found
     iterations = int(entry.get("iterations", 1))
     if path.suffix == ".onnx":
         return Refiner.load_onnx(path, threads=threads, iterations=iterations)

@@ -31,7 +31,13 @@ from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image
 from rebar_data.perception.refine_data import patch_batches, steps_per_epoch
 from rebar_data.perception.schedule import warmup_cosine
-from rebar_data.perception.stage_files import calibration_points, fit_weights, read_stage, save_stage
+from rebar_data.perception.stage_files import (
+    calibration_points,
+    fit_weights,
+    read_stage,
+    resume_stage,
+    save_stage,
+)
 from rebar_data.perception.stage_files import export_onnx as export_stage
 
 FORMAT = "rebar-keypoint-refiner"
@@ -266,19 +272,10 @@ def train_refiner(
     torch.manual_seed(seed)
     net = build(cfg).to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    history: list[dict[str, float]] = []
-    negatives: list[np.ndarray] | None = None
-    saved = payload = None
-    if last.exists():
-        try:
-            _, saved, payload = load(last)
-        except ConfigError:
-            saved = None  # an unreadable or older file: train afresh
-    if saved is not None and payload is not None and _training_settings(saved) == want:
-        net.load_state_dict(payload["state_dict"])  # the same settings: go on where it stopped
-        opt.load_state_dict(payload["optimizer"])
-        history = payload["history"]
-        negatives = payload.get("negatives")
+    # the same settings: go on where it stopped (with the negatives it mined); otherwise train afresh
+    payload = resume_stage(last, net, opt, load=load, settings=_training_settings, want=want)
+    history: list[dict[str, float]] = payload["history"] if payload else []
+    negatives: list[np.ndarray] | None = payload.get("negatives") if payload else None
     if len(history) < cfg.epochs:  # otherwise a finished stage: kept as it is
         threads_before = torch.get_num_threads()
         torch.set_num_threads(cfg.threads)

@@ -7,7 +7,7 @@ file. Each stage keeps its own format name, settings and network; what they shar
 from __future__ import annotations
 
 import warnings
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -45,6 +45,33 @@ def read_stage(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
         raise ConfigError(f"{path}: cannot be read as a {what} checkpoint ({type(e).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != fmt:
         raise ConfigError(f"{path}: is not a {fmt} checkpoint; accepted: a file written by `rebar train`")
+    return payload
+
+
+def resume_stage(
+    path: Path,
+    net: nn.Module,
+    opt: torch.optim.Optimizer,
+    *,
+    load: Callable[[Path], tuple[nn.Module, Any, dict[str, Any]]],
+    settings: Callable[[Any], dict[str, Any]],
+    want: dict[str, Any],
+) -> dict[str, Any] | None:
+    """Go on where a stage's checkpoint at ``path`` stopped: when it holds a run with the training settings
+    ``want`` (``settings`` of its saved config), its weights and optimiser state go into ``net`` and
+    ``opt`` and its payload is returned (``history``, and what else the stage keeps); None, to train
+    afresh, when there is none, it cannot be read (an older layout) or its settings differ. ``load`` is
+    the stage's own reader."""
+    if not path.exists():
+        return None
+    try:
+        _, saved, payload = load(path)
+    except ConfigError:
+        return None
+    if settings(saved) != want:
+        return None
+    net.load_state_dict(payload["state_dict"])
+    opt.load_state_dict(payload["optimizer"])
     return payload
 
 

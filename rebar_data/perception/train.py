@@ -48,6 +48,7 @@ from rebar_data.perception.depth_check_train import export_onnx as export_depth_
 from rebar_data.perception.depth_check_train import save as save_depth_check
 from rebar_data.perception.evaluate import (
     CALIBRATION_FLOOR,
+    at_crossing_points,
     calibrate_score_bias,
     load_splits,
     predict,
@@ -277,7 +278,7 @@ def train(
     train_samples = load_split(root, "train")
     if not train_samples:
         raise ConfigError(f"{root}: the train split has no images; accepted: a dataset with training images")
-    extra, supplement_meta = _supplement_images(supplements, trained_on=info.get("name"))
+    extra, supplement_meta = supplement_images(supplements, trained_on=info.get("name"))
     train_samples = train_samples + extra
     if cfg.depth_check.enabled:  # fail now, not after the first two stages have trained
         check_depth(train_samples)
@@ -304,7 +305,7 @@ def train(
         torch.set_num_threads(threads_before)
 
 
-def _supplement_images(
+def supplement_images(
     supplements: Sequence[str | Path], *, trained_on: str | None
 ) -> tuple[list[Sample], list[dict[str, Any]]]:
     """Every image of each supplement, and what the run records of them (path, name, version, images)."""
@@ -638,8 +639,8 @@ def _finish(
     refine_history: list[dict[str, float]],
     depth_net: DepthNet | None,
     depth_history: list[dict[str, float]],
-    crossing_net: CrossingNet | None = None,
-    crossing_history: list[dict[str, float]] = (),
+    crossing_net: CrossingNet | None,
+    crossing_history: list[dict[str, float]],
     train_s: float,
     progress: bool,
 ) -> TrainResult:
@@ -732,15 +733,20 @@ def _finish(
             first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
         _log(f"first stage alone on test: {format_summary(first_stage['test'])}", progress)
     without_depth: dict[str, dict[str, float]] = {}
-    if detector.depth_check is not None and test_samples:  # what the depth check adds
-        without_depth["test"] = score(test_samples, predict(detector, test_samples, depth=False), sigma=sigma)
-        _log(f"without the depth check on test: {format_summary(without_depth['test'])}", progress)
     against_points: dict[str, dict[str, float]] = {}
+    wanted = (detector.depth_check is not None, detector.crossing_point is not None)
+    rgb_only = predict(detector, test_samples, depth=False) if test_samples and any(wanted) else []
+    if detector.depth_check is not None and test_samples:  # what the depth check adds
+        without_depth["test"] = score(test_samples, rgb_only, sigma=sigma)
+        _log(f"without the depth check on test: {format_summary(without_depth['test'])}", progress)
     if detector.crossing_point is not None and test_samples and test_samples[0].crossings is not None:
         # the 3D crossing points as truth, found from RGB alone: the sight points and the stage's output
         points = [replace(s, visible=s.crossings) for s in test_samples]
-        for name, point in (("sight points", "sight"), ("crossing points", "crossing")):
-            preds = predict(detector, test_samples, depth=False, point=point)
+        found = {
+            "sight points": rgb_only,
+            "crossing points": at_crossing_points(detector, test_samples, rgb_only),
+        }
+        for name, preds in found.items():
             against_points[name] = score(points, preds, sigma=sigma)
             _log(
                 f"against the 3D crossing points on test, RGB only, {name}: "
@@ -773,7 +779,7 @@ def _finish(
         "depth_check_history": depth_history,
         "crossing_point_parameters": count_parameters(crossing_net) if crossing_net is not None else 0,
         "crossing_point_seconds": float(sum(r.get("seconds", 0.0) for r in crossing_history)),
-        "crossing_point_history": list(crossing_history),
+        "crossing_point_history": crossing_history,
         "results": results,
         "results_against_crossing_points": against_points,
         "results_first_stage": first_stage,
