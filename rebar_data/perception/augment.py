@@ -4,7 +4,7 @@ Geometry is one affine map per crop, ``crop_from_image`` (2x3, continuous pixel 
 corner origin), built from a random centre, scale, rotation and flips; pixels are resampled with the same
 map converted to OpenCV's pixel-index convention, so a keypoint and the pixels around it stay together
 to well under a tenth of a pixel. Mosaic fills the four quadrants of a crop from four images. Photometric
-changes (brightness, contrast, saturation, hue, gamma, blur, noise) touch pixels only.
+changes (brightness, contrast, saturation, hue, white balance, gamma, blur, noise) touch pixels only.
 """
 
 from __future__ import annotations
@@ -184,7 +184,7 @@ def mosaic_crop(
 
 
 def photometric(image: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:
-    """Random brightness, contrast, saturation, hue, gamma, blur and noise (pixels only)."""
+    """Random brightness, contrast, saturation, hue, white balance, gamma, blur and noise (pixels only)."""
     return photometric_batch(image[None], rng, cfg)[0]
 
 
@@ -196,14 +196,20 @@ def photometric_batch(images: np.ndarray, rng: np.random.Generator, cfg: Augment
     """
     n = len(images)
     img = images.astype(np.float32)
-    if cfg.hue_deg > 0 or cfg.saturation > 0:
+    if cfg.hue_deg > 0 or cfg.saturation > 0 or cfg.hue_full_probability > 0:
         hsv = cv2.cvtColor(images.reshape(-1, *images.shape[2:]), cv2.COLOR_RGB2HSV_FULL)
         hsv = hsv.reshape(images.shape).astype(np.float32)
         hue = (rng.uniform(-cfg.hue_deg, cfg.hue_deg, n) * 256 / 360).astype(np.float32)
+        if cfg.hue_full_probability > 0:
+            turned = rng.uniform(size=n) < cfg.hue_full_probability
+            hue = np.where(turned, rng.uniform(0, 256, n), hue).astype(np.float32)
         hsv[..., 0] = (hsv[..., 0] + hue[:, None, None]) % 256
         hsv[..., 1] *= (1 + rng.uniform(-cfg.saturation, cfg.saturation, n)).astype(np.float32)[:, None, None]
         rgb = np.clip(hsv, 0, 255).astype(np.uint8).reshape(-1, *images.shape[2:])
         img = cv2.cvtColor(rgb, cv2.COLOR_HSV2RGB_FULL).reshape(images.shape).astype(np.float32)
+    if cfg.white_balance > 0:
+        gains = 1 + rng.uniform(-cfg.white_balance, cfg.white_balance, (n, 3))
+        img *= gains.astype(np.float32)[:, None, None, :]
     mean = np.array([x.mean() for x in img], np.float32)[:, None, None, None]  # as each image alone
     contrast = (1 + rng.uniform(-cfg.contrast, cfg.contrast, n)).astype(np.float32)[:, None, None, None]
     img = (img - mean) * contrast + mean

@@ -219,7 +219,13 @@ def write_card(
         ),
         f"  scale {tc['augment']['scale']},",
         f"  rotation +-{tc['augment']['rotation_deg']:g} deg and flips (the viewing rays turn with the crop), colour,",
-        "  gamma, blur, noise.",
+        "  gamma, blur, noise"
+        + (
+            f"; the hue turned anywhere for {tc['augment']['hue_full_probability']:.0%} of the crops (coatings such as"
+            f" epoxy green), white balance +-{tc['augment']['white_balance']:.0%} a channel."
+            if tc["augment"].get("hue_full_probability") or tc["augment"].get("white_balance")
+            else "."
+        ),
         *(
             [
                 f"- Second stage: {refine['epochs']} epochs over the training split's visible crossings "
@@ -264,8 +270,10 @@ def write_card(
             else []
         ),
         f"- Occluded crossings (visibility 1): {tc['occluded']} in the loss.",
-        "- Reproduce: `make train` (builds the default dataset, its supplement and the planar-slab set when",
+        "- Reproduce: `make train` (builds the default dataset, its supplements and the planar-slab set when",
         "  missing, trains, and ships this file and card); the settings below are `TrainConfig`'s defaults.",
+        "- What was tried for the data and settings, adopted or not, with its figures: the docstrings of",
+        "  `TrainConfig` and its stages' settings (`rebar_data/perception/config.py`) and the supplements' pipeline files.",
         "",
         "## Metrics",
         f"OKS sigma {sigma:g}; object area = the crossing's square box (side `box_size_px`, four projected bar",
@@ -314,9 +322,18 @@ def write_card(
         ),
         "",
         "## Limits",
-        "- Trained on rendered images only; no real photographs were seen.",
-        "- One mesh (the paper's tunnel segment, 12 mm bars at 100 mm) and one focal length in training; the",
-        "  other-config rows say how far that carries.",
+        "- Trained on rendered images only, all from one renderer (Open3D); no real photographs were seen.",
+        *(
+            [
+                "- One mesh (the paper's tunnel segment, 12 mm bars at 100 mm) and one focal length in training; the",
+                "  other-config rows say how far that carries.",
+            ]
+            if len(ds.get("supplements") or []) <= 1
+            else [
+                "- The meshes, bars, cameras and looks trained on are those of the pipelines named above; the",
+                "  other-config rows (never trained on) and the other renderer's rows say how far they carry.",
+            ]
+        ),
         *(
             [
                 "- The depth check learned from mats with open space behind their bars (the element's far face, the",

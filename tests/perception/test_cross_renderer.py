@@ -48,4 +48,6 @@ def test_shipped_model_finds_the_crossings_of_a_fresh_cycles_frame():
     hit = dist[rows, cols] <= 3.0
     assert hit.sum() >= 0.95 * len(truth), (hit.sum(), len(truth))  # measured: 48 of 48
     assert hit.sum() >= 0.95 * len(found), (hit.sum(), len(found))  # and no more than a stray detection
-    assert np.median(dist[rows, cols][hit]) < 1.0  # measured: 0.41 px
+    assert (
+        np.median(dist[rows, cols][hit]) < 1.0
+    )  # measured: 0.70 px (the model before the wide supplements: 0.41)

@@ -19,7 +19,15 @@ from rebar_data.perception.infer import Detector, crossing_point_path
 from .conftest import TINY_TRAIN
 
 STILL = AugmentConfig(
-    brightness=0, contrast=0, saturation=0, hue_deg=0, gamma=0, blur_probability=0, noise_probability=0
+    brightness=0,
+    contrast=0,
+    saturation=0,
+    hue_deg=0,
+    hue_full_probability=0,
+    white_balance=0,
+    gamma=0,
+    blur_probability=0,
+    noise_probability=0,
 )
 
 
