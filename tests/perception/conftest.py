@@ -3,7 +3,22 @@ from __future__ import annotations
 import pytest
 import torch
 
+from rebar_data.perception.config import AugmentConfig
 from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+
+# every colour, blur and noise change off: augmentation is geometry only, so pixels can be compared
+COLOUR_OFF = dict(
+    brightness=0,
+    contrast=0,
+    saturation=0,
+    hue_deg=0,
+    hue_full_probability=0,
+    white_balance=0,
+    gamma=0,
+    blur_probability=0,
+    noise_probability=0,
+)
+STILL = AugmentConfig(**COLOUR_OFF)
 
 TINY_MODEL = {"channels": (8, 8, 16, 16), "blocks": (0, 1, 1)}
 TINY_TRAIN = {

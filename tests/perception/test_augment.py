@@ -17,6 +17,8 @@ from rebar_data.perception.augment import (
 from rebar_data.perception.config import AugmentConfig
 from rebar_data.perception.model import ray_grid
 
+from .conftest import COLOUR_OFF, STILL
+
 
 def _blob_image(points: np.ndarray, h: int = 120, w: int = 160, sigma: float = 2.0) -> np.ndarray:
     """Gaussian spots centred on ``points`` (COCO corner origin: pixel (i, j) is the point (j + .5, i + .5))."""
@@ -129,37 +131,17 @@ def test_a_batch_gets_one_change_per_image_and_none_with_every_change_off():
     assert out.shape == (8, 16, 16, 3) and out.dtype == np.uint8
     assert len({x.tobytes() for x in out}) == 8  # eight copies, eight different changes
     # with every change off the pixels stay as they are
-    still = AugmentConfig(
-        brightness=0,
-        contrast=0,
-        saturation=0,
-        hue_deg=0,
-        hue_full_probability=0,
-        white_balance=0,
-        gamma=0,
-        blur_probability=0,
-        noise_probability=0,
-    )
-    np.testing.assert_array_equal(photometric_batch(np.stack([image] * 3), rng, still), [image] * 3)
+    np.testing.assert_array_equal(photometric_batch(np.stack([image] * 3), rng, STILL), [image] * 3)
 
 
 def test_white_balance_and_full_hue_turns_change_colour_alone():
     """Each change alone: white balance scales each channel by its own factor within its range; a full hue
     turn moves a colour's hue anywhere on the wheel, greens among them."""
-    off = dict(
-        brightness=0,
-        contrast=0,
-        saturation=0,
-        hue_deg=0,
-        hue_full_probability=0,
-        white_balance=0,
-        gamma=0,
-        blur_probability=0,
-        noise_probability=0,
-    )
     image = np.full((8, 8, 3), 100, np.uint8)
     out = photometric_batch(
-        np.stack([image] * 64), np.random.default_rng(0), AugmentConfig(**{**off, "white_balance": 0.2})
+        np.stack([image] * 64),
+        np.random.default_rng(0),
+        AugmentConfig(**{**COLOUR_OFF, "white_balance": 0.2}),
     )
     per_channel = out.reshape(64, -1, 3).mean(axis=1)
     assert per_channel.min() >= 79 and per_channel.max() <= 121
@@ -170,7 +152,7 @@ def test_white_balance_and_full_hue_turns_change_colour_alone():
     turned = photometric_batch(
         np.stack([orange] * 64),
         np.random.default_rng(0),
-        AugmentConfig(**{**off, "hue_full_probability": 1.0}),
+        AugmentConfig(**{**COLOUR_OFF, "hue_full_probability": 1.0}),
     )
     hue = cv2.cvtColor(turned[:, 0, :1].reshape(1, -1, 3), cv2.COLOR_RGB2HSV_FULL)[0, :, 0].astype(float)
     assert np.ptp(hue) > 180  # hues spread around the wheel (256 steps)

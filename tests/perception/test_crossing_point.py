@@ -9,26 +9,14 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.config import AugmentConfig, CrossingPointConfig
+from rebar_data.perception.config import CrossingPointConfig
 from rebar_data.perception.crossing_point import CrossingPoint, patch_rays, shrink
 from rebar_data.perception.crossing_point_train import PatchSet, attach, batches, build, export_onnx
 from rebar_data.perception.data import load_split, read_image
 from rebar_data.perception.export import onnx_meta
 from rebar_data.perception.infer import Detector, crossing_point_path
 
-from .conftest import TINY_TRAIN
-
-STILL = AugmentConfig(
-    brightness=0,
-    contrast=0,
-    saturation=0,
-    hue_deg=0,
-    hue_full_probability=0,
-    white_balance=0,
-    gamma=0,
-    blur_probability=0,
-    noise_probability=0,
-)
+from .conftest import STILL, TINY_TRAIN
 
 
 def test_drawn_datasets_record_the_3d_crossing_points_apart_from_the_sight_points(drawn_dataset):

@@ -23,19 +23,7 @@ from rebar_data.perception.refine_train import (
     train_refiner,
 )
 
-from .conftest import TINY_TRAIN
-
-STILL = AugmentConfig(  # geometry only: no colour, blur or noise, so pixels can be compared
-    brightness=0,
-    contrast=0,
-    saturation=0,
-    hue_deg=0,
-    hue_full_probability=0,
-    white_balance=0,
-    gamma=0,
-    blur_probability=0,
-    noise_probability=0,
-)
+from .conftest import STILL, TINY_TRAIN
 
 
 def _blob(h: int, w: int, centre: np.ndarray, sigma: float = 2.0) -> np.ndarray:
