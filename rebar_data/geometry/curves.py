@@ -138,6 +138,55 @@ class Arc:
 Curve = Line | Arc
 
 
+@dataclass(frozen=True)
+class CurveArrays:
+    """Many curves at once, for per-frame work over every crossing: ``project``, ``point`` and ``tangent``
+    of curve ``idx[k]`` at the k-th point or arc length, as :class:`Line` and :class:`Arc` give them one at
+    a time (the same formulas, nearer end outside an arc's sweep included)."""
+
+    is_arc: np.ndarray  # (M,) bool
+    origin: np.ndarray  # (M, 3) a line's start, an arc's center
+    e1: np.ndarray  # (M, 3) a line's direction, an arc's e1
+    e2: np.ndarray  # (M, 3) an arc's e2 (0 for a line)
+    radius: np.ndarray  # (M,) an arc's radius (1 for a line)
+    length: np.ndarray  # (M,)
+
+    @staticmethod
+    def of(curves: list[Curve]) -> CurveArrays:
+        arc = np.array([c.kind == "arc" for c in curves], bool)
+        origin = np.array([c.center if c.kind == "arc" else c.start for c in curves], float).reshape(-1, 3)
+        e1 = np.array([c.e1 if c.kind == "arc" else c.direction for c in curves], float).reshape(-1, 3)
+        e2 = np.array([c.e2 if c.kind == "arc" else np.zeros(3) for c in curves], float).reshape(-1, 3)
+        radius = np.array([c.radius if c.kind == "arc" else 1.0 for c in curves], float)
+        return CurveArrays(arc, origin, e1, e2, radius, np.array([c.length for c in curves], float))
+
+    def project(self, idx: np.ndarray, p: np.ndarray) -> np.ndarray:
+        v = p - self.origin[idx]
+        x = np.einsum("ij,ij->i", v, self.e1[idx])
+        y = np.einsum("ij,ij->i", v, self.e2[idx])
+        r, length = self.radius[idx], self.length[idx]
+        phi = np.arctan2(y, x) % _TWO_PI
+        sweep = length / r
+        outside = phi > sweep
+        phi = np.where(outside, np.where(phi - sweep < _TWO_PI - phi, sweep, 0.0), phi)
+        phi = np.where((x == 0.0) & (y == 0.0), 0.0, phi)
+        return np.where(self.is_arc[idx], phi * r, np.clip(x, 0.0, length))
+
+    def point(self, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
+        arc, r = self.is_arc[idx], self.radius[idx]
+        phi = s / r
+        on_arc = self.origin[idx] + r[:, None] * (
+            np.cos(phi)[:, None] * self.e1[idx] + np.sin(phi)[:, None] * self.e2[idx]
+        )
+        on_line = self.origin[idx] + s[:, None] * self.e1[idx]
+        return np.where(arc[:, None], on_arc, on_line)
+
+    def tangent(self, idx: np.ndarray, s: np.ndarray) -> np.ndarray:
+        phi = s / self.radius[idx]
+        on_arc = -np.sin(phi)[:, None] * self.e1[idx] + np.cos(phi)[:, None] * self.e2[idx]
+        return np.where(self.is_arc[idx][:, None], on_arc, self.e1[idx])
+
+
 def sample(curve: Curve, max_step_m: float) -> tuple[np.ndarray, np.ndarray]:
     """Arc lengths and points at most ``max_step_m`` apart, ends included."""
     n = max(2, int(np.ceil(curve.length / max_step_m)) + 1)

@@ -13,10 +13,12 @@ bar. The tables keep both: ``x_world`` .. of the sight point (so ``u, v`` reproj
 Visibility follows COCO and Ultralytics: 0 when the crossing projects outside the image (or behind the
 camera); 2 when the first hit along the ray from the camera centre to the crossing is one of the
 crossing's own parts near the crossing (its tie wire, or either bar within ``near_diameters`` bar
-diameters of the crossing measured along that bar), or lies beyond the crossing (the ray slipped through
-the gap between two bars that do not quite touch: nothing is in front); 1 otherwise, when something
-else, or the crossing's own bar far from it (seen along its length), is hit first. Measuring "near"
-along the bar keeps a crossing seen at a grazing angle across its bars visible (the ray runs a long way
+diameters of the sight point measured along that bar); 1 otherwise: when something else, or the
+crossing's own bar far from it (seen along its length), is hit first; when the ray reaches the sight
+point without meeting the nearer bar (the sight point lies past that bar's end, where the image shows no
+bar); and where no pixel shows the two bars cross (:func:`sight_points`: the projected bars meet at a
+very shallow angle and overlap along a stretch), as no pixel is the crossing's to train or score on.
+Measuring "near" along the bar keeps a crossing seen at a grazing angle across its bars visible (the ray runs a long way
 through the top bar there) while one hidden behind its own bar, seen along it, is occluded.
 
 Each keypoint also gets a square detection box centred on it, so the same labels serve detection
@@ -33,9 +35,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.geometry.curves import CurveArrays
 from rebar_data.labels.projection import project
 
-BEYOND_TOLERANCE_M = 1e-4  # a first hit this close to the crossing, or past it, is not in front of it
 CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
@@ -97,25 +99,33 @@ class FrameLabels:
 
 
 SIGHT_MIN_SINE = 1e-6  # below this the camera's ray runs along a bar: the crossing's point is used
-# a sight point farther than this (in bar diameters) from its crossing marks a view in which the two
-# projected bars run nearly parallel and overlap over a long stretch (grazing views at image corners,
-# 0.3% of the paper-tunnel's visible keypoints): no pixel is where they cross, and the crossing's point is used
-SIGHT_MAX_OFFSET_DIAMETERS = 3.0
+# projected bars that meet at a shallower angle than this overlap along a stretch of several bar widths (grazing
+# views at image corners): no pixel is where they cross, and the crossing's point is used
+SIGHT_MIN_ANGLE_DEG = 10.0
+# curved bars: the sight point is found on the tangent lines, then again on the tangent lines at the points
+# found, this many times (an arc departs from its tangent by s^2 / 2R: 9 mm for a sight point 0.23 m along a
+# 3 m arc, 1e-5 m after 3 steps, 1e-15 m after 5)
+SIGHT_CURVE_STEPS = 5
+# the mat's outermost crossings lie at their bars' ends: a sight point up to this many bar diameters past a
+# bar's end still shows the bars meet (at the end's cap); farther out the image shows no crossing
+SIGHT_PAST_END_DIAMETERS = 1.0
 
 
-def sight_points_on_lines(
+def sight_lines(
     point_a: np.ndarray,
     tangent_a: np.ndarray,
     point_b: np.ndarray,
     tangent_b: np.ndarray,
     camera_centre: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """For pairs of lines (N, 3 points and unit tangents), the point on the nearer line of the camera ray
-    that meets both, and whether it is well defined (N,).
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """For pairs of lines (N, 3 points and unit tangents): the points ``q_a`` on line a and ``q_b`` on
+    line b of the camera ray that meets both, the sine of the angle at which the two lines' images cross,
+    and whether the ray is defined (not along a line).
 
     With ``c`` the camera centre, the plane through ``c`` and line a meets line b at ``q_b``, the plane
     through ``c`` and line b meets line a at ``q_a``; both lie on one ray, which projects to where the
-    two projected lines cross. Not defined where a ray runs along a line.
+    two projected lines cross. The two planes meet along that ray at the angle the projected lines make
+    (exactly so on a spherical image; on the image plane near its centre).
     """
     centre = np.asarray(camera_centre, float)
     pa, pb, ta, tb = (np.asarray(x, float) for x in (point_a, point_b, tangent_a, tangent_b))
@@ -126,30 +136,82 @@ def sight_points_on_lines(
     scale_a = np.linalg.norm(n_a, axis=1) + 1e-300
     scale_b = np.linalg.norm(n_b, axis=1) + 1e-300
     ok = (np.abs(den_b) > SIGHT_MIN_SINE * scale_a) & (np.abs(den_a) > SIGHT_MIN_SINE * scale_b)
+    sine = np.linalg.norm(np.cross(n_a, n_b), axis=1) / (scale_a * scale_b)
     with np.errstate(divide="ignore", invalid="ignore"):
         q_b = pb + (np.einsum("ij,ij->i", n_a, centre - pb) / den_b)[:, None] * tb
         q_a = pa + (np.einsum("ij,ij->i", n_b, centre - pa) / den_a)[:, None] * ta
+    ok &= np.isfinite(q_a).all(axis=1) & np.isfinite(q_b).all(axis=1)
+    return q_a, q_b, sine, ok
+
+
+def _nearer(q_a: np.ndarray, q_b: np.ndarray, camera_centre: np.ndarray) -> np.ndarray:
+    centre = np.asarray(camera_centre, float)
     nearer_a = np.linalg.norm(q_a - centre, axis=1) <= np.linalg.norm(q_b - centre, axis=1)
-    q = np.where(nearer_a[:, None], q_a, q_b)
-    return q, ok & np.isfinite(q).all(axis=1)
+    return np.where(nearer_a[:, None], q_a, q_b)
 
 
-def sight_points(rm: RebarMesh, parts: CrossingParts, camera_centre: np.ndarray) -> np.ndarray:
+def sight_points_on_lines(
+    point_a: np.ndarray,
+    tangent_a: np.ndarray,
+    point_b: np.ndarray,
+    tangent_b: np.ndarray,
+    camera_centre: np.ndarray,
+) -> tuple[np.ndarray, np.ndarray]:
+    """For pairs of lines (N, 3 points and unit tangents), the point on the nearer line of the camera ray
+    that meets both (:func:`sight_lines`), and whether it is well defined (N,): the ray is not along a
+    line and the lines' images cross at ``SIGHT_MIN_ANGLE_DEG`` or more.
+    """
+    q_a, q_b, sine, ok = sight_lines(point_a, tangent_a, point_b, tangent_b, camera_centre)
+    ok &= sine >= np.sin(np.radians(SIGHT_MIN_ANGLE_DEG))
+    return _nearer(q_a, q_b, camera_centre), ok
+
+
+def sight_points(
+    rm: RebarMesh, parts: CrossingParts, camera_centre: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
     """(N, 3) for every crossing, the point on the nearer bar's centerline where the camera's ray that
-    meets both centerlines passes; it projects to where the two projected centerlines cross.
+    meets both centerlines passes (it projects to where the two projected centerlines cross), and (N,)
+    whether it is defined.
 
-    Each centerline is its tangent line at the crossing (:func:`sight_points_on_lines`): an arc of
-    radius R departs from it by s^2 / 2R where the sight point is s along it (with the paper's 3.2 m and
-    12 mm bars: 35 um at a typical 15 mm, 0.14 mm at 30 mm in a grazing view, 0.1 px or less in the
-    image). Where the geometry degenerates (a ray along a bar) the crossing's own point is returned, as
-    it is where the sight point lies more than ``SIGHT_MAX_OFFSET_DIAMETERS`` bar diameters from the
-    crossing.
+    It is found on each centerline's tangent line at the crossing (:func:`sight_lines`). Where a bar is
+    curved, the tangent lines at the points found replace them, ``SIGHT_CURVE_STEPS`` times: an arc of
+    radius R departs from its tangent by s^2 / 2R where the sight point is s along it, which under a
+    grazing view (s several bar diameters) would put it a millimetre or more off the bar.
+
+    Where no pixel shows the bars cross (a ray along a bar; projected bars meeting at less than
+    ``SIGHT_MIN_ANGLE_DEG``: they overlap along a stretch, at grazing views near the image's corners; the
+    ray meets a bar's centerline only more than ``SIGHT_PAST_END_DIAMETERS`` past the bar's end, at the
+    mat's edge) the crossing's own point is returned and the second array is False; :func:`label_frame` marks such a
+    keypoint occluded (1) at most. The sight point may lie several bar diameters along the bars from the
+    crossing: at a grazing view across two stacked bars, the ray that meets both runs a long way between
+    them (a label at the crossing's own point would lie in the gap between the bars' images, where the
+    image shows no crossing).
     """
     c = rm.crossings
-    q, ok = sight_points_on_lines(c.point_a, parts.tangent_a, c.point_b, parts.tangent_b, camera_centre)
+    centre = np.asarray(camera_centre, float)
+    q_a, q_b, sine, ok = sight_lines(c.point_a, parts.tangent_a, c.point_b, parts.tangent_b, centre)
+    bars = CurveArrays.of([b.curve for b in rm.bars])
+    a, b = np.asarray(c.bar_a), np.asarray(c.bar_b)
+    curved = np.flatnonzero(ok & (bars.is_arc[a] | bars.is_arc[b]))
+    for _ in range(SIGHT_CURVE_STEPS if len(curved) else 0):
+        ia, ib = a[curved], b[curved]
+        sa, sb = bars.project(ia, q_a[curved]), bars.project(ib, q_b[curved])
+        qa, qb, s_k, ok_k = sight_lines(
+            bars.point(ia, sa), bars.tangent(ia, sa), bars.point(ib, sb), bars.tangent(ib, sb), centre
+        )
+        ok[curved] &= ok_k
+        q_a[curved] = np.where(ok_k[:, None], qa, q_a[curved])
+        q_b[curved] = np.where(ok_k[:, None], qb, q_b[curved])
+        sine[curved] = np.where(ok_k, s_k, sine[curved])
+    # both points on their bars, not on a line's extension past a bar's end (no crossing is drawn there)
     with np.errstate(invalid="ignore"):
-        ok &= np.linalg.norm(q - c.point, axis=1) <= SIGHT_MAX_OFFSET_DIAMETERS * parts.diameter_max_m
-    return np.where(ok[:, None], q, c.point)
+        past = np.maximum(
+            np.linalg.norm(bars.point(a, bars.project(a, q_a)) - q_a, axis=1),
+            np.linalg.norm(bars.point(b, bars.project(b, q_b)) - q_b, axis=1),
+        )
+        ok &= past <= SIGHT_PAST_END_DIAMETERS * parts.diameter_max_m
+    ok &= sine >= np.sin(np.radians(SIGHT_MIN_ANGLE_DEG))
+    return np.where(ok[:, None], _nearer(q_a, q_b, centre), c.point), ok
 
 
 def along_bar_distance(
@@ -186,7 +248,7 @@ def label_frame(
 ) -> FrameLabels:
     """Project every crossing's sight point and decide its visibility with one batched ray cast."""
     k = intrinsics
-    pts = sight_points(rm, parts, np.asarray(world_from_camera, float)[:3, 3])
+    pts, seen = sight_points(rm, parts, np.asarray(world_from_camera, float)[:3, 3])
     proj = project(pts, world_from_camera, fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width=k.width, height=k.height)
     n = len(pts)
     vis = np.zeros(n, np.int8)
@@ -210,8 +272,7 @@ def label_frame(
             ],
             bool,
         )
-        beyond = ~hit | (t_hit >= dist - BEYOND_TOLERANCE_M)
-        vis[idx] = np.where(near | beyond, 2, 1)
+        vis[idx] = np.where(near & seen[idx], 2, 1)
         hit_instance[idx] = inst
     f = (k.fx + k.fy) / 2.0
     with np.errstate(divide="ignore", invalid="ignore"):

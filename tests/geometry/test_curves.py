@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rebar_data.geometry.curves import Arc, Line, closest_points
+from rebar_data.geometry.curves import Arc, CurveArrays, Line, closest_points
 
 
 def _dist_to_line(p, line):
@@ -65,3 +65,26 @@ def test_arc_through_has_requested_sagitta():
     np.testing.assert_allclose(arc.start, a, atol=1e-12)
     np.testing.assert_allclose(arc.end, b, atol=1e-12)
     np.testing.assert_allclose(arc.point(arc.length / 2), [1.0, 0.0, -0.01], atol=1e-12)
+
+
+def test_curve_arrays_agree_with_each_curve():
+    """The batched evaluation gives what each curve gives alone: projections (clamped to a line's ends, the
+    nearer end outside an arc's sweep), points and tangents."""
+    rng = np.random.default_rng(3)
+    curves = [
+        Line(np.array([0.0, 0.0, 0.0]), np.array([1.0, 0.2, 0.0])),
+        Arc.through(np.array([0.0, 0.0, 0.0]), np.array([1.2, 0.0, 0.0]), np.array([0.0, 0.0, 1.0]), 0.05),
+        Arc(np.array([0.0, 0.0, -3.0]), 3.0, np.array([-1.0, 0.0, 0.0]), np.array([0.0, -0.3, 0.954]), 0.6),
+    ]
+    arrays = CurveArrays.of(curves)
+    idx = rng.integers(len(curves), size=300)
+    p = rng.normal(0.0, 1.5, (300, 3))
+    s = arrays.project(idx, p)
+    np.testing.assert_allclose(s, [curves[i].project(q) for i, q in zip(idx, p, strict=True)], atol=1e-12)
+    assert (s < 1e-12).any() and any(abs(s[k] - curves[i].length) < 1e-12 for k, i in enumerate(idx))
+    np.testing.assert_allclose(
+        arrays.point(idx, s), [curves[i].point(t) for i, t in zip(idx, s, strict=True)], atol=1e-12
+    )
+    np.testing.assert_allclose(
+        arrays.tangent(idx, s), [curves[i].tangent(t) for i, t in zip(idx, s, strict=True)], atol=1e-12
+    )
