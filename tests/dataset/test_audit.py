@@ -45,6 +45,23 @@ def test_a_label_off_by_a_hundredth_of_a_pixel_fails_reprojection(copy):
     assert {"reprojection_px", "formats_agree_px"} <= _failed(copy)
 
 
+def test_visible_keypoints_called_occluded_fail_the_rendered_passes_check(copy):
+    """The rendered instance and depth passes catch a wrong visibility: a handful of visible keypoints
+    (a pixel showing their own bar at the crossing) marked occluded fail occluded_off_own_bar; a single one
+    passes it, as one sub-pixel occluder the rendered pass misses would."""
+    p = copy / "tables/keypoints.parquet"
+    t = pq.read_table(p).to_pandas()
+    visible = t.index[t.visibility == 2]
+    assert len(visible) >= 4
+    one = t.copy()
+    one.loc[visible[:1], "visibility"] = 1
+    pq.write_table(pa.Table.from_pandas(one, schema=pq.read_schema(p), preserve_index=False), p)
+    assert "occluded_off_own_bar" not in _failed(copy)
+    t.loc[visible[:4], "visibility"] = 1
+    pq.write_table(pa.Table.from_pandas(t, schema=pq.read_schema(p), preserve_index=False), p)
+    assert "occluded_off_own_bar" in _failed(copy)
+
+
 def test_a_yolo_file_of_another_image_fails_format_agreement(copy):
     labels = sorted((copy / "labels").rglob("*.txt"), key=lambda p: p.stat().st_size)
     labels[0].write_text(labels[-1].read_text())
