@@ -32,6 +32,7 @@ def test_audit_command_writes_a_report_and_exits_zero(copy, capsys):
         "formats_agree_px",
         "visible_on_own_bar",
         "occluded_off_own_bar",
+        "visible_at_own_depth",
         "duplicate_images",
         "scene_id_in_two_splits",
     }
@@ -60,6 +61,26 @@ def test_visible_keypoints_called_occluded_fail_the_rendered_passes_check(copy):
     t.loc[visible[:4], "visibility"] = 1
     pq.write_table(pa.Table.from_pandas(t, schema=pq.read_schema(p), preserve_index=False), p)
     assert "occluded_off_own_bar" in _failed(copy)
+
+
+def test_a_visible_label_whose_pixel_shows_the_ground_fails_the_depth_check(copy):
+    """A label between two bars' images, where the ground shows through, has bars in the 3x3 pixels around
+    it but not under it: visible_at_own_depth sees that."""
+    import cv2
+    import numpy as np
+
+    from rebar_data.dataset.audit import INSTANCE_OFFSET
+
+    keypoints = pq.read_table(copy / "tables/keypoints.parquet").to_pandas()
+    samples = pq.read_table(copy / "tables/samples.parquet").to_pandas().set_index("image_id")
+    visible = keypoints[keypoints.visibility == 2]
+    assert len(visible) >= 10
+    for image_id, group in visible.groupby("image_id"):
+        path = copy / samples.loc[image_id, "instance_file"]
+        inst = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        inst[np.floor(group.v).astype(int), np.floor(group.u).astype(int)] = INSTANCE_OFFSET - 2  # ground
+        cv2.imwrite(str(path), inst)
+    assert "visible_at_own_depth" in _failed(copy)
 
 
 def test_a_yolo_file_of_another_image_fails_format_agreement(copy):
