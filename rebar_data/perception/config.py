@@ -349,6 +349,19 @@ class TrainConfig(Strict):
     paper-tunnel's own test split; on the Cycles slab without depth a few more confident false detections
     cost recall at precision 0.99 (0.54 to 0.35: a dozen detections among 927 crossings decide it).
 
+    The same recipe on the corrected labels of dataset versions 2.1.0 / 1.1.0 (the shipped model; before,
+    a sight point more than three bar diameters from its crossing fell back to the crossing's point and
+    stayed visible: 1-5% of the wide supplements' visible labels, half of them on the ground seen between
+    two bars, and 0.3-0.5% of paper-tunnel's; `rebar_data.labels.keypoints`), against the model above,
+    both scored in one session on the corrected builds (first: earlier labels, second: corrected; 75
+    minutes of training). Paper-tunnel's test split with depth: OKS AP@0.5 0.978 / 0.978, PCK@2px 0.925 /
+    0.927, recall@P0.99 0.979 / 0.984; RGB only 0.976 / 0.976, 0.921 / 0.924, 0.945 / 0.957. The Cycles
+    sets, RGB only: crossval-planar AP@0.5 0.917 / 0.936, PCK@2px 0.921 / 0.911, recall@P0.99 0.349 / 0.614;
+    crossval-tunnel 0.887 / 0.917, 0.841 / 0.863, 0.455 / 0.545. With depth, recall@P0.99: planar 0.914 /
+    0.933, tunnel 0.854 / 0.880. Planar-slab (all splits, with depth) AP@0.5 0.953 / 0.966, PCK@2px 0.739 /
+    0.738, recall@P0.99 0.769 / 0.839. A training crop with a positive in the gap between two bars and the
+    crossing the image shows unlabelled taught the network to doubt steep views' crossings.
+
     Earlier, with the first 1,680 images alone and the second stage's verification at full weight
     (``RefineConfig.verify_power`` 1): 22 epochs (best on val at 18) gave OKS AP@0.5 0.977, AP@0.5:0.95
     0.906, PCK@2px 0.927, recall@P0.99 0.958 (first stage alone 0.937); 11 epochs 0.965, 0.895, 0.913 and
