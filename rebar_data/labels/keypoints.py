@@ -56,6 +56,7 @@ class CrossingParts:
     diameter_max_m: np.ndarray  # (N,)
     tangent_a: np.ndarray  # (N, 3) unit tangent of bar a at its closest point
     tangent_b: np.ndarray  # (N, 3) unit tangent of bar b at its closest point
+    bars: CurveArrays  # every bar's centerline, for the per-frame sight points (built once per mesh)
 
     @staticmethod
     def of(rm: RebarMesh) -> CrossingParts:
@@ -82,6 +83,7 @@ class CrossingParts:
             np.maximum(diam[c.bar_a], diam[c.bar_b]),
             tangents(c.bar_a, c.point_a),
             tangents(c.bar_b, c.point_b),
+            CurveArrays.of([b.curve for b in rm.bars]),
         )
 
 
@@ -190,7 +192,7 @@ def sight_points(
     c = rm.crossings
     centre = np.asarray(camera_centre, float)
     q_a, q_b, sine, ok = sight_lines(c.point_a, parts.tangent_a, c.point_b, parts.tangent_b, centre)
-    bars = CurveArrays.of([b.curve for b in rm.bars])
+    bars = parts.bars
     a, b = np.asarray(c.bar_a), np.asarray(c.bar_b)
     curved = np.flatnonzero(ok & (bars.is_arc[a] | bars.is_arc[b]))
     for _ in range(SIGHT_CURVE_STEPS if len(curved) else 0):
