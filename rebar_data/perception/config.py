@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field
+from pydantic import Field, field_validator
 
 from rebar_data.config import Fraction, NonNegative, Positive, Strict
 
@@ -196,6 +196,14 @@ class RefineConfig(Strict):
     border: Literal["mirror", "mask"] = "mask"
     border_fraction: Fraction = 0.1
     border_reach_px: NonNegative = 8.0
+    context_scale: NonNegativeInt = 0
+
+    @field_validator("context_scale")
+    @classmethod
+    def _context_scale(cls, v: int) -> int:
+        if v == 1:
+            raise ValueError("1 is not accepted; accepted: 0 (no context) or a shrink factor of 2 or more")
+        return v
 
 
 class DepthCheckConfig(Strict):

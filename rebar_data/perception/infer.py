@@ -366,7 +366,9 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
     path, entry = found
     iterations = int(entry.get("iterations", 1))
     if path.suffix == ".onnx":
-        return Refiner.load_onnx(path, threads=threads, iterations=iterations)
+        return Refiner.load_onnx(
+            path, threads=threads, iterations=iterations, context_scale=int(entry.get("context_scale", 0))
+        )
     from rebar_data.perception.refine_train import load
 
     net, _, _ = load(path)

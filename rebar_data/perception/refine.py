@@ -76,6 +76,31 @@ def patches(
     return out, corners.astype(np.float64)
 
 
+def shrunk(image: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` shrunk ``scale`` times (area averaging, each side rounded), and the (2,) factors that take a
+    point's (u, v) in ``image`` to the shrunk one (COCO corner origin in both)."""
+    h, w = image.shape[:2]
+    size = (max(1, round(w / scale)), max(1, round(h / scale)))
+    return cv2.resize(image, size, interpolation=cv2.INTER_AREA), np.array([size[0] / w, size[1] / h])
+
+
+def stage_input(
+    image: np.ndarray, centres: np.ndarray, size: int, *, border: str = "mirror", context_scale: int = 0
+) -> tuple[np.ndarray, np.ndarray]:
+    """What the second stage reads around each point: :func:`patches` of ``image``, and with
+    ``context_scale`` k the patches of the same size cut around the same points from the image shrunk k
+    times (:func:`shrunk`), so each also shows the k x ``size`` square around its point, appended as
+    more channels (N, size, size, 2 C). Returns the input and the fine patches' corners."""
+    x, corners = patches(image, centres, size, border=border)
+    if not context_scale:
+        return x, corners
+    if not len(x):
+        return np.concatenate([x, x], axis=-1), corners
+    small, factors = shrunk(image, context_scale)
+    wide, _ = patches(small, np.asarray(centres, float).reshape(-1, 2) * factors, size, border=border)
+    return np.concatenate([x, wide], axis=-1), corners
+
+
 class Refiner:
     """A loaded refiner: ``refine(image, uv) -> uv`` moves each point to the crossing the patch shows;
     ``refine_and_verify`` also gives each point's verification logit when the refiner has one
@@ -89,10 +114,12 @@ class Refiner:
         iterations: int,
         verifies: bool,
         border: str = "mirror",
+        context_scale: int = 0,
     ):
         self._run = run
         self.patch_px = patch_px
         self.border = border
+        self.context_scale = context_scale
         self.iterations = iterations
         self.verifies = verifies
 
@@ -109,10 +136,19 @@ class Refiner:
             with torch.inference_mode():
                 return wrapped(torch.from_numpy(x)).numpy()
 
-        return cls(run, patch_px=net.patch_px, iterations=iterations, verifies=net.verify, border=net.border)
+        return cls(
+            run,
+            patch_px=net.patch_px,
+            iterations=iterations,
+            verifies=net.verify,
+            border=net.border,
+            context_scale=net.context_scale,
+        )
 
     @classmethod
-    def load_onnx(cls, path: Path, *, threads: int, iterations: int = 1) -> Refiner:
+    def load_onnx(cls, path: Path, *, threads: int, iterations: int = 1, context_scale: int = 0) -> Refiner:
+        """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
+        meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on)."""
         from rebar_data.perception.infer import onnx_session
 
         sess = onnx_session(path, threads)
@@ -125,9 +161,23 @@ class Refiner:
             return sess.run(None, {name: x})[0]
 
         columns = sess.get_outputs()[0].shape[-1]  # 2: offsets; 3: offsets and the verification logit
-        channels = sess.get_inputs()[0].shape[-1]  # 3: RGB, mirrored beyond the border; 4: RGB and the mask
-        border = "mask" if channels == 4 else "mirror"
-        return cls(run, patch_px=size, iterations=iterations, verifies=columns == 3, border=border)
+        # per view 3: RGB, mirrored beyond the border; 4: RGB and the mask; with context, two views
+        channels = sess.get_inputs()[0].shape[-1]
+        per_view = channels // 2 if context_scale else channels
+        if per_view not in (3, 4) or per_view * (2 if context_scale else 1) != channels:
+            raise ConfigError(
+                f"{path}: takes {channels} channels, which does not fit context_scale {context_scale}; "
+                "accepted: the refiner file written with its model file by `rebar train`"
+            )
+        border = "mask" if per_view == 4 else "mirror"
+        return cls(
+            run,
+            patch_px=size,
+            iterations=iterations,
+            verifies=columns == 3,
+            border=border,
+            context_scale=context_scale,
+        )
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N, 2) refined positions of the (N, 2) points ``uv`` in ``image`` (pixels, COCO corner origin)."""
@@ -141,7 +191,9 @@ class Refiner:
             return uv, (np.zeros(0) if self.verifies else None)
         logit = None
         for it in range(self.iterations):
-            x, corners = patches(image, uv, self.patch_px, border=self.border)
+            x, corners = stage_input(
+                image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
+            )
             out = self._run(x).astype(np.float64)
             if it == 0 and self.verifies:
                 logit = out[:, 2].copy()

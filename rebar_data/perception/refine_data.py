@@ -46,7 +46,7 @@ def training_patch(
 
     With ``cfg.border = "mask"`` the patch has a fourth channel, 255 where it shows the image (0 and 0 in
     colour beyond the image's border, as :func:`~rebar_data.perception.refine.patches` cuts them), and a
-    ``cfg.border_fraction`` of patches get a border of their own (:func:`_own_border`)."""
+    ``cfg.border_fraction`` of patches get a border of their own (:func:`_own_edge`)."""
     if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
     else:
@@ -60,13 +60,55 @@ def training_patch(
     )
     offset = apply_affine(crossing, patch_from_image)[0] - size / 2
     if cfg.border == "mirror":
-        return warp(image, patch_from_image, size, fill=None), offset
+        x = warp(image, patch_from_image, size, fill=None)
+        if cfg.context_scale:
+            x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=None)], axis=2)
+        return x, offset
     x = warp(image, patch_from_image, size, fill=0.0)
     on_image = _on_image(patch_from_image, size, image.shape[1], image.shape[0])
+    edge = None
     if rng.uniform() < cfg.border_fraction:
-        on_image &= _own_border(rng, size / 2 + offset, size, cfg.border_reach_px)
+        edge = _own_edge(rng, size / 2 + offset, size, cfg.border_reach_px)
+        on_image &= _edge_keep(edge, size)
     x[~on_image] = 0
-    return np.concatenate([x, (on_image * np.uint8(255))[..., None]], axis=2), offset
+    x = np.concatenate([x, (on_image * np.uint8(255))[..., None]], axis=2)
+    if cfg.context_scale:
+        x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=edge)], axis=2)
+    return x, offset
+
+
+def _context(
+    image: np.ndarray,
+    patch_from_image: np.ndarray,
+    rng: np.random.Generator,
+    cfg: RefineConfig,
+    *,
+    edge: tuple[int, float, bool] | None,
+) -> np.ndarray:
+    """The context view of a training patch, as :func:`~rebar_data.perception.refine.stage_input` cuts it
+    at inference: the ``context_scale`` (k) times wider square around the patch's centre, with the same
+    turn, flip and scale, shrunk k times by area averaging to the patch's size. Its centre moves by up to
+    k / 2 px, as cutting it on the shrunk image's pixel grid moves it at inference. With the border mask:
+    its own mask channel (a shrunk pixel is on the image when at least half of it is), and the patch's
+    own border (``edge``, from :func:`_own_edge`) where the patch has one."""
+    k, size = cfg.context_scale, cfg.patch_px
+    wide = k * size
+    shift = (wide - size) / 2 + rng.uniform(-k / 2, k / 2, 2)
+    wide_from_image = patch_from_image + np.c_[np.zeros((2, 2)), shift]
+    if cfg.border == "mirror":
+        return cv2.resize(
+            warp(image, wide_from_image, wide, fill=None), (size, size), interpolation=cv2.INTER_AREA
+        )
+    x = warp(image, wide_from_image, wide, fill=0.0)
+    on_image = _on_image(wide_from_image, wide, image.shape[1], image.shape[0])
+    if edge is not None:
+        axis, at, below = edge
+        on_image &= _edge_keep((axis, at + shift[axis], below), wide)
+    x[~on_image] = 0
+    x = cv2.resize(x, (size, size), interpolation=cv2.INTER_AREA)
+    on = cv2.resize(on_image * np.uint8(255), (size, size), interpolation=cv2.INTER_AREA) >= 128
+    x[~on] = 0
+    return np.concatenate([x, (on * np.uint8(255))[..., None]], axis=2)
 
 
 def _on_image(patch_from_image: np.ndarray, size: int, width: int, height: int) -> np.ndarray:
@@ -79,14 +121,23 @@ def _on_image(patch_from_image: np.ndarray, size: int, width: int, height: int) 
     return (u >= 0) & (u < width) & (v >= 0) & (v < height)
 
 
-def _own_border(rng: np.random.Generator, point: np.ndarray, size: int, reach: float) -> np.ndarray:
-    """(size, size) bool: the side of a random straight edge, along a patch axis within ``reach`` of
-    ``point`` (patch pixels), that holds the patch centre; the other side is beyond the frame. At
-    inference a patch is centred on a point inside the frame, so its centre is always on the image."""
+def _own_edge(
+    rng: np.random.Generator, point: np.ndarray, size: int, reach: float
+) -> tuple[int, float, bool]:
+    """A random straight edge along a patch axis within ``reach`` of ``point`` (patch pixels): (axis, where
+    it lies along that axis, whether the side kept lies below it). The side kept holds the patch centre;
+    the other is beyond the frame. At inference a patch is centred on a point inside the frame, so its
+    centre is always on the image."""
     axis = int(rng.integers(2))
     edge = point[axis] + rng.uniform(-reach, reach)
+    return axis, float(edge), bool(edge > size / 2)
+
+
+def _edge_keep(edge: tuple[int, float, bool], size: int) -> np.ndarray:
+    """(size, size) bool: the side of :func:`_own_edge`'s ``edge`` that is kept."""
+    axis, at, below = edge
     c = np.arange(size) + 0.5
-    keep = c < edge if edge > size / 2 else c > edge
+    keep = c < at if below else c > at
     return np.broadcast_to(keep[None, :] if axis == 0 else keep[:, None], (size, size))
 
 
@@ -126,23 +177,35 @@ def patch_batch(
     x, y = np.stack(xs), np.stack(ys)
     positive = rows[:, 2].astype(bool)
     crossing = positive.copy()
-    if x.shape[3] == 4:
-        # colour changes for the colour channels; beyond the border stays 0
-        x[..., :3] = photometric_batch(np.ascontiguousarray(x[..., :3]), rng, aug) * (x[..., 3:] > 0)
+    masked = cfg.border == "mask"
+    _recolour(x, rng, aug, per_view=4 if masked else 3)
+    if masked:
         # a crossing beyond the frame's edge is no crossing to the labels (as a mined negative just inside
         # a real border, near a crossing just outside it, is not): its offset still trains, its
         # verification learns "no"
         size = x.shape[1]
         j, i = np.clip(np.floor(size / 2 + y).astype(np.int64), 0, size - 1).T
         crossing &= x[np.arange(len(x)), i, j, 3] > 0
-    else:
-        x = photometric_batch(x, rng, aug)
     return (
         torch.from_numpy(x),
         torch.from_numpy(y).float(),
         torch.from_numpy(positive),
         torch.from_numpy(crossing),
     )
+
+
+def _recolour(x: np.ndarray, rng: np.random.Generator, aug: AugmentConfig, *, per_view: int) -> None:
+    """A batch's colour, blur and noise changes, in place: each patch's views (the patch, and its context
+    view) get the same changes, drawn as for one image of them side by side; with the border mask
+    (``per_view`` 4) what lies beyond the border stays 0."""
+    size, views = x.shape[1], x.shape[3] // per_view
+    rgb = np.concatenate([x[..., v * per_view : v * per_view + 3] for v in range(views)], axis=2)
+    rgb = photometric_batch(np.ascontiguousarray(rgb), rng, aug)
+    for v in range(views):
+        part = rgb[:, :, v * size : (v + 1) * size]
+        if per_view == 4:
+            part = part * (x[..., v * 4 + 3 : v * 4 + 4] > 0)
+        x[..., v * per_view : v * per_view + 3] = part
 
 
 def patch_batches(

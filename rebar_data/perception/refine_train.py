@@ -73,13 +73,15 @@ class PatchNet(nn.Module):
         *,
         verify: bool = False,
         border: str = "mirror",
+        context_scale: int = 0,
     ):
         super().__init__()
         a, b, c, d = widths
         self.patch_px = patch_px
         self.verify = verify
         self.border = border
-        layers = [_conv(4 if border == "mask" else 3, a)]
+        self.context_scale = context_scale
+        layers = [_conv(self.channels, a)]
         for cin, cout, n in ((a, b, blocks[0]), (b, c, blocks[1]), (c, d, blocks[2])):
             layers += [_conv(cin, cout, 2), *[_conv(cout, cout) for _ in range(n)]]
         self.features = nn.Sequential(*layers)
@@ -90,6 +92,11 @@ class PatchNet(nn.Module):
             nn.ReLU(inplace=True),
             nn.Linear(hidden, 3 if verify else 2),
         )
+
+    @property
+    def channels(self) -> int:
+        """Input channels: RGB (and the mask with ``border = "mask"``), twice with context."""
+        return (4 if self.border == "mask" else 3) * (2 if self.context_scale else 1)
 
     def forward(self, patches: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(patches * (1.0 / 64.0) - 2.0))
@@ -109,7 +116,15 @@ class PatchExportWrapper(nn.Module):
 
 def build(cfg: RefineConfig) -> PatchNet:
     """The refiner network these settings describe."""
-    return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks, verify=cfg.verify, border=cfg.border)
+    return PatchNet(
+        cfg.patch_px,
+        cfg.widths,
+        cfg.hidden,
+        cfg.blocks,
+        verify=cfg.verify,
+        border=cfg.border,
+        context_scale=cfg.context_scale,
+    )
 
 
 def save(path: Path, net: PatchNet, cfg: RefineConfig, **extra: Any) -> None:
@@ -131,9 +146,9 @@ def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
 
 def export_onnx(net: PatchNet, path: Path) -> Path:
     """The refiner as ONNX: uint8 patches (N, P, P, C) -> offsets (N, 2), or (N, 3) with the
-    verification logit; N dynamic; C = 4 with the border mask, else 3."""
+    verification logit; N dynamic; C = 4 with the border mask, else 3, twice that with context."""
     size = net.patch_px
-    example = torch.zeros((4, size, size, 4 if net.border == "mask" else 3), dtype=torch.uint8)
+    example = torch.zeros((4, size, size, net.channels), dtype=torch.uint8)
     return export_stage(PatchExportWrapper(net), example, path, input_name="patches", output_name="offset")
 
 
@@ -147,13 +162,17 @@ def calibration_patches(
     Returns:
         (``cfg.calibration_patches``, P, P, C) uint8 patches (fewer when the images hold fewer crossings).
     """
-    from rebar_data.perception.refine import patches
+    from rebar_data.perception.refine import stage_input
 
     rng = np.random.default_rng(np.random.SeedSequence([seed, 4099]))
     points = calibration_points(
         samples, count=cfg.calibration_patches, jitter_px=cfg.jitter_px, rng=rng, images_used=images_used
     )
-    out = [patches(read_image(s.path), uv, cfg.patch_px, border=cfg.border)[0] for s, uv in points]
+    cut = [
+        stage_input(read_image(s.path), uv, cfg.patch_px, border=cfg.border, context_scale=cfg.context_scale)
+        for s, uv in points
+    ]
+    out = [x for x, _ in cut]
     if not out:
         raise ConfigError(
             "no visible crossings to calibrate the int8 second stage on; accepted: quantize: none"

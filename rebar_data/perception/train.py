@@ -679,6 +679,7 @@ def _finish(
             "quantize": cfg.refine.quantize,
             "verify": refiner.verify,
             "verify_power": cfg.refine.verify_power,
+            "context_scale": cfg.refine.context_scale,
             "sha256": sha256_file(onnx_path),
         }
     if depth_net is not None:

@@ -12,7 +12,7 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import load_split, read_image
 from rebar_data.perception.infer import Detector, verified_score
-from rebar_data.perception.refine import Refiner, patches
+from rebar_data.perception.refine import Refiner, patches, stage_input
 from rebar_data.perception.refine_data import patch_batches, patch_geometry, training_patch
 from rebar_data.perception.refine_train import (
     build,
@@ -37,6 +37,14 @@ def _centroid(img: np.ndarray) -> np.ndarray:
     g = img[..., 0].astype(float)
     y, x = np.mgrid[0 : g.shape[0], 0 : g.shape[1]] + 0.5
     return np.array([(g * x).sum(), (g * y).sum()]) / g.sum()
+
+
+def _spread(img: np.ndarray) -> float:
+    """The RMS distance of a spot's brightness from its centroid (pixels)."""
+    g = img[..., 0].astype(float)
+    y, x = np.mgrid[0 : g.shape[0], 0 : g.shape[1]] + 0.5
+    cx, cy = _centroid(img)
+    return float(np.sqrt((g * ((x - cx) ** 2 + (y - cy) ** 2)).sum() / g.sum()))
 
 
 def test_a_patch_is_centred_on_the_point_in_coco_pixels():
@@ -99,6 +107,58 @@ def test_a_training_patch_sees_the_frame_end_as_inference_does():
     np.testing.assert_allclose(y, 0.0, atol=1e-9)
     assert (cut[0, :, :5, 3] == 0).all() and (cut[0, :, 5:, 3] == 255).all()
     np.testing.assert_array_equal(x, cut[0])
+
+
+def test_a_training_patch_sees_its_context_as_inference_cuts_it():
+    crossing = np.array([4.0, 30.0])  # 4 px inside the left border, on the pixel grid
+    image = _blob(64, 80, crossing, sigma=5.0)
+    plain = STILL.model_copy(update={"rotation_deg": 0.0, "flip_lr": 0.0, "flip_ud": 0.0})
+    cfg = RefineConfig(
+        patch_px=16,
+        jitter_px=0.0,
+        jitter_uniform_fraction=0.0,
+        scale=(1.0, 1.0),
+        border_fraction=0.0,
+        context_scale=3,
+    )
+    cut, _ = stage_input(image, crossing[None], 16, border="mask", context_scale=3)
+    assert cut.shape == (1, 16, 16, 8)
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        x, y = training_patch(image, crossing, rng, cfg, patch_geometry(cfg, plain))
+        assert x.shape == (16, 16, 8)
+        np.testing.assert_array_equal(x[..., :4], cut[0, ..., :4])  # the patch itself as before
+        wide, wide_cut = x[..., 4:], cut[0, ..., 4:]
+        # 48 px around the point shrunk to 16: the spot a third of its size, where inference puts it to
+        # within a shrunk pixel (inference cuts on the shrunk image's pixel grid, half a pixel either way,
+        # and training moves its view by as much)
+        np.testing.assert_allclose(_centroid(wide), _centroid(wide_cut), atol=1.0)
+        assert 0.8 < _spread(wide) / _spread(wide_cut) < 1.25
+        # the frame ends 4 px left of the point: 1.33 shrunk pixels, so about 8 - 1.33 columns are beyond
+        beyond = (wide[..., 3] == 0).all(axis=0)
+        assert 6 <= beyond.sum() <= 7 and beyond[:6].all() and not beyond[8:].any()
+        assert (wide[:, beyond, :3] == 0).all()
+        np.testing.assert_array_equal((wide_cut[..., 3] == 0).all(axis=0)[:6], True)
+
+
+def test_a_patch_and_its_context_get_the_same_colour_changes(drawn_dataset):
+    samples = load_split(drawn_dataset, "train")
+    negatives = [np.zeros((0, 2)) for _ in samples]
+    cfg = RefineConfig(patch_px=16, batch_size=64, border_fraction=0.0, context_scale=2, scale=(1.0, 1.0))
+    hue = STILL.model_copy(update={"hue_full_probability": 1.0, "rotation_deg": 0.0})
+    x, *_ = next(patch_batches(samples, negatives, cfg, hue, seed=3, first=1))
+    x0, *_ = next(
+        patch_batches(
+            samples, negatives, cfg, STILL.model_copy(update={"rotation_deg": 0.0}), seed=3, first=1
+        )
+    )
+    assert x.shape == (64, 16, 16, 8)
+    # the hue turns differ from patch to patch, and each patch's two views turn alike: their mean
+    # colours change by about the same amount
+    change = x.numpy().astype(float).mean(axis=(1, 2)) - x0.numpy().astype(float).mean(axis=(1, 2))
+    fine, wide = change[:, :3], change[:, 4:7]
+    assert np.corrcoef(fine.ravel(), wide.ravel())[0, 1] > 0.8
+    assert np.std(fine[:, 0]) > 5.0
 
 
 def test_a_training_patch_gets_a_border_of_its_own_near_its_crossing():
@@ -205,10 +265,13 @@ def test_the_refiner_learns_to_move_points_onto_crossings(drawn_dataset, tmp_pat
     assert np.median(after_int8) < np.median(after) + 0.3, (np.median(after_int8), np.median(after))
 
 
-@pytest.mark.parametrize("border", ["mask", "mirror"])
-def test_onnx_refiner_gives_what_pytorch_gives(tmp_path, border):
+@pytest.mark.parametrize(
+    ("border", "context_scale"), [("mask", 0), ("mirror", 0), ("mask", 3), ("mirror", 2)]
+)
+def test_onnx_refiner_gives_what_pytorch_gives(tmp_path, border, context_scale):
     torch.manual_seed(1)
-    net = build(RefineConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8, border=border)).eval()
+    cfg = RefineConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8, border=border, context_scale=context_scale)
+    net = build(cfg).eval()
     with torch.no_grad():
         for m in net.modules():
             if isinstance(m, torch.nn.BatchNorm2d):
@@ -216,9 +279,13 @@ def test_onnx_refiner_gives_what_pytorch_gives(tmp_path, border):
                 m.running_var.uniform_(0.5, 2.0)
     image = np.random.default_rng(0).integers(0, 256, (40, 50, 3), dtype=np.uint8)
     points = np.array([[10.0, 12.0], [25.5, 30.25], [0.5, 39.0]])
-    onnx_refiner = Refiner.load_onnx(export_onnx(net, tmp_path / "r.onnx"), threads=1)
+    path = export_onnx(net, tmp_path / "r.onnx")
+    onnx_refiner = Refiner.load_onnx(path, threads=1, context_scale=context_scale)
     assert onnx_refiner.patch_px == 16
     assert onnx_refiner.border == border  # read from the file's input: 4 channels with the mask
+    if context_scale:  # the file's channels say whether it reads a context view; the model file says how wide
+        with pytest.raises(ConfigError, match="does not fit context_scale 0"):
+            Refiner.load_onnx(path, threads=1)
     np.testing.assert_allclose(
         onnx_refiner.refine(image, points), Refiner.from_network(net).refine(image, points), atol=1e-4
     )
