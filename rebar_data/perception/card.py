@@ -162,6 +162,14 @@ def write_card(
                     if refine.get("border", "mirror") == "mask"
                     else []
                 ),
+                *(
+                    [
+                        f"  It also reads a context view: the {refine['context_scale']} times wider square around each"
+                        f" detection, shrunk to {refine['patch_px']} px, as more channels beside the patch.",
+                    ]
+                    if refine.get("context_scale", 0)
+                    else []
+                ),
                 "  `Detector.load` loads both; set `detector.refiner = None` for the first stage alone.",
             ]
             if refine

@@ -192,7 +192,7 @@ class RefineConfig(Strict):
     negative_score: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.1
     negative_gate_px: Positive = 6.0
     verify_weight: Positive = 1.0
-    verify_power: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
+    verify_power: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
     border: Literal["mirror", "mask"] = "mask"
     border_fraction: Fraction = 0.1
     border_reach_px: NonNegative = 8.0
