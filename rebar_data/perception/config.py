@@ -128,6 +128,32 @@ class RefineConfig(Strict):
     0.75: 0.982, 0.957, 0.966; 1: 0.983, 0.958, 0.963. Val cannot choose it (AP@0.5 0.979 for all
     four); away from the training data a lower w loses fewer true crossings.
 
+    The default is 1 since the Cycles-rendered cross-renderer sets (`pipelines/crossval-*.yaml`) can
+    choose it where val cannot: with the 16-epoch first stage and the second stage trained on the
+    corrected labels (the model shipped at w = 0.5), each w with its own score bias placed on
+    paper-tunnel's val split, from RGB alone (paper-tunnel val AP@0.5 0.989 for all; paper-tunnel test
+    recall@P0.99; crossval-planar, crossval-tunnel recall@P0.99; planar-slab recall@P0.99; smoke test
+    PCK@2px): w = 0.5: 0.957; 0.612, 0.550; 0.691; 0.982. 1: 0.957; 0.775, 0.579; 0.688; 0.982.
+    1.5: 0.955; 0.787, 0.566; 0.684; 0.975. 2: 0.952; 0.776, 0.579; 0.680; 0.975 (`rebar detect
+    DATASET --no-depth` after setting ``Detector.verify_power``; one session, on this 2-core machine).
+    Full weight lifts the Cycles slab's recall at precision 0.99 by 16 points and costs nothing
+    measurable elsewhere; past it, placement (PCK@2px) starts to suffer. The smoke set's true crossings
+    that full weight pushed under the operating point with the earlier 22-epoch model are not lost now.
+
+    ``context_scale`` k (0: none) gives the second stage a context view beside its patch: the k times
+    wider square around the same point, shrunk k times by area averaging to ``patch_px``, as more channels
+    (a mask channel of its own with ``border = "mask"``; :func:`~rebar_data.perception.refine.stage_input`),
+    cut in training with the patch's turn, flip and scale and the same colour changes. The idea: a lower
+    mat's crossing seen through the top mat's grid looks like a crossing at 32 px, and only a wider view
+    shows the top bars framing it. Measured beside the same 16-epoch first stage, k = 3 (96 px seen at a
+    third of the resolution; 11 epochs, 15 minutes), each w with its own score bias on val, RGB only,
+    against the second stage without it (the shipped one, trained on the same data): paper-tunnel test
+    PCK@2px 0.918 against 0.925, recall@P0.99 0.957 either way; crossval-planar recall@P0.99 0.603 / 0.700
+    (w = 0.5 / 1) against 0.612 / 0.775, crossval-tunnel 0.528 / 0.578 against 0.550 / 0.579; planar-slab
+    AP@0.5 0.940 against 0.954. It classed 63.7% of the mined negatives rightly in its last training
+    epoch. No better anywhere, so it stays off; in the Cycles slab's worst scene the lower mat's bars are
+    as thick in the image as the top mat's, and colour shows no depth.
+
     ``border``: what a patch shows beyond the image's border. With ``"mirror"`` (the refiners before
     ``"mask"``) the image is mirrored there, so a crossing d pixels outside the frame looks like one d
     pixels inside it. A flat colour instead (random in training, black at inference), with nothing else
