@@ -96,6 +96,11 @@ def write_card(
     refine = tc.get("refine") if refiner is not None else None
     verifies = bool(refine and refine.get("verify"))
     dc = tc.get("depth_check") if depth_check is not None else None
+    with_depth = (
+        f"; {detector.verify_power_with_depth:g} log p beside the depth check"
+        if dc and detector.verify_power_with_depth != detector.verify_power
+        else ""
+    )
     lines = [
         "# Rebar-crossing keypoint detector",
         "",
@@ -148,7 +153,7 @@ def write_card(
                 *(
                     [
                         "  crossing at all. A detection's score becomes sigmoid(first-stage logit + "
-                        f"{detector.verify_power:g} log p): the second",
+                        f"{detector.verify_power:g} log p{with_depth}): the second",
                         "  stage only lowers scores (of bars passing over the mat beneath, mostly).",
                     ]
                     if verifies

@@ -219,6 +219,7 @@ class RefineConfig(Strict):
     negative_gate_px: Positive = 6.0
     verify_weight: Positive = 1.0
     verify_power: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
+    verify_power_with_depth: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
     border: Literal["mirror", "mask"] = "mask"
     border_fraction: Fraction = 0.1
     border_reach_px: NonNegative = 8.0

@@ -70,6 +70,8 @@ class Detector:
         depth_check: The third stage, which lowers the scores of detections whose depth patch shows no
             crossing (:mod:`rebar_data.perception.depth_check`); used when ``detect`` gets a depth image.
         depth_power: How hard the third stage counts (``meta["depth_check"]["power"]``).
+        verify_power: How hard the second stage's verification counts without the depth check
+            (``RefineConfig.verify_power``); ``verify_power_with_depth`` beside it.
         crossing_point: The stage that gives where each detection's 3D crossing point projects
             (:mod:`rebar_data.perception.crossing_point`); used when ``detect`` is asked for
             ``point="crossing"``.
@@ -88,8 +90,12 @@ class Detector:
         self.score_bias = float(meta.get("score_bias", 0.0))
         # the operating point of the RGB stages alone, when a depth check changed the other one
         self.score_bias_without_depth = float(meta.get("score_bias_without_depth", self.score_bias))
-        # how hard the second stage's verification counts (files written before it was stored: fully)
+        # how hard the second stage's verification counts (files written before it was stored: fully), and
+        # how hard beside the depth check (files written before it was stored: as without)
         self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))
+        self.verify_power_with_depth = float(
+            (meta.get("refiner") or {}).get("verify_power_with_depth", self.verify_power)
+        )
         self.backend = backend
         self.path = path
         self._rays: dict[tuple, np.ndarray] = {}
@@ -233,16 +239,25 @@ class Detector:
         out = self.raw(image, camera=camera)
         bias = self.score_bias if checked else self.score_bias_without_depth
         det = decode(out[0] + bias, out[1:], threshold=threshold, max_detections=max_detections)
+        log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing (0: no verification)
         if self.refiner is not None and len(det):
             det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2])
             if verify is not None:
-                det[:, 2] = verified_score(det[:, 2], verify, power=self.verify_power)
+                log_p = -np.logaddexp(0.0, -np.asarray(verify, np.float64))
+                power = self.verify_power_with_depth if checked else self.verify_power
+                det[:, 2] = shifted_score(det[:, 2], power * log_p)
         if checked and len(det):
             logit = self.depth_check.logits(depth_m, det[:, :2])
             det[:, 2] = verified_score(det[:, 2], logit, power=self.depth_power)
-            # no measurement to check (too near or far for the sensor): scored as without depth
+            # no measurement to check (too near or far for the sensor): scored as without depth, with the
+            # RGB stages' operating point and weight of the verification
             unchecked = ~np.isfinite(logit)
-            det[unchecked, 2] = shifted_score(det[unchecked, 2], self.score_bias_without_depth - bias)
+            det[unchecked, 2] = shifted_score(
+                det[unchecked, 2],
+                self.score_bias_without_depth
+                - bias
+                + (self.verify_power - self.verify_power_with_depth) * log_p[unchecked],
+            )
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)

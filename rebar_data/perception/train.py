@@ -679,6 +679,7 @@ def _finish(
             "quantize": cfg.refine.quantize,
             "verify": refiner.verify,
             "verify_power": cfg.refine.verify_power,
+            "verify_power_with_depth": cfg.refine.verify_power_with_depth,
             "context_scale": cfg.refine.context_scale,
             "sha256": sha256_file(onnx_path),
         }

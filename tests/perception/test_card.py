@@ -17,7 +17,8 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     # where the test split's errors lie: the frames' inside (the drawn set has no lower-mat column)
     assert "| drawn test, crossings >= 8 px inside the frame |" in card and "lower mat |" not in card
     # the second stage's verification is described where the model and its training are
-    assert "sigmoid(first-stage logit + 1 log p)" in card and "farther than 6 px from every" in card
+    assert "sigmoid(first-stage logit + 1 log p; 0.5 log p beside the depth check)" in card
+    assert "farther than 6 px from every" in card
     # and its context view (the tests' settings give it one, 2 times wider)
     assert "context view: the 2 times wider square" in card
     # latency is timed on rendered frames like the training data's, not on the drawn worst case

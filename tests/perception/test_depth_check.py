@@ -179,6 +179,10 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     assert det.score_bias_without_depth == det.meta["score_bias_without_depth"]
     own = det.detect(rgb, threshold=1e-4)  # without depth: the RGB stages' own operating point
     det.score_bias_without_depth = det.score_bias  # one operating point, to compare the two calls
+    # beside the depth check the second stage's verification counts less (the settings' default)
+    assert (det.verify_power, det.verify_power_with_depth) == (1.0, 0.5)
+    assert det.meta["refiner"]["verify_power_with_depth"] == 0.5
+    det.verify_power_with_depth = det.verify_power  # one weight, to compare the two calls
     without = det.detect(rgb, threshold=1e-4)
     with_depth = det.detect(rgb, threshold=1e-4, depth=depth)
     assert len(with_depth)
@@ -189,6 +193,14 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     )
     expected = expected[expected[:, 2] >= 1e-4]
     np.testing.assert_allclose(with_depth, expected[np.argsort(-expected[:, 2], kind="stable")])
+    # beside the depth check the verification counts at its own weight: at half of it each checked score
+    # is lowered less, at the same places, and a call without depth does not read it
+    det.verify_power_with_depth = 0.5
+    half = {tuple(d[:2]): d[2] for d in det.detect(rgb, threshold=1e-4, depth=depth)}
+    full = {tuple(d[:2]): d[2] for d in with_depth}
+    assert set(full) <= set(half)
+    assert all(half[k] >= full[k] for k in full) and any(half[k] > full[k] + 1e-6 for k in full)
+    np.testing.assert_allclose(det.detect(rgb, threshold=1e-4), without)
     # a call without depth reads its own operating point, one with depth the other
     det.score_bias_without_depth = det.meta["score_bias_without_depth"]
     det.score_bias += 3.0
