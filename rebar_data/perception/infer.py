@@ -243,7 +243,7 @@ class Detector:
         if self.refiner is not None and len(det):
             det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2])
             if verify is not None:
-                log_p = -np.logaddexp(0.0, -np.asarray(verify, np.float64))
+                log_p = log_probability(verify)
                 power = self.verify_power_with_depth if checked else self.verify_power
                 det[:, 2] = shifted_score(det[:, 2], power * log_p)
         if checked and len(det):
@@ -270,11 +270,15 @@ class Detector:
 def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:
     """A detection's score after the second stage's verification: sigmoid(logit(score) + power * log p),
     with p the second stage's probability that the patch shows a crossing (``RefineConfig.verify_power``
-    says why the shipped power is below 1). It only lowers scores (p <= 1), so a threshold applied to
-    the first stage's scores loses nothing, and a shift of the first stage's logits (the score bias)
-    shifts the final logits alike."""
-    log_p = -np.logaddexp(0.0, -np.asarray(verify_logit, np.float64))
-    return shifted_score(score, power * log_p)
+    and ``verify_power_with_depth`` say which powers ship, and why). It only lowers scores (p <= 1), so a
+    threshold applied to the first stage's scores loses nothing, and a shift of the first stage's logits
+    (the score bias) shifts the final logits alike."""
+    return shifted_score(score, power * log_probability(verify_logit))
+
+
+def log_probability(logit: np.ndarray) -> np.ndarray:
+    """log sigmoid(``logit``), without overflow."""
+    return -np.logaddexp(0.0, -np.asarray(logit, np.float64))
 
 
 def shifted_score(score: np.ndarray, shift: float | np.ndarray) -> np.ndarray:
