@@ -244,20 +244,16 @@ class Detector:
             det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2])
             if verify is not None:
                 log_p = log_probability(verify)
-                power = self.verify_power_with_depth if checked else self.verify_power
-                det[:, 2] = shifted_score(det[:, 2], power * log_p)
+        power = np.full(len(det), self.verify_power)  # the verification's weight, per detection
         if checked and len(det):
             logit = self.depth_check.logits(depth_m, det[:, :2])
-            det[:, 2] = verified_score(det[:, 2], logit, power=self.depth_power)
+            measured = np.isfinite(logit)
+            power[measured] = self.verify_power_with_depth
+            det[measured, 2] = verified_score(det[measured, 2], logit[measured], power=self.depth_power)
             # no measurement to check (too near or far for the sensor): scored as without depth, with the
             # RGB stages' operating point and weight of the verification
-            unchecked = ~np.isfinite(logit)
-            det[unchecked, 2] = shifted_score(
-                det[unchecked, 2],
-                self.score_bias_without_depth
-                - bias
-                + (self.verify_power - self.verify_power_with_depth) * log_p[unchecked],
-            )
+            det[~measured, 2] = shifted_score(det[~measured, 2], self.score_bias_without_depth - bias)
+        det[:, 2] = shifted_score(det[:, 2], power * log_p)
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)

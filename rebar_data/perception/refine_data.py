@@ -64,13 +64,10 @@ def training_patch(
         if cfg.context_scale:
             x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=None)], axis=2)
         return x, offset
-    x = warp(image, patch_from_image, size, fill=0.0)
-    on_image = _on_image(patch_from_image, size, image.shape[1], image.shape[0])
     edge = None
     if rng.uniform() < cfg.border_fraction:
         edge = _own_edge(rng, size / 2 + offset, size, cfg.border_reach_px)
-        on_image &= _edge_keep(edge, size)
-    x[~on_image] = 0
+    x, on_image = _masked_cut(image, patch_from_image, size, edge)
     x = np.concatenate([x, (on_image * np.uint8(255))[..., None]], axis=2)
     if cfg.context_scale:
         x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=edge)], axis=2)
@@ -99,16 +96,27 @@ def _context(
         return cv2.resize(
             warp(image, wide_from_image, wide, fill=None), (size, size), interpolation=cv2.INTER_AREA
         )
-    x = warp(image, wide_from_image, wide, fill=0.0)
-    on_image = _on_image(wide_from_image, wide, image.shape[1], image.shape[0])
     if edge is not None:
         axis, at, below = edge
-        on_image &= _edge_keep((axis, at + shift[axis], below), wide)
-    x[~on_image] = 0
+        edge = (axis, at + shift[axis], below)
+    x, on_image = _masked_cut(image, wide_from_image, wide, edge)
     x = cv2.resize(x, (size, size), interpolation=cv2.INTER_AREA)
     on = cv2.resize(on_image * np.uint8(255), (size, size), interpolation=cv2.INTER_AREA) >= 128
     x[~on] = 0
     return np.concatenate([x, (on * np.uint8(255))[..., None]], axis=2)
+
+
+def _masked_cut(
+    image: np.ndarray, patch_from_image: np.ndarray, size: int, edge: tuple[int, float, bool] | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The ``size`` square ``patch_from_image`` takes ``image`` to, 0 beyond the image's border and beyond
+    ``edge`` (:func:`_own_edge`, None for none), and the (size, size) bool of the pixels that show the image."""
+    x = warp(image, patch_from_image, size, fill=0.0)
+    on_image = _on_image(patch_from_image, size, image.shape[1], image.shape[0])
+    if edge is not None:
+        on_image &= _edge_keep(edge, size)
+    x[~on_image] = 0
+    return x, on_image
 
 
 def _on_image(patch_from_image: np.ndarray, size: int, width: int, height: int) -> np.ndarray:
