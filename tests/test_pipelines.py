@@ -32,15 +32,34 @@ def test_every_shipped_pipeline_is_whole_and_named_as_its_file(path: Path):
 
 def test_training_supplements_train_only_and_share_no_seed_with_held_out_sets():
     supplements = _make_list("SUPPLEMENTS")
+    refine_supplements = _make_list("REFINE_SUPPLEMENTS")
     crossval = _make_list("CROSSVAL")
     assert "paper-tunnel-lower-mat" in supplements and len(supplements) > 1
     training = [load_pipeline(ROOT / f"pipelines/{p}.yaml") for p in ["paper-tunnel", *supplements]]
-    for cfg in training[1:]:
+    second_stage = [load_pipeline(ROOT / f"pipelines/{p}.yaml") for p in refine_supplements]
+    for cfg in training[1:] + second_stage:
         assert cfg.dataset.split.train == 1.0, f"{cfg.name}: a supplement trains on every image"
     held_out = [load_pipeline(ROOT / f"pipelines/{p}.yaml") for p in [*crossval, "planar-slab", "smoke"]]
     for cfg in held_out:
         assert cfg.render.engine == "cycles" or cfg.name in ("planar-slab", "smoke")
-    seeds = [c.seed for c in training + held_out]
+    seeds = [c.seed for c in training + second_stage + held_out]
     assert len(set(seeds)) == len(seeds), "two pipelines with one seed draw the same scenes"
-    for cfg in training:  # the cross-renderer sets test another renderer: none of them is trained on
+    for cfg in training:  # the first stage sees the project's own renderer alone
         assert cfg.render.engine == "open3d"
+
+
+def test_cycles_frames_train_the_second_stage_on_meshes_the_cross_renderer_sets_do_not_have():
+    """The second stage's Cycles supplements are of the cross-renderer sets' kinds of mesh (one curved,
+    one planar) but with other spacings, so the sets' grids stay unseen as well as their scenes."""
+    second_stage = [load_pipeline(ROOT / f"pipelines/{p}.yaml") for p in _make_list("REFINE_SUPPLEMENTS")]
+    crossval = [load_pipeline(ROOT / f"pipelines/{p}.yaml") for p in _make_list("CROSSVAL")]
+    assert second_stage and all(c.render.engine == "cycles" for c in second_stage)
+    assert {c.mesh.kind for c in second_stage} == {c.mesh.kind for c in crossval}
+
+    def grid(cfg) -> tuple:
+        m = cfg.mesh
+        if m.kind == "tunnel_segment":
+            return (m.kind, m.spacing_axial_m, m.spacing_arc_m)
+        return (m.kind, m.spacing_x_m, m.spacing_y_m)
+
+    assert not {grid(c) for c in second_stage} & {grid(c) for c in crossval}

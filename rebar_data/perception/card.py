@@ -39,6 +39,20 @@ def _supplement_lines(supplements: list[dict]) -> list[str]:
     ]
 
 
+def _refine_supplement_lines(supplements: list[dict], refine: dict) -> list[str]:
+    """The card's words on the datasets the second stage alone trained on, if any."""
+    if not supplements:
+        return []
+    named = ", ".join(
+        f"`{d.get('name')}` v{d.get('version')} ({d.get('images')} images)" for d in supplements
+    )
+    return [
+        f"  It also trained on every image of {named}, each listed {refine.get('supplement_repeats', 1)} times",
+        "  (`pipelines/<name>.yaml`; scenes of their own, rendered as the pipeline file says); the first stage",
+        "  never saw them.",
+    ]
+
+
 def _crossing_point_lines(model: Path, detector: Detector, res: dict) -> list[str]:
     """The card's words on the crossing-point stage, if the model has one."""
     if detector.crossing_point is None:
@@ -268,6 +282,7 @@ def write_card(
                     if verifies
                     else []
                 ),
+                *_refine_supplement_lines(ds.get("refine_supplements") or [], refine),
             ]
             if refine
             else []

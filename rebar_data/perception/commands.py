@@ -33,6 +33,7 @@ def run_train(args: argparse.Namespace) -> None:
         config=config,
         epochs=args.epochs,
         supplements=args.supplement or (),
+        refine_supplements=args.refine_supplement or (),
         resume=not args.fresh,
         progress=not args.quiet,
     )
@@ -174,6 +175,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         action="append",
         metavar="DATASET",
         help="another dataset whose every image also trains the model (repeatable); val and test stay the first's",
+    )
+    t.add_argument(
+        "--refine-supplement",
+        action="append",
+        metavar="DATASET",
+        help="another dataset whose every image trains the second stage alone, refine.supplement_repeats "
+        "times (repeatable); may change when a run resumes: the second stage then trains again",
     )
     t.add_argument("--fresh", action="store_true", help="start afresh instead of resuming the run in --out")
     t.add_argument(

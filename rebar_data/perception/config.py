@@ -206,6 +206,12 @@ class RefineConfig(Strict):
     time a frame and 1.2 fewer minutes of training, with recall@P0.99 0.929; but on a fresh build of
     `pipelines/smoke.yaml` it scored 7 of its 325 test crossings 0.31-0.48, under the operating point
     (PCK@2px 0.963, below the acceptance floor of 0.97; the default: 0.975), so the default stays.
+
+    Second-stage supplements (``rebar train --refine-supplement``; `make train` passes the Cycles-rendered
+    ``pipelines/cycles-train-*.yaml``) join this stage's training images alone, each image listed
+    ``supplement_repeats`` times (each time with its own jitter and colour changes), so that a few dozen
+    frames of another renderer weigh against thousands of the project's own. The first stage never sees
+    them.
     """
 
     enabled: bool = True
@@ -236,6 +242,7 @@ class RefineConfig(Strict):
     border_fraction: Fraction = 0.1
     border_reach_px: NonNegative = 8.0
     context_scale: NonNegativeInt = 0
+    supplement_repeats: PositiveInt = 8
 
     @field_validator("context_scale")
     @classmethod

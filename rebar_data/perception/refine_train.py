@@ -264,19 +264,21 @@ def train_refiner(
     *,
     seed: int,
     images: list[np.ndarray] | None = None,
-    negatives_of: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None,
+    negatives_of: Callable[[list[Sample], list[np.ndarray]], list[np.ndarray]] | None = None,
+    data: list[str] | None = None,
     progress: bool = False,
 ) -> tuple[PatchNet, list[dict[str, float]]]:
     """Train the refiner on the visible crossings of ``samples``; resumable per epoch.
 
-    With ``cfg.verify``, ``negatives_of(images)`` gives each sample's negatives ((M, 2) points, usually
+    With ``cfg.verify``, ``negatives_of(samples, images)`` gives each sample's negatives ((M, 2) points, usually
     :func:`mine_negatives` with the trained first stage); it is called once, only when there is
     training to do, and its answer is kept in the checkpoint for a resumed run. Without it there are
     no negatives and the verification output learns from positives alone.
 
     ``out/refine_last.pt`` holds the weights, optimiser, the negatives and the epochs done with their
     losses after every epoch. A finished one with the same settings is returned as it is, without
-    training.
+    training. ``data`` names what it trains on beyond the run's own images (the second-stage
+    supplements); a checkpoint trained on other such data is trained afresh.
 
     Returns:
         The trained network (eval mode) and one row per epoch (loss, mean offset error in px, seconds,
@@ -292,7 +294,7 @@ def train_refiner(
     net = build(cfg).to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     # the same settings: go on where it stopped (with the negatives it mined); otherwise train afresh
-    payload = resume_stage(last, net, opt, load=load, settings=_training_settings, want=want)
+    payload = resume_stage(last, net, opt, load=load, settings=_training_settings, want=want, data=data or [])
     history: list[dict[str, float]] = payload["history"] if payload else []
     negatives: list[np.ndarray] | None = payload.get("negatives") if payload else None
     if len(history) < cfg.epochs:  # otherwise a finished stage: kept as it is
@@ -302,7 +304,7 @@ def train_refiner(
             if negatives is None and cfg.verify and negatives_of is not None:
                 if images is None:
                     images = [read_image(s.path) for s in samples]
-                negatives = negatives_of(images)
+                negatives = negatives_of(samples, images)
                 if progress:
                     tqdm.write(
                         f"second stage: {sum(len(n) for n in negatives)} negatives mined from the first stage's "
@@ -323,6 +325,7 @@ def train_refiner(
                 cfg,
                 aug,
                 seed=seed,
+                data=data or [],
                 progress=progress,
             )
         finally:
@@ -347,6 +350,7 @@ def _epochs(
     aug: AugmentConfig,
     *,
     seed: int,
+    data: list[str],
     progress: bool,
 ) -> None:
     """Train the remaining epochs on the visible crossings of ``samples`` and each sample's negatives."""
@@ -418,4 +422,4 @@ def _epochs(
                 f"mean error {err_sum / steps:.2f} px on jittered training patches{checked}",
                 file=sys.stderr,
             )
-        save(last, net, cfg, optimizer=opt.state_dict(), history=history, negatives=negatives)
+        save(last, net, cfg, optimizer=opt.state_dict(), history=history, negatives=negatives, data=data)

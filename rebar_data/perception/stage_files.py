@@ -56,19 +56,21 @@ def resume_stage(
     load: Callable[[Path], tuple[nn.Module, Any, dict[str, Any]]],
     settings: Callable[[Any], dict[str, Any]],
     want: dict[str, Any],
+    data: list[str] | None = None,
 ) -> dict[str, Any] | None:
     """Go on where a stage's checkpoint at ``path`` stopped: when it holds a run with the training settings
     ``want`` (``settings`` of its saved config), its weights and optimiser state go into ``net`` and
     ``opt`` and its payload is returned (``history``, and what else the stage keeps); None, to train
-    afresh, when there is none, it cannot be read (an older layout) or its settings differ. ``load`` is
-    the stage's own reader."""
+    afresh, when there is none, it cannot be read (an older layout), its settings differ or it trained on
+    other data than ``data`` names (what the stage's checkpoint records under ``data``; none is an empty
+    list). ``load`` is the stage's own reader."""
     if not path.exists():
         return None
     try:
         _, saved, payload = load(path)
     except ConfigError:
         return None
-    if settings(saved) != want:
+    if settings(saved) != want or payload.get("data", []) != (data or []):
         return None
     net.load_state_dict(payload["state_dict"])
     opt.load_state_dict(payload["optimizer"])

@@ -250,6 +250,7 @@ def train(
     epochs: int | None = None,
     batch_size: int | None = None,
     supplements: Sequence[str | Path] = (),
+    refine_supplements: Sequence[str | Path] = (),
     resume: bool = True,
     progress: bool = True,
 ) -> TrainResult:
@@ -263,6 +264,9 @@ def train(
         batch_size: Overrides ``config.batch_size``.
         supplements: Further datasets whose every image (all splits) joins the training images; the
             epoch is still chosen on ``dataset_path``'s val split and scored on its test split.
+        refine_supplements: Further datasets whose every image joins the second stage's training alone
+            (``config.refine.supplement_repeats`` times); they may change when a run resumes, and the
+            second stage then trains afresh on the first stage kept.
         resume: Continue from ``out_dir/last.pt`` if it exists (the settings must match, but for
             epochs, patience and val_every); False starts afresh and overwrites the run.
         progress: Show a progress bar per epoch and a summary line after it (on stderr).
@@ -280,6 +284,7 @@ def train(
         raise ConfigError(f"{root}: the train split has no images; accepted: a dataset with training images")
     extra, supplement_meta = supplement_images(supplements, trained_on=info.get("name"))
     train_samples = train_samples + extra
+    refine_extra, refine_meta = supplement_images(refine_supplements, trained_on=info.get("name"))
     if cfg.depth_check.enabled:  # fail now, not after the first two stages have trained
         check_depth(train_samples)
     val_samples = load_split(root, "val")
@@ -298,6 +303,8 @@ def train(
             val_samples,
             test_samples,
             supplements=supplement_meta,
+            refine_extra=refine_extra,
+            refine_supplements=refine_meta,
             resume=resume,
             progress=progress,
         )
@@ -377,6 +384,8 @@ def _run(
     test_samples: list[Sample],
     *,
     supplements: list[dict[str, Any]],
+    refine_extra: list[Sample],
+    refine_supplements: list[dict[str, Any]],
     resume: bool,
     progress: bool,
 ) -> TrainResult:
@@ -410,6 +419,7 @@ def _run(
         "name": info.get("name"),
         "version": info.get("version"),
         "supplements": supplements,
+        "refine_supplements": refine_supplements,
     }
     (out / "config.json").write_text(
         json.dumps(
@@ -482,28 +492,40 @@ def _run(
     if not (out / "best.pt").exists():  # no epoch had a finite validation score: keep the latest weights
         save_checkpoint(out / "best.pt", avg.net, {**base_meta, "epoch": state["epoch"]})
 
-    def negatives_of(images: list[np.ndarray]) -> list[np.ndarray]:  # the trained first stage's misses
+    def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
+        """The trained first stage's misses on ``samples``, mined once for an image listed more than once."""
         first, _, _ = load_checkpoint(out / "best.pt")
-        return mine_negatives(
-            Detector.from_network(first), train_samples, cfg.refine, images=images, progress=progress
+        once = {str(s.path): i for i, s in reversed(list(enumerate(samples)))}
+        kept = sorted(once.values())
+        found = mine_negatives(
+            Detector.from_network(first),
+            [samples[i] for i in kept],
+            cfg.refine,
+            images=[images[i] for i in kept],
+            progress=progress,
         )
+        of_path = {str(samples[i].path): n for i, n in zip(kept, found, strict=True)}
+        return [of_path[str(s.path)] for s in samples]
 
+    # the second stage's images: the first's, then each second-stage supplement's, repeated
+    refine_samples = train_samples + refine_extra * cfg.refine.supplement_repeats
     refiner, refine_history = None, []
     if cfg.refine.enabled:
         refiner, refine_history = train_refiner(
-            train_samples,
+            refine_samples,
             out,
             cfg.refine,
             cfg.augment,
             seed=cfg.seed,
             negatives_of=negatives_of,
+            data=[f"{d.get('name')} v{d.get('version')}" for d in refine_supplements],
             progress=progress,
         )
     depth_net, depth_history = None, []
     if cfg.depth_check.enabled:
         depth_net, depth_history = train_depth_check(
             train_samples,
-            _negatives(out, train_samples, negatives_of),
+            _negatives(out, train_samples, len(refine_samples), negatives_of),
             out,
             cfg.depth_check,
             seed=cfg.seed,
@@ -536,17 +558,21 @@ def _run(
 
 
 def _negatives(
-    out: Path, train_samples: list[Sample], negatives_of: Callable[[list[np.ndarray]], list[np.ndarray]]
+    out: Path,
+    train_samples: list[Sample],
+    refine_images: int,
+    negatives_of: Callable[[list[Sample], list[np.ndarray]], list[np.ndarray]],
 ) -> list[np.ndarray]:
-    """The third stage's negatives: the second stage's mined ones, kept in its checkpoint, or mined now
-    when it has none (a run without a verifying second stage)."""
+    """The third stage's negatives: the second stage's mined ones, kept in its checkpoint (its
+    ``refine_images`` images begin with ``train_samples``), or mined now when it has none (a run without a
+    verifying second stage)."""
     path = out / "refine_last.pt"
     if path.exists():
         _, _, payload = load_refiner(path)
         found = payload.get("negatives")
-        if found is not None and len(found) == len(train_samples) and any(len(n) for n in found):
-            return found
-    return negatives_of([read_image(s.path) for s in train_samples])
+        if found is not None and len(found) == refine_images and any(len(n) for n in found):
+            return found[: len(train_samples)]
+    return negatives_of(train_samples, [read_image(s.path) for s in train_samples])
 
 
 def _train_epoch(
@@ -657,6 +683,9 @@ def _finish(
         "crossing_point",
     )
     meta = {k: v for k, v in meta.items() if k not in stale_keys}
+    # the run as it finished: its later stages may have trained on other settings or second-stage data
+    # than the first stage's best epoch recorded
+    meta.update(dataset=dataset_meta, train_config=cfg.model_dump(mode="json"))
     for stale in (
         out / "best.refine.onnx",
         out / "best.refine.pt",

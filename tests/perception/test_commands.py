@@ -85,6 +85,17 @@ def test_train_command_runs_from_a_settings_file(drawn_dataset, tmp_path, capsys
         ["train", str(drawn_dataset), "--supplement", str(tmp_path / "nowhere"), "--out", str(tmp_path / "r")]
     )
     assert rc == 2 and "nowhere" in capsys.readouterr().err  # a wrong supplement fails before training
+    rc = main(
+        [
+            "train",
+            str(drawn_dataset),
+            "--refine-supplement",
+            str(tmp_path / "gone"),
+            "--out",
+            str(tmp_path / "r"),
+        ]
+    )
+    assert rc == 2 and "gone" in capsys.readouterr().err and not (tmp_path / "r/last.pt").exists()
 
 
 def test_user_errors_are_one_line_and_exit_2(tmp_path, capsys):

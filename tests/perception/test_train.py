@@ -148,3 +148,48 @@ def test_a_supplement_adds_its_images_to_training_and_is_recorded(drawn_dataset,
         train(drawn_dataset, tmp_path / "both", config=cfg, epochs=2, progress=False)
     with pytest.raises(ConfigError, match="another pipeline"):  # its own val and test scenes would leak in
         train(drawn_dataset, tmp_path / "r", config=cfg, supplements=[drawn_dataset], progress=False)
+
+
+def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, drawn_dataset, tmp_path):
+    """A finished run resumed with a second-stage supplement keeps its first stage and trains the second
+    again on its images and the supplement's (each repeated), and the card says so; resumed again with the
+    same supplement, nothing trains."""
+    from rebar_data.perception.card import CARD_NAME, ship
+    from rebar_data.perception.export import load_checkpoint
+    from rebar_data.perception.refine_train import load as load_refiner
+    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+
+    spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
+    extra = write_synthetic_dataset(tmp_path / "data", spec, seed=6, name="drawn-second")
+    run = tmp_path / "run"
+    shutil.copytree(trained_run.out_dir, run)
+    first_before, _, _ = load_checkpoint(run / "best.pt")
+    refine_before = load_refiner(run / "refine_last.pt")[2]
+    cfg = {**TINY_TRAIN, "epochs": 2, "refine": {**TINY_TRAIN["refine"], "supplement_repeats": 3}}
+    # the repeats are a second-stage setting: a resumed run may change them with the supplement
+    again = train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
+    assert again.epochs_run == trained_run.epochs_run
+    assert [h["train_loss"] for h in again.history] == [h["train_loss"] for h in trained_run.history]
+    first_after, _, _ = load_checkpoint(run / "best.pt")
+    for k, v in first_before.state_dict().items():
+        torch.testing.assert_close(first_after.state_dict()[k], v)
+    _, _, refine_after = load_refiner(run / "refine_last.pt")
+    assert refine_before.get("data", []) == [] and refine_after["data"] == ["drawn-second v0.0.0"]
+    n_train = len(load_split(drawn_dataset, "train"))
+    assert len(refine_after["negatives"]) == n_train + 3 * 6  # its own images, then the 6 extra three times
+    assert any(
+        not torch.equal(refine_after["state_dict"][k], v) for k, v in refine_before["state_dict"].items()
+    )
+    recorded = json.loads((run / "results.json").read_text())["dataset"]
+    assert recorded["supplements"] == [] and [d["name"] for d in recorded["refine_supplements"]] == [
+        "drawn-second"
+    ]
+    train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
+    kept = load_refiner(run / "refine_last.pt")[2]
+    for k, v in refine_after["state_dict"].items():
+        assert torch.equal(kept["state_dict"][k], v)  # a finished stage on the same data is kept
+    ship(run, models_dir=tmp_path / "models")
+    card = (tmp_path / "models" / CARD_NAME).read_text()
+    assert "`drawn-second` v0.0.0 (6 images), each listed 3 times" in card
+    with pytest.raises(ConfigError, match="another pipeline"):  # its val and test scenes would leak in
+        train(drawn_dataset, run, config=cfg, refine_supplements=[drawn_dataset], progress=False)
