@@ -243,6 +243,7 @@ class RefineConfig(Strict):
     border_reach_px: NonNegative = 8.0
     context_scale: NonNegativeInt = 0
     supplement_repeats: PositiveInt = 8
+    views: Literal[1, 2, 4, 8] = 1
 
     @field_validator("context_scale")
     @classmethod

@@ -379,15 +379,19 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
     if found is None:
         return None
     path, entry = found
-    iterations = int(entry.get("iterations", 1))
+    iterations, views = int(entry.get("iterations", 1)), int(entry.get("views", 1))
     if path.suffix == ".onnx":
         return Refiner.load_onnx(
-            path, threads=threads, iterations=iterations, context_scale=int(entry.get("context_scale", 0))
+            path,
+            threads=threads,
+            iterations=iterations,
+            context_scale=int(entry.get("context_scale", 0)),
+            views=views,
         )
     from rebar_data.perception.refine_train import load
 
     net, _, _ = load(path)
-    return Refiner.from_network(net, iterations=iterations)
+    return Refiner.from_network(net, iterations=iterations, views=views)
 
 
 def _check_image(rgb: np.ndarray) -> np.ndarray:

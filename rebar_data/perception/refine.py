@@ -24,6 +24,35 @@ import numpy as np
 from rebar_data.config import ConfigError
 
 BORDERS = ("mirror", "mask")  # how a patch shows what lies beyond the image's border
+# the patch's symmetries a refiner may average over, in the order ``views`` takes them: (flip rows, flip
+# columns, swap the axes); a patch is centred on a pixel corner, so each is exact about its centre
+SYMMETRIES = (
+    (False, False, False),
+    (True, True, False),  # a half turn
+    (False, True, False),
+    (True, False, False),
+    (False, False, True),
+    (True, True, True),
+    (False, True, True),
+    (True, False, True),
+)
+VIEWS = (1, 2, 4, 8)
+
+
+def turned(x: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
+    """Patches (N, P, P, C) under one of :data:`SYMMETRIES` (rows flipped, columns flipped, then the axes
+    swapped)."""
+    rows, cols, swap = symmetry
+    y = x[:, ::-1] if rows else x
+    y = y[:, :, ::-1] if cols else y
+    return y.transpose(0, 2, 1, 3) if swap else y
+
+
+def turned_back(offset: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
+    """(N, 2) offsets (du, dv) measured in patches under ``symmetry``, in the original patches' axes."""
+    rows, cols, swap = symmetry
+    d = offset[:, ::-1] if swap else offset
+    return d * np.array([-1.0 if cols else 1.0, -1.0 if rows else 1.0])
 
 
 def patches(
@@ -104,7 +133,9 @@ def stage_input(
 class Refiner:
     """A loaded refiner: ``refine(image, uv) -> uv`` moves each point to the crossing the patch shows;
     ``refine_and_verify`` also gives each point's verification logit when the refiner has one
-    (``verifies``)."""
+    (``verifies``). With ``views`` > 1 it reads each patch also turned and flipped (the first ``views`` of
+    :data:`SYMMETRIES`, in one batch) and averages the offsets, turned back, and the logits: the network
+    trained on patches turned and flipped alike, so each view is another draw of its errors."""
 
     def __init__(
         self,
@@ -115,8 +146,14 @@ class Refiner:
         verifies: bool,
         border: str = "mirror",
         context_scale: int = 0,
+        views: int = 1,
     ):
+        if views not in VIEWS:
+            raise ConfigError(
+                f"views = {views} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}"
+            )
         self._run = run
+        self.views = views
         self.patch_px = patch_px
         self.border = border
         self.context_scale = context_scale
@@ -124,7 +161,7 @@ class Refiner:
         self.verifies = verifies
 
     @classmethod
-    def from_network(cls, net, *, iterations: int = 1) -> Refiner:
+    def from_network(cls, net, *, iterations: int = 1, views: int = 1) -> Refiner:
         """Wrap a :class:`~rebar_data.perception.refine_train.PatchNet` (eager PyTorch)."""
         import torch
 
@@ -143,10 +180,13 @@ class Refiner:
             verifies=net.verify,
             border=net.border,
             context_scale=net.context_scale,
+            views=views,
         )
 
     @classmethod
-    def load_onnx(cls, path: Path, *, threads: int, iterations: int = 1, context_scale: int = 0) -> Refiner:
+    def load_onnx(
+        cls, path: Path, *, threads: int, iterations: int = 1, context_scale: int = 0, views: int = 1
+    ) -> Refiner:
         """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
         meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on)."""
         from rebar_data.perception.infer import onnx_session
@@ -177,6 +217,7 @@ class Refiner:
             verifies=columns == 3,
             border=border,
             context_scale=context_scale,
+            views=views,
         )
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -194,8 +235,19 @@ class Refiner:
             x, corners = stage_input(
                 image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
             )
-            out = self._run(x).astype(np.float64)
+            out = self._read(x)
             if it == 0 and self.verifies:
                 logit = out[:, 2].copy()
             uv = corners + out[:, :2]
         return uv, logit
+
+    def _read(self, x: np.ndarray) -> np.ndarray:
+        """The network's output for patches ``x``, averaged over the views (offsets turned back)."""
+        if self.views == 1:
+            return self._run(x).astype(np.float64)
+        sym = SYMMETRIES[: self.views]
+        out = self._run(np.ascontiguousarray(np.concatenate([turned(x, s) for s in sym]))).astype(np.float64)
+        out = out.reshape(self.views, len(x), -1)
+        mean = out.mean(axis=0)
+        mean[:, :2] = np.mean([turned_back(o[:, :2], s) for o, s in zip(out, sym, strict=True)], axis=0)
+        return mean

@@ -61,6 +61,45 @@ def test_a_patch_is_centred_on_the_point_in_coco_pixels():
     np.testing.assert_allclose(_centroid(spot[0]), 12 + point - corner[0], atol=0.05)
 
 
+@pytest.mark.parametrize("border", ["mirror", "mask"])
+def test_turned_views_of_a_patch_are_turned_back_to_one_answer(border):
+    """A stand-in network that reads a spot's centroid (offset from the patch centre) and, as its logit,
+    how far right the spot lies: every view, turned back, puts the spot where it is, and the logits are
+    the views' mean."""
+    from rebar_data.perception.refine import SYMMETRIES, VIEWS
+
+    size = 24
+    point = np.array([40.3, 27.8])
+    img = _blob(64, 80, point, sigma=1.5)
+
+    def run(x: np.ndarray) -> np.ndarray:
+        g = x[..., 0].astype(float)
+        y, xx = np.mgrid[0:size, 0:size] + 0.5 - size / 2
+        c = (
+            np.stack([(g * xx).sum(axis=(1, 2)), (g * y).sum(axis=(1, 2))], axis=1)
+            / g.sum(axis=(1, 2))[:, None]
+        )
+        return np.concatenate([c, c[:, :1]], axis=1).astype(np.float32)
+
+    start = np.array([[38.2, 29.1]])
+    logits = []
+    for views in VIEWS:
+        r = Refiner(run, patch_px=size, iterations=1, verifies=True, border=border, views=views)
+        uv, logit = r.refine_and_verify(img, start)
+        np.testing.assert_allclose(uv[0], point, atol=0.05)
+        logits.append(logit[0])
+    # the logit (the spot's column offset) is +d in the views that keep the columns, -d where they are
+    # flipped, and its row offset where the axes are swapped: their mean, as the views say
+    du, dv = point - np.floor(start[0] + 0.5)
+    per_view = [
+        (dv if swap else du) * (-1 if (rows if swap else cols) else 1) for rows, cols, swap in SYMMETRIES
+    ]
+    for views, logit in zip(VIEWS, logits, strict=True):
+        assert logit == pytest.approx(np.mean(per_view[:views]), abs=0.05)
+    with pytest.raises(ConfigError, match="views = 3"):
+        Refiner(run, patch_px=size, iterations=1, verifies=True, views=3)
+
+
 def test_a_training_patch_moves_its_offset_with_the_pixels():
     crossing = np.array([41.7, 30.2])
     image = _blob(64, 80, crossing)
