@@ -189,6 +189,14 @@ def write_card(
                     if refine.get("context_scale", 0)
                     else []
                 ),
+                *(
+                    [
+                        f"  It reads each patch in {refine['views']} views (turned and flipped, one batch) and places the"
+                        " crossing at the mean of their offsets, turned back; the verification is the plain view's.",
+                    ]
+                    if refine.get("views", 1) > 1
+                    else []
+                ),
                 "  `Detector.load` loads both; set `detector.refiner = None` for the first stage alone.",
             ]
             if refine

@@ -211,7 +211,33 @@ class RefineConfig(Strict):
     ``pipelines/cycles-train-*.yaml``) join this stage's training images alone, each image listed
     ``supplement_repeats`` times (each time with its own jitter and colour changes), so that a few dozen
     frames of another renderer weigh against thousands of the project's own. The first stage never sees
-    them.
+    them. Measured with the 16-epoch first stage kept, the Cycles supplements' 72 frames (36 curved, 36
+    planar; grids and scenes the crossval sets do not have) 8 times beside the 2400 Open3D images (132 k
+    crossings in all; 11 epochs, 11.0 minutes), against the second stage trained without them, one view,
+    RGB only (AP@0.5, PCK@2px, recall@P0.99): crossval-planar 0.932, 0.925, 0.766 against 0.940, 0.908,
+    0.775; crossval-tunnel 0.926, 0.868, 0.534 against 0.917, 0.849, 0.579. With depth: paper-tunnel test
+    0.978, 0.927, 0.981 against 0.978, 0.927, 0.984; planar-slab PCK@2px 0.745 against 0.738, recall@P0.99
+    0.798 against 0.839. It places crossings in Cycles' images better; recall at precision 0.99 moved less
+    than one training run differs from the next (see ``verify_power``). What holds recall@P0.99 there is
+    the first stage's and the verification's confident false detections: at the score where recall
+    reaches 0.97 (two views), 228 lie above it on the curved set and 118 on the slab, 168 and 90 of them
+    far from every label and the frame's border, on the lower mat's crossings seen through the top mat
+    (half of them in two of the 12 scenes each), 41 and 12 at the border and 19 and 11 beside a
+    crossing nothing matched. A 32 px patch shows too little of the mats to tell which one a crossing
+    is on; the first stage sees more, and has seen only Open3D's mats.
+
+    ``views`` (1, 2, 4 or 8; inference only, stored in the model file) reads each patch also turned and
+    flipped in the same batch and averages the offsets, turned back
+    (:class:`~rebar_data.perception.refine.Refiner`); the verification logit stays the plain view's.
+    Measured on the shipped networks, views 1 / 2 / 4, RGB only: crossval-planar PCK@2px 0.925 / 0.924 /
+    0.926, median error 0.55 / 0.49 / 0.48 px, recall@P0.99 0.766 each; crossval-tunnel 0.868 / 0.875 /
+    0.882, 0.57 / 0.52 / 0.50 px, 0.534 / 0.542 / 0.542. With depth: paper-tunnel test PCK@2px 0.927 /
+    0.931 / 0.935, recall@P0.99 0.981 / 0.983 / 0.984, median 0.58 / 0.56 / 0.53 px; planar-slab 0.745 /
+    0.755 / 0.765 and 0.798 / 0.821 / 0.832. The logits averaged too (the second stage before the Cycles
+    supplements) lowered recall@P0.99 on crossval-tunnel from 0.579 to 0.479 (2 views) and 0.528 (4), and
+    on crossval-planar from 0.775 to 0.736 with 8. A view costs the second stage's time again: 5.5, 7.1
+    and 10.1 ms a frame (90th percentile 8.2, 12.3 and 19.8 ms; `rebar bench`'s 8 rendered frames, 47
+    candidates each, load 0.2), so the default is 2 (a half turn), within 15 ms at the 90th percentile.
     """
 
     enabled: bool = True
@@ -243,7 +269,7 @@ class RefineConfig(Strict):
     border_reach_px: NonNegative = 8.0
     context_scale: NonNegativeInt = 0
     supplement_repeats: PositiveInt = 8
-    views: Literal[1, 2, 4, 8] = 1
+    views: Literal[1, 2, 4, 8] = 2
 
     @field_validator("context_scale")
     @classmethod

@@ -134,8 +134,10 @@ class Refiner:
     """A loaded refiner: ``refine(image, uv) -> uv`` moves each point to the crossing the patch shows;
     ``refine_and_verify`` also gives each point's verification logit when the refiner has one
     (``verifies``). With ``views`` > 1 it reads each patch also turned and flipped (the first ``views`` of
-    :data:`SYMMETRIES`, in one batch) and averages the offsets, turned back, and the logits: the network
-    trained on patches turned and flipped alike, so each view is another draw of its errors."""
+    :data:`SYMMETRIES`, in one batch) and averages the offsets, turned back: the network trained on
+    patches turned and flipped alike, so each view is another draw of its placement errors. The
+    verification logit stays the plain view's (averaged too, it lowered recall at precision 0.99 on the
+    curved Cycles set: :class:`~rebar_data.perception.config.RefineConfig` ``views``)."""
 
     def __init__(
         self,
@@ -242,12 +244,13 @@ class Refiner:
         return uv, logit
 
     def _read(self, x: np.ndarray) -> np.ndarray:
-        """The network's output for patches ``x``, averaged over the views (offsets turned back)."""
+        """The network's output for patches ``x``: the offsets averaged over the views (turned back), the
+        rest the plain view's."""
         if self.views == 1:
             return self._run(x).astype(np.float64)
         sym = SYMMETRIES[: self.views]
         out = self._run(np.ascontiguousarray(np.concatenate([turned(x, s) for s in sym]))).astype(np.float64)
         out = out.reshape(self.views, len(x), -1)
-        mean = out.mean(axis=0)
-        mean[:, :2] = np.mean([turned_back(o[:, :2], s) for o, s in zip(out, sym, strict=True)], axis=0)
-        return mean
+        plain = out[0].copy()  # SYMMETRIES[0] is the identity
+        plain[:, :2] = np.mean([turned_back(o[:, :2], s) for o, s in zip(out, sym, strict=True)], axis=0)
+        return plain
