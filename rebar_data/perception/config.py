@@ -268,7 +268,7 @@ class RefineConfig(Strict):
     border_fraction: Fraction = 0.1
     border_reach_px: NonNegative = 8.0
     context_scale: NonNegativeInt = 0
-    supplement_repeats: PositiveInt = 8
+    supplement_repeats: PositiveInt = 16
     views: Literal[1, 2, 4, 8] = 2
 
     @field_validator("context_scale")
