@@ -53,7 +53,7 @@ smoke: setup | $(DATA)
 # Train the detector on the default dataset (built first when missing) and its supplements (built when
 # missing: the lower-mat one, 720 images, about 5 minutes; the four wide-randomization ones, 180 images each,
 # about 3 minutes each) and, for its second stage alone, the Cycles-rendered supplements (REFINE_SUPPLEMENTS,
-# built when missing with one worker, as Cycles takes both cores: 36 images each, about 9 minutes each), and
+# built when missing with one worker, as Cycles takes both cores: 36 images each, about 7 minutes each), and
 # ship it with its model card, scored also on the planar-slab set (another config, built when missing: 90
 # images, a minute) and, from RGB alone, on the Cycles-rendered cross-renderer sets (built when missing: about
 # 12 minutes). See the model card for the training time on 2 cores.

@@ -212,24 +212,34 @@ class RefineConfig(Strict):
     ``supplement_repeats`` times (each time with its own jitter and colour changes), so that a few dozen
     frames of another renderer weigh against thousands of the project's own. The first stage never sees
     them. Measured with the 16-epoch first stage kept, the Cycles supplements' 72 frames (36 curved, 36
-    planar; grids and scenes the crossval sets do not have) 8 times beside the 2400 Open3D images (132 k
-    crossings in all; 11 epochs, 11.0 minutes), against the second stage trained without them, one view,
-    RGB only (AP@0.5, PCK@2px, recall@P0.99): crossval-planar 0.932, 0.925, 0.766 against 0.940, 0.908,
-    0.775; crossval-tunnel 0.926, 0.868, 0.534 against 0.917, 0.849, 0.579. With depth: paper-tunnel test
-    0.978, 0.927, 0.981 against 0.978, 0.927, 0.984; planar-slab PCK@2px 0.745 against 0.738, recall@P0.99
-    0.798 against 0.839. It places crossings in Cycles' images better; recall at precision 0.99 moved less
-    than one training run differs from the next (see ``verify_power``). What holds recall@P0.99 there is
-    the first stage's and the verification's confident false detections: at the score where recall
-    reaches 0.97 (two views), 228 lie above it on the curved set and 118 on the slab, 168 and 90 of them
-    far from every label and the frame's border, on the lower mat's crossings seen through the top mat
-    (half of them in two of the 12 scenes each), 41 and 12 at the border and 19 and 11 beside a
-    crossing nothing matched. A 32 px patch shows too little of the mats to tell which one a crossing
-    is on; the first stage sees more, and has seen only Open3D's mats.
+    planar; grids and scenes the crossval sets do not have) beside the 2400 Open3D images, 11 epochs,
+    against the second stage trained without them (AP@0.5, PCK@2px, recall@P0.99; Cycles sets RGB only,
+    paper-tunnel's test split and planar-slab with depth):
+
+    - without (one view): crossval-planar 0.940, 0.908, 0.775; crossval-tunnel 0.917, 0.849, 0.579;
+      paper-tunnel test 0.978, 0.927, 0.984; planar-slab PCK@2px 0.738, recall@P0.99 0.839;
+    - 8 times (132 k crossings in all, 11.0 minutes), one view: 0.932, 0.925, 0.766; 0.926, 0.868, 0.534;
+      0.978, 0.927, 0.981; 0.745, 0.798. Two views: 0.941, 0.924, 0.766; 0.923, 0.875, 0.542; 0.978,
+      0.931, 0.983; 0.756, 0.821;
+    - 16 times (the default: 151 k crossings, 12 minutes), two views: 0.937, 0.925, 0.840; 0.927, 0.876,
+      0.663; 0.978, 0.927, 0.984; 0.758, 0.793. From RGB alone on paper-tunnel's test split recall@P0.99
+      0.955 (without them 0.957); with depth on the Cycles sets PCK@2px 0.933 and 0.892, recall@P0.99
+      0.963 and 0.890 (without them 0.915, 0.940; 0.864, 0.884).
+
+    They place crossings in Cycles' images better at either weight; at 16 the verification also doubts
+    Cycles' false detections more, by about as much as one training run differs from the next at 8 (see
+    ``verify_power``), and planar-slab's a little less. What still holds recall@P0.99 on the Cycles sets
+    is confident false detections: at the score where recall reaches 0.97, 185 lie above it on the curved
+    set and 86 on the slab (8 times: 228 and 118), 132 and 66 of them far from every label and the frame's
+    border, on the lower mat's crossings seen through the top mat (about half of them in two of the 12
+    scenes each), 36 and 11 at the border and 17 and 6 beside a crossing nothing matched. A 32 px patch
+    shows too little of the mats to tell which one a crossing is on; the first stage sees more, and has
+    seen only Open3D's mats.
 
     ``views`` (1, 2, 4 or 8; inference only, stored in the model file) reads each patch also turned and
     flipped in the same batch and averages the offsets, turned back
     (:class:`~rebar_data.perception.refine.Refiner`); the verification logit stays the plain view's.
-    Measured on the shipped networks, views 1 / 2 / 4, RGB only: crossval-planar PCK@2px 0.925 / 0.924 /
+    Measured on the second stage trained with the Cycles supplements 8 times, views 1 / 2 / 4, RGB only: crossval-planar PCK@2px 0.925 / 0.924 /
     0.926, median error 0.55 / 0.49 / 0.48 px, recall@P0.99 0.766 each; crossval-tunnel 0.868 / 0.875 /
     0.882, 0.57 / 0.52 / 0.50 px, 0.534 / 0.542 / 0.542. With depth: paper-tunnel test PCK@2px 0.927 /
     0.931 / 0.935, recall@P0.99 0.981 / 0.983 / 0.984, median 0.58 / 0.56 / 0.53 px; planar-slab 0.745 /
@@ -443,12 +453,16 @@ class TrainConfig(Strict):
     0.738, recall@P0.99 0.769 / 0.839. A training crop with a positive in the gap between two bars and the
     crossing the image shows unlabelled taught the network to doubt steep views' crossings.
 
-    The shipped files keep that run's four networks; since then only the second stage's verification
-    weights changed (``RefineConfig.verify_power`` 1 from RGB alone, ``verify_power_with_depth`` 0.5),
-    with both score biases placed again on val: `make train` resumed a run folder holding those networks
-    and re-exported, re-scored and shipped them (RGB only, the Cycles sets' recall@P0.99 0.612 / 0.550 to
-    0.775 / 0.579; with depth and on paper-tunnel's test split as before). Run from scratch, `make train`
-    trains every stage with these settings.
+    The shipped first stage is that run's. Its verification weights changed next (``RefineConfig.verify_power``
+    1 from RGB alone, ``verify_power_with_depth`` 0.5; RGB only, the Cycles sets' recall@P0.99 0.612 / 0.550
+    to 0.775 / 0.579). Then its later stages trained again beside it, the second one also on the
+    Cycles-rendered second-stage supplements (``RefineConfig.supplement_repeats``, where the figures are)
+    and reading two views (``RefineConfig.views``): `make train` resumed a run folder holding that first
+    stage (turned back from its ONNX file into a checkpoint, BN folded into the convolutions, its outputs
+    equal within 4e-6), trained the second, depth and crossing-point stages, placed both score biases on
+    val and shipped them. The card's training time counts the first stage's 16 epochs as that run measured
+    them (about 49 minutes: its card's 70.0 minutes less the later stages' times then) beside the later
+    stages' times now. Run from scratch, `make train` trains every stage with these settings.
 
     Earlier, with the first 1,680 images alone and the second stage's verification at full weight
     (``RefineConfig.verify_power`` 1): 22 epochs (best on val at 18) gave OKS AP@0.5 0.977, AP@0.5:0.95

@@ -421,7 +421,8 @@ def test_the_second_stage_learns_to_tell_crossings_from_mined_negatives(drawn_da
     samples = load_split(drawn_dataset, "train")
     asked = []
 
-    def negatives_of(images):
+    def negatives_of(of_samples, images):
+        assert len(of_samples) == len(images) == len(samples)
         asked.append(len(images))
         return _bar_middles(samples)
 
