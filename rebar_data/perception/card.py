@@ -26,15 +26,17 @@ MAX_SHIPPED_BYTES = 5 * 1024 * 1024
 CARD_NAME = "MODEL_CARD.md"
 
 
+def _named(supplements: list[dict]) -> str:
+    """Supplement datasets as the card names them: name, version and images of each."""
+    return ", ".join(f"`{d.get('name')}` v{d.get('version')} ({d.get('images')} images)" for d in supplements)
+
+
 def _supplement_lines(supplements: list[dict]) -> list[str]:
     """The card's words on the further datasets a run trained on, if any."""
     if not supplements:
         return []
-    named = ", ".join(
-        f"`{d.get('name')}` v{d.get('version')} ({d.get('images')} images)" for d in supplements
-    )
     return [
-        f"- Also trained on every image of {named} (`pipelines/<name>.yaml`): scenes of their own,",
+        f"- Also trained on every image of {_named(supplements)} (`pipelines/<name>.yaml`): scenes of their own,",
         "  none of them in the val or test split above.",
     ]
 
@@ -43,11 +45,9 @@ def _refine_supplement_lines(supplements: list[dict], refine: dict) -> list[str]
     """The card's words on the datasets the second stage alone trained on, if any."""
     if not supplements:
         return []
-    named = ", ".join(
-        f"`{d.get('name')}` v{d.get('version')} ({d.get('images')} images)" for d in supplements
-    )
     return [
-        f"  It also trained on every image of {named}, each listed {refine.get('supplement_repeats', 1)} times",
+        f"  It also trained on every image of {_named(supplements)}, each listed "
+        f"{refine.get('supplement_repeats', 1)} times",
         "  (`pipelines/<name>.yaml`; scenes of their own, rendered as the pipeline file says); the first stage",
         "  never saw them.",
     ]
