@@ -234,14 +234,15 @@ def patch_batches(
     training slower here (181 against 133 ms a batch of 256 on two cores), as the network's two threads
     then wait for the core the loader takes.
     """
-    cache: dict[int, np.ndarray] = {}
+    cache: dict[str, np.ndarray] = {}  # by file: an image listed more than once is read once
 
     def image_of(i: int) -> np.ndarray:
         if images is not None:
             return images[i]
-        if i not in cache:
-            cache[i] = read_image(samples[i].path)
-        return cache[i]
+        key = str(samples[i].path)
+        if key not in cache:
+            cache[key] = read_image(samples[i].path)
+        return cache[key]
 
     keys = patch_keys(samples, negatives)
     size = cfg.batch_size

@@ -303,7 +303,13 @@ def train_refiner(
         try:
             if negatives is None and cfg.verify and negatives_of is not None:
                 if images is None:
-                    images = [read_image(s.path) for s in samples]
+                    decoded: dict[str, np.ndarray] = {}  # an image listed more than once is read once
+                    images = [
+                        decoded[str(s.path)]
+                        if str(s.path) in decoded
+                        else decoded.setdefault(str(s.path), read_image(s.path))
+                        for s in samples
+                    ]
                 negatives = negatives_of(samples, images)
                 if progress:
                     tqdm.write(
