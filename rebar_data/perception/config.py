@@ -224,7 +224,9 @@ class RefineConfig(Strict):
     - 16 times (the default: 151 k crossings, 12 minutes), two views: 0.937, 0.925, 0.840; 0.927, 0.876,
       0.663; 0.978, 0.927, 0.984; 0.758, 0.793. From RGB alone on paper-tunnel's test split recall@P0.99
       0.955 (without them 0.957); with depth on the Cycles sets PCK@2px 0.933 and 0.892, recall@P0.99
-      0.963 and 0.890 (without them 0.915, 0.940; 0.864, 0.884).
+      0.963 and 0.890 (without them 0.915, 0.940; 0.864, 0.884);
+    - 32 times (189 k crossings, 14 minutes), two views: 0.948, 0.921, 0.828; 0.934, 0.883, 0.686;
+      0.978, 0.928, 0.982; 0.752, 0.829. No better than 16 beyond one training's spread, so 16 stays.
 
     They place crossings in Cycles' images better at either weight; at 16 the verification also doubts
     Cycles' false detections more, by about as much as one training run differs from the next at 8 (see
