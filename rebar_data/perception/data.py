@@ -72,6 +72,16 @@ def read_image(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+def read_images(samples: list[Sample]) -> list[np.ndarray]:
+    """Each sample's image, decoded once per file: a sample listed more than once (a repeated supplement)
+    shares one array."""
+    decoded: dict[str, np.ndarray] = {}
+    for s in samples:
+        if str(s.path) not in decoded:
+            decoded[str(s.path)] = read_image(s.path)
+    return [decoded[str(s.path)] for s in samples]
+
+
 def read_info(root: str | Path) -> dict:
     """The dataset's ``meta/info.json`` (an empty dict when it has none)."""
     p = Path(root) / "meta/info.json"

@@ -28,7 +28,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.config import AugmentConfig, RefineConfig
-from rebar_data.perception.data import Sample, read_image
+from rebar_data.perception.data import Sample, read_image, read_images
 from rebar_data.perception.refine_data import patch_batches, steps_per_epoch
 from rebar_data.perception.schedule import warmup_cosine
 from rebar_data.perception.stage_files import (
@@ -242,10 +242,23 @@ def mine_negatives(
 ) -> list[np.ndarray]:
     """Where ``detector`` (the trained first stage alone) finds crossings that are not there: per sample,
     its detections scoring at least ``cfg.negative_score`` that lie farther than ``cfg.negative_gate_px``
-    from every visible crossing, as (M, 2) u, v."""
+    from every visible crossing, as (M, 2) u, v. A file listed more than once (a repeated supplement) is
+    run once and its answer shared."""
     from rebar_data.perception.evaluate import predict
 
-    found = predict(detector, samples, threshold=cfg.negative_score, images=images, progress=progress)
+    first: dict[str, int] = {}  # each file's first place in samples
+    for i, s in enumerate(samples):
+        first.setdefault(str(s.path), i)
+    kept = list(first.values())
+    ran = predict(
+        detector,
+        [samples[i] for i in kept],
+        threshold=cfg.negative_score,
+        images=[images[i] for i in kept],
+        progress=progress,
+    )
+    of_file = {str(samples[i].path): p for i, p in zip(kept, ran, strict=True)}
+    found = [of_file[str(s.path)] for s in samples]
     out = []
     for s, p in zip(samples, found, strict=True):
         uv = p[:, :2].reshape(-1, 2)
@@ -294,7 +307,8 @@ def train_refiner(
     net = build(cfg).to(memory_format=torch.channels_last)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     # the same settings: go on where it stopped (with the negatives it mined); otherwise train afresh
-    payload = resume_stage(last, net, opt, load=load, settings=_training_settings, want=want, data=data or [])
+    data = data or []
+    payload = resume_stage(last, net, opt, load=load, settings=_training_settings, want=want, data=data)
     history: list[dict[str, float]] = payload["history"] if payload else []
     negatives: list[np.ndarray] | None = payload.get("negatives") if payload else None
     if len(history) < cfg.epochs:  # otherwise a finished stage: kept as it is
@@ -303,13 +317,7 @@ def train_refiner(
         try:
             if negatives is None and cfg.verify and negatives_of is not None:
                 if images is None:
-                    decoded: dict[str, np.ndarray] = {}  # an image listed more than once is read once
-                    images = [
-                        decoded[str(s.path)]
-                        if str(s.path) in decoded
-                        else decoded.setdefault(str(s.path), read_image(s.path))
-                        for s in samples
-                    ]
+                    images = read_images(samples)
                 negatives = negatives_of(samples, images)
                 if progress:
                     tqdm.write(
@@ -331,7 +339,7 @@ def train_refiner(
                 cfg,
                 aug,
                 seed=seed,
-                data=data or [],
+                data=data,
                 progress=progress,
             )
         finally:

@@ -362,13 +362,15 @@ def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> Non
             )
 
 
-def _check_same_supplements(saved: list[dict[str, Any]], now: list[dict[str, Any]], path: Path) -> None:
-    def names(sups: list[dict[str, Any]]) -> list[str]:
-        return [f"{d.get('name')} v{d.get('version')}" for d in sups]
+def _names(supplements: list[dict[str, Any]]) -> list[str]:
+    """Supplements as a run compares them: name and version of each."""
+    return [f"{d.get('name')} v{d.get('version')}" for d in supplements]
 
-    if names(saved) != names(now):
+
+def _check_same_supplements(saved: list[dict[str, Any]], now: list[dict[str, Any]], path: Path) -> None:
+    if _names(saved) != _names(now):
         raise ConfigError(
-            f"{path}: holds a run trained with supplements {names(saved) or 'none'}, not {names(now) or 'none'}; "
+            f"{path}: holds a run trained with supplements {_names(saved) or 'none'}, not {_names(now) or 'none'}; "
             "accepted: the same supplements to resume, or a fresh start (--fresh) or another run folder"
         )
 
@@ -493,19 +495,10 @@ def _run(
         save_checkpoint(out / "best.pt", avg.net, {**base_meta, "epoch": state["epoch"]})
 
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
-        """The trained first stage's misses on ``samples``, mined once for an image listed more than once."""
-        first, _, _ = load_checkpoint(out / "best.pt")
-        once = {str(s.path): i for i, s in reversed(list(enumerate(samples)))}
-        kept = sorted(once.values())
-        found = mine_negatives(
-            Detector.from_network(first),
-            [samples[i] for i in kept],
-            cfg.refine,
-            images=[images[i] for i in kept],
-            progress=progress,
+        first, _, _ = load_checkpoint(out / "best.pt")  # the trained first stage's misses
+        return mine_negatives(
+            Detector.from_network(first), samples, cfg.refine, images=images, progress=progress
         )
-        of_path = {str(samples[i].path): n for i, n in zip(kept, found, strict=True)}
-        return [of_path[str(s.path)] for s in samples]
 
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = train_samples + refine_extra * cfg.refine.supplement_repeats
@@ -518,7 +511,7 @@ def _run(
             cfg.augment,
             seed=cfg.seed,
             negatives_of=negatives_of,
-            data=[f"{d.get('name')} v{d.get('version')}" for d in refine_supplements],
+            data=_names(refine_supplements),
             progress=progress,
         )
     depth_net, depth_history = None, []
