@@ -41,15 +41,30 @@ def _supplement_lines(supplements: list[dict]) -> list[str]:
     ]
 
 
-def _refine_supplement_lines(supplements: list[dict], refine: dict) -> list[str]:
-    """The card's words on the datasets the second stage alone trained on, if any."""
+def _refine_supplement_lines(supplements: list[dict], refine: dict, adapted: bool) -> list[str]:
+    """The card's words on the datasets the second stage (and the first stage's adapt epochs) trained on,
+    if any."""
     if not supplements:
         return []
     return [
         f"  It also trained on every image of {_named(supplements)}, each listed "
         f"{refine.get('supplement_repeats', 1)} times",
-        "  (`pipelines/<name>.yaml`; scenes of their own, rendered as the pipeline file says); the first stage",
-        "  never saw them.",
+        "  (`pipelines/<name>.yaml`; scenes of their own, rendered as the pipeline file says); the first stage"
+        + (" saw them only in its adapt epochs." if adapted else " never saw them."),
+    ]
+
+
+def _adapt_lines(res: dict, tc: dict, ds: dict) -> list[str]:
+    """The card's words on the first stage's adapt epochs, if it had any."""
+    if not res.get("adapt_epochs"):
+        return []
+    a = tc["adapt"]
+    return [
+        f"- Adapt epochs: {res['adapt_epochs']} more after the best epoch "
+        f"({res.get('adapt_seconds', 0.0) / 60:.1f} minutes, in the total above), on the training images and",
+        f"  every image of {_named(ds.get('refine_supplements') or [])}, each listed {a['supplement_repeats']} times;",
+        f"  AdamW from lr {a['lr']:g} down a cosine, the batch norms' statistics frozen, no mosaic. The first stage",
+        "  shipped is the adapted one.",
     ]
 
 
@@ -261,6 +276,7 @@ def write_card(
             if tc["augment"].get("hue_full_probability") or tc["augment"].get("white_balance")
             else "."
         ),
+        *_adapt_lines(res, tc, ds),
         *(
             [
                 f"- Second stage: {refine['epochs']} epochs over the training split's visible crossings "
@@ -290,7 +306,9 @@ def write_card(
                     if verifies
                     else []
                 ),
-                *_refine_supplement_lines(ds.get("refine_supplements") or [], refine),
+                *_refine_supplement_lines(
+                    ds.get("refine_supplements") or [], refine, bool(res.get("adapt_epochs"))
+                ),
             ]
             if refine
             else []

@@ -409,6 +409,22 @@ class CrossingPointConfig(Strict):
     threads: PositiveInt = 2
 
 
+class AdaptConfig(Strict):
+    """The first stage's adapt epochs (:mod:`~rebar_data.perception.adapt_train`): after its best epoch,
+    ``epochs`` more on its training images and the run's second-stage supplements (``rebar train
+    --refine-supplement``; `make train`'s Cycles-rendered ``pipelines/cycles-train-*.yaml``), each of their
+    images listed ``supplement_repeats`` times, from ``lr`` (after ``warmup_epochs``) down a cosine, the
+    batch norms frozen (their statistics stay the first epochs'), no mosaic. The first stage the run ships
+    and the later stages train beside is the adapted one. 0 epochs, or no supplements, ship the best epoch
+    as it is.
+    """
+
+    epochs: NonNegativeInt = 3
+    lr: Positive = 1e-3
+    warmup_epochs: NonNegative = 0.05
+    supplement_repeats: PositiveInt = 20
+
+
 class TrainConfig(Strict):
     """One training run.
 
@@ -491,6 +507,7 @@ class TrainConfig(Strict):
     loader_workers: Literal[0, 1] = 1
     model: ModelConfig = ModelConfig()
     augment: AugmentConfig = AugmentConfig()
+    adapt: AdaptConfig = AdaptConfig()
     refine: RefineConfig = RefineConfig()
     depth_check: DepthCheckConfig = DepthCheckConfig()
     crossing_point: CrossingPointConfig = CrossingPointConfig()

@@ -197,12 +197,14 @@ def train_depth_check(
     cfg: DepthCheckConfig,
     *,
     seed: int,
+    data: list[str] | None = None,
     progress: bool = False,
 ) -> tuple[DepthNet, list[dict[str, float]]]:
     """Train the third stage on the depth images of ``samples``; resumable per epoch.
 
     ``out/depth_last.pt`` holds the weights, optimiser and the epochs done after every epoch; a finished
-    one with the same settings is returned as it is.
+    one with the same settings and ``data`` (what its negatives came from, as the caller names it) is
+    returned as it is.
 
     Returns:
         The trained network (eval mode) and one row per epoch (loss, the share of patches classed
@@ -213,7 +215,7 @@ def train_depth_check(
     torch.manual_seed(seed)
     net = build(cfg)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    payload = resume_stage(last, net, opt, load=load, settings=_settings, want=_settings(cfg))
+    payload = resume_stage(last, net, opt, load=load, settings=_settings, want=_settings(cfg), data=data)
     history: list[dict[str, float]] = payload["history"] if payload else []
     if len(history) >= cfg.epochs:
         return net.eval(), history
@@ -270,7 +272,7 @@ def train_depth_check(
                     f"{row['positives_right']:.1%} of crossings, {row['negatives_right']:.1%} of negatives",
                     file=sys.stderr,
                 )
-            save(last, net, cfg, optimizer=opt.state_dict(), history=history)
+            save(last, net, cfg, optimizer=opt.state_dict(), history=history, data=data or [])
     finally:
         torch.set_num_threads(threads_before)
     return copy.deepcopy(net).eval(), history

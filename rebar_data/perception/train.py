@@ -4,7 +4,11 @@ A run folder holds everything about one run:
 
 - ``config.json``: the resolved settings, the dataset and its OKS sigma;
 - ``last.pt`` (every epoch: weights, weight average, optimiser, random states, history, so an interrupted
-  run resumes where it stopped) and ``best.pt`` / ``best.onnx`` (the best validation epoch);
+  run resumes where it stopped) and ``best.pt`` (the best validation epoch);
+- ``adapt_last.pt`` / ``adapted.pt``: the first stage's adapt epochs on another renderer's frames
+  (:mod:`~rebar_data.perception.adapt_train`), when the run has second-stage supplements;
+- ``best.onnx``: the first stage shipped (``adapted.pt`` when there is one, else ``best.pt``), its score
+  bias and results in its metadata; the later stages' files beside it (``best.refine.onnx`` ...);
 - ``metrics.csv``: one row per epoch (losses, learning rate, validation metrics, time);
 - ``results.json``: the best model's metrics on the validation and test splits;
 - ``curves.png``, ``pr_curve.png``, ``predictions.png``.
@@ -15,13 +19,12 @@ keeps), which is steadier from epoch to epoch than the raw weights.
 
 from __future__ import annotations
 
-import copy
 import csv
 import json
 import math
 import sys
 import time
-from collections.abc import Callable, Iterator, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -32,7 +35,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError, format_validation_error
 from rebar_data.dataset.writers.manifest import sha256_file
-from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
+from rebar_data.perception.adapt_train import ADAPTED, adapt_first_stage
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.crossing_point_train import CrossingNet, train_crossing_point
 from rebar_data.perception.crossing_point_train import export_onnx as export_crossing_point
@@ -46,6 +49,7 @@ from rebar_data.perception.depth_check_train import (
 )
 from rebar_data.perception.depth_check_train import export_onnx as export_depth_check
 from rebar_data.perception.depth_check_train import save as save_depth_check
+from rebar_data.perception.epochs import WeightAverage, batch_stream, train_epoch
 from rebar_data.perception.evaluate import (
     CALIBRATION_FLOOR,
     at_crossing_points,
@@ -57,7 +61,6 @@ from rebar_data.perception.evaluate import (
 )
 from rebar_data.perception.export import export_onnx, load_checkpoint, save_checkpoint
 from rebar_data.perception.infer import Detector
-from rebar_data.perception.loss import detection_loss
 from rebar_data.perception.metrics import (
     DEFAULT_OKS_SIGMA,
     OPERATING_THRESHOLD,
@@ -65,143 +68,16 @@ from rebar_data.perception.metrics import (
     keypoint_ap,
     pixel_metrics,
 )
-from rebar_data.perception.model import STRIDE, KeypointNet, count_parameters
+from rebar_data.perception.model import KeypointNet, count_parameters
 from rebar_data.perception.refine_train import PatchNet, calibration_patches, mine_negatives, train_refiner
 from rebar_data.perception.refine_train import export_onnx as export_refiner
 from rebar_data.perception.refine_train import load as load_refiner
 from rebar_data.perception.refine_train import quantize_onnx as quantize_int8
 from rebar_data.perception.refine_train import save as save_refiner
-from rebar_data.perception.schedule import warmup_cosine
-from rebar_data.perception.targets import encode
 
 EARLY_STOP_METRIC = "val_oks_ap"
 # settings a resumed run may change
-RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "refine", "depth_check", "crossing_point"}
-
-
-class WeightAverage:
-    """Exponential moving average of a network's weights; the ramp lets it follow the fast early epochs."""
-
-    def __init__(self, net: torch.nn.Module, *, decay: float = 0.998, ramp_steps: float = 300.0):
-        self.net = copy.deepcopy(net).eval()
-        for p in self.net.parameters():
-            p.requires_grad_(False)
-        self.decay, self.ramp_steps, self.updates = decay, ramp_steps, 0
-
-    @torch.no_grad()
-    def update(self, net: torch.nn.Module) -> None:
-        self.updates += 1
-        d = self.decay * (1 - math.exp(-self.updates / self.ramp_steps))
-        src = net.state_dict()
-        for k, v in self.net.state_dict().items():
-            if v.dtype.is_floating_point:
-                v.mul_(d).add_(src[k].detach(), alpha=1 - d)
-            else:
-                v.copy_(src[k])
-
-
-class TrainingImages:
-    """The training split's images (decoded once when caching) and their crossings."""
-
-    def __init__(self, samples: list[Sample], *, cache: bool, occluded: str, progress: bool):
-        self.samples = samples
-        self.ignore_occluded = occluded == "ignore"
-        self.images = (
-            [
-                read_image(s.path)
-                for s in tqdm(samples, desc="load images", unit="img", disable=not progress, leave=False)
-            ]
-            if cache
-            else None
-        )
-
-    def pick(self, rng: np.random.Generator) -> Source:
-        k = int(rng.integers(len(self.samples)))
-        s = self.samples[k]
-        image = self.images[k] if self.images is not None else read_image(s.path)
-        return Source(image, s.visible, s.occluded if self.ignore_occluded else np.zeros((0, 2)), s.camera)
-
-
-def make_batch(
-    data: TrainingImages, rng: np.random.Generator, cfg: TrainConfig, *, mosaic: bool
-) -> tuple[torch.Tensor, ...]:
-    """One augmented batch: images (B, 3, S, S), rays (B, 2, S, S) and the targets heat, heat weight,
-    offset, offset weight."""
-    size, aug = cfg.crop_px, cfg.augment
-    cells = size // STRIDE
-    imgs, rays, heats, hws, offs, ows = [], [], [], [], [], []
-    for _ in range(cfg.batch_size):
-        if mosaic and rng.uniform() < aug.mosaic_probability:
-            crop = mosaic_crop(lambda: data.pick(rng), rng, size=size, cfg=aug)
-        else:
-            crop = single_crop(data.pick(rng), rng, size=size, cfg=aug)
-        heat, hw, off, ow = encode(
-            crop.positives, crop.ignore, cells, cells, sigma_cells=cfg.heatmap_sigma_cells
-        )
-        imgs.append(photometric(crop.image, rng, aug))
-        rays.append(crop.rays)
-        heats.append(heat)
-        hws.append(hw)
-        offs.append(off)
-        ows.append(ow)
-    x = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).float()
-    return (x, *(torch.from_numpy(np.stack(a)) for a in (rays, heats, hws, offs, ows)))
-
-
-class BatchStream(torch.utils.data.IterableDataset):
-    """Every batch of epochs ``first`` to ``last``, each epoch's drawn from a generator seeded by (seed,
-    epoch) alone: the same batches whether they are made here or in a loader process, and after a resume.
-
-    It holds only the samples' labels and paths; the images are read (and cached) where it runs, so a
-    loader process keeps the one copy.
-    """
-
-    def __init__(self, samples: list[Sample], cfg: TrainConfig, *, first: int, last: int, steps: int):
-        super().__init__()
-        self.samples, self.cfg, self.first, self.last, self.steps = samples, cfg, first, last, steps
-
-    def __iter__(self):
-        data = TrainingImages(
-            self.samples, cache=self.cfg.cache_images, occluded=self.cfg.occluded, progress=False
-        )
-        for epoch in range(self.first, self.last + 1):
-            rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, epoch]))
-            mosaic = epoch <= self.cfg.augment.mosaic_epochs
-            for _ in range(self.steps):
-                yield make_batch(data, rng, self.cfg, mosaic=mosaic)
-
-
-def _loader_worker_init(_: int) -> None:
-    import cv2
-
-    torch.set_num_threads(1)
-    cv2.setNumThreads(1)
-
-
-def batch_stream(samples: list[Sample], cfg: TrainConfig, *, first: int, last: int, steps: int):
-    """An iterator over the batches of epochs ``first`` to ``last``. With ``loader_workers`` = 1 they are made
-    in a second process (started fresh, not forked: OpenCV's and OpenMP's thread pools do not survive a
-    fork) while the network trains on the previous ones."""
-    stream = BatchStream(samples, cfg, first=first, last=last, steps=steps)
-    if cfg.loader_workers == 0:
-        return iter(stream)
-    return iter(
-        torch.utils.data.DataLoader(
-            stream,
-            batch_size=None,
-            num_workers=1,
-            prefetch_factor=4,
-            worker_init_fn=_loader_worker_init,
-            multiprocessing_context="spawn",
-        )
-    )
-
-
-def learning_rate(step: int, *, steps_per_epoch: int, cfg: TrainConfig) -> float:
-    """Linear warm-up, then cosine decay to 2% of the peak at the last epoch."""
-    return warmup_cosine(
-        step, peak=cfg.lr, warm=cfg.warmup_epochs * steps_per_epoch, total=cfg.epochs * steps_per_epoch
-    )
+RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "refine", "depth_check", "crossing_point"}
 
 
 @dataclass
@@ -454,7 +330,7 @@ def _run(
     for epoch in range(state["epoch"] + 1, cfg.epochs + 1):
         if state["stopped"]:
             break
-        row = _train_epoch(
+        row = train_epoch(
             net, avg, opt, batches, cfg, state, epoch=epoch, steps=steps_per_epoch, progress=progress
         )
         if val_sub and (epoch % cfg.val_every == 0 or epoch == cfg.epochs):
@@ -494,8 +370,26 @@ def _run(
     if not (out / "best.pt").exists():  # no epoch had a finite validation score: keep the latest weights
         save_checkpoint(out / "best.pt", avg.net, {**base_meta, "epoch": state["epoch"]})
 
+    # the first stage to ship: the best epoch, then its adapt epochs on the second-stage supplements
+    first_path, adapt_history = adapt_first_stage(
+        out,
+        cfg,
+        train_samples,
+        refine_extra,
+        base_epoch=state["best_epoch"],
+        data=_names(refine_supplements),
+        log=lambda msg: _log(msg, progress),
+        progress=progress,
+    )
+    # what the later stages' negatives come from: a changed first stage trains them again
+    first_stage = [f"first stage: epoch {state['best_epoch']}"] + (
+        [f"adapted: {json.dumps(cfg.adapt.model_dump(mode='json'), sort_keys=True)}"]
+        if first_path.name == ADAPTED
+        else []
+    )
+
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
-        first, _, _ = load_checkpoint(out / "best.pt")  # the trained first stage's misses
+        first, _, _ = load_checkpoint(first_path)  # the trained first stage's misses
         return mine_negatives(
             Detector.from_network(first), samples, cfg.refine, images=images, progress=progress
         )
@@ -511,7 +405,7 @@ def _run(
             cfg.augment,
             seed=cfg.seed,
             negatives_of=negatives_of,
-            data=_names(refine_supplements),
+            data=_names(refine_supplements) + first_stage,
             progress=progress,
         )
     depth_net, depth_history = None, []
@@ -522,6 +416,7 @@ def _run(
             out,
             cfg.depth_check,
             seed=cfg.seed,
+            data=first_stage,
             progress=progress,
         )
     crossing_net, crossing_history = None, []
@@ -539,6 +434,8 @@ def _run(
         test_samples,
         dataset_meta,
         train_samples=train_samples,
+        first_path=first_path,
+        adapt_history=adapt_history,
         refiner=refiner,
         refine_history=refine_history,
         depth_net=depth_net,
@@ -566,60 +463,6 @@ def _negatives(
         if found is not None and len(found) == refine_images and any(len(n) for n in found):
             return found[: len(train_samples)]
     return negatives_of(train_samples, [read_image(s.path) for s in train_samples])
-
-
-def _train_epoch(
-    net: KeypointNet,
-    avg: WeightAverage,
-    opt: torch.optim.Optimizer,
-    batches: Iterator[tuple[torch.Tensor, ...]],
-    cfg: TrainConfig,
-    state: dict[str, Any],
-    *,
-    epoch: int,
-    steps: int,
-    progress: bool,
-) -> dict[str, Any]:
-    mosaic = epoch <= cfg.augment.mosaic_epochs
-    net.train()
-    t0 = time.perf_counter()
-    sums = np.zeros(3)
-    bar = tqdm(
-        range(steps),
-        desc=f"epoch {epoch}/{cfg.epochs}",
-        unit="batch",
-        disable=not progress,
-        leave=False,
-        file=sys.stderr,
-    )
-    lr = cfg.lr
-    for _ in bar:
-        lr = learning_rate(state["step"], steps_per_epoch=steps, cfg=cfg)
-        for g in opt.param_groups:
-            g["lr"] = lr
-        x, rays, heat, hw, off, ow = next(batches)
-        x = x.contiguous(memory_format=torch.channels_last)
-        total, h, o = detection_loss(net(x, rays), heat, hw, off, ow, offset_weight_factor=cfg.offset_weight)
-        opt.zero_grad(set_to_none=True)
-        total.backward()
-        torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
-        opt.step()
-        avg.update(net)
-        state["step"] += 1
-        sums += [total.item(), h.item(), o.item()]
-        bar.set_postfix(loss=f"{total.item():.3f}", mosaic=mosaic)
-    seconds = time.perf_counter() - t0
-    return {
-        "epoch": epoch,
-        "lr": lr,
-        "mosaic": int(mosaic),
-        "steps": steps,
-        "train_loss": sums[0] / steps,
-        "train_heat_loss": sums[1] / steps,
-        "train_offset_loss": sums[2] / steps,
-        "train_seconds": seconds,
-        "crops_per_second": steps * cfg.batch_size / seconds,
-    }
 
 
 def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
@@ -654,6 +497,8 @@ def _finish(
     dataset_meta: dict,
     *,
     train_samples: list[Sample],
+    first_path: Path,
+    adapt_history: list[dict[str, float]],
     refiner: PatchNet | None,
     refine_history: list[dict[str, float]],
     depth_net: DepthNet | None,
@@ -663,10 +508,11 @@ def _finish(
     train_s: float,
     progress: bool,
 ) -> TrainResult:
-    """Export the best weights (and the refiner) to ONNX, score them on val and test, draw the plots."""
+    """Export the first stage (``first_path``: the best epoch, or its adapted weights) and the later stages
+    to ONNX, score them on val and test, draw the plots."""
     from rebar_data.perception import plots
 
-    net, meta, _ = load_checkpoint(out / "best.pt")
+    net, meta, _ = load_checkpoint(first_path)
     stale_keys = (
         "score_bias",
         "score_bias_without_depth",
@@ -779,7 +625,7 @@ def _finish(
                 progress,
             )
     meta = {**meta, "results": results}
-    save_checkpoint(out / "best.pt", net, meta)
+    save_checkpoint(first_path, net, meta)
     export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
     summary_doc = {
         "best_epoch": state["best_epoch"],
@@ -792,10 +638,14 @@ def _finish(
         "train_seconds_this_call": train_s,
         "train_seconds_total": float(
             sum(r.get("train_seconds", 0.0) for r in state["history"])
+            + sum(r.get("seconds", 0.0) for r in adapt_history)
             + sum(r.get("seconds", 0.0) for r in refine_history)
             + sum(r.get("seconds", 0.0) for r in depth_history)
             + sum(r.get("seconds", 0.0) for r in crossing_history)
         ),
+        "adapt_epochs": len(adapt_history),
+        "adapt_seconds": float(sum(r.get("seconds", 0.0) for r in adapt_history)),
+        "adapt_history": adapt_history,
         "refiner_parameters": count_parameters(refiner) if refiner is not None else 0,
         "refine_seconds": float(sum(r.get("seconds", 0.0) for r in refine_history)),
         "refine_history": refine_history,

@@ -32,6 +32,7 @@ TINY_TRAIN = {
     "patience": 50,
     "model": TINY_MODEL,
     "augment": {"mosaic_epochs": 1},
+    "adapt": {"epochs": 1, "supplement_repeats": 2},
     "refine": {
         "patch_px": 16,
         "widths": (4, 4, 8, 8),

@@ -11,10 +11,11 @@ import torch
 from rebar_data.config import ConfigError
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.data import load_split
+from rebar_data.perception.epochs import TrainingImages, make_batch
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.loss import detection_loss
 from rebar_data.perception.model import KeypointNet
-from rebar_data.perception.train import TrainingImages, make_batch, read_history, train
+from rebar_data.perception.train import read_history, train
 
 from .conftest import TINY_TRAIN
 
@@ -108,7 +109,7 @@ def test_bad_settings_and_datasets_are_one_clear_error(drawn_dataset, tmp_path):
 
 
 def test_batches_are_the_same_with_or_without_a_loader_process(drawn_dataset):
-    from rebar_data.perception.train import batch_stream
+    from rebar_data.perception.epochs import batch_stream
 
     samples = load_split(drawn_dataset, "train")
     here = TrainConfig.model_validate({**TINY_TRAIN, "loader_workers": 0})
@@ -165,7 +166,12 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     shutil.copytree(trained_run.out_dir, run)
     first_before, _, _ = load_checkpoint(run / "best.pt")
     refine_before = load_refiner(run / "refine_last.pt")[2]
-    cfg = {**TINY_TRAIN, "epochs": 2, "refine": {**TINY_TRAIN["refine"], "supplement_repeats": 3}}
+    cfg = {
+        **TINY_TRAIN,
+        "epochs": 2,
+        "adapt": {"epochs": 0},  # no adapt epochs: the first stage stays as it is
+        "refine": {**TINY_TRAIN["refine"], "supplement_repeats": 3},
+    }
     # the repeats are a second-stage setting: a resumed run may change them with the supplement
     again = train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
     assert again.epochs_run == trained_run.epochs_run
@@ -174,7 +180,9 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     for k, v in first_before.state_dict().items():
         torch.testing.assert_close(first_after.state_dict()[k], v)
     _, _, refine_after = load_refiner(run / "refine_last.pt")
-    assert refine_before.get("data", []) == [] and refine_after["data"] == ["drawn-second v0.0.0"]
+    assert refine_before["data"] == [f"first stage: epoch {trained_run.best_epoch}"]
+    assert refine_after["data"] == ["drawn-second v0.0.0", f"first stage: epoch {trained_run.best_epoch}"]
+    assert not (run / "adapted.pt").exists()
     n_train = len(load_split(drawn_dataset, "train"))
     assert len(refine_after["negatives"]) == n_train + 3 * 6  # its own images, then the 6 extra three times
     assert any(
@@ -193,3 +201,99 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     assert "`drawn-second` v0.0.0 (6 images), each listed 3 times" in card
     with pytest.raises(ConfigError, match="another pipeline"):  # its val and test scenes would leak in
         train(drawn_dataset, run, config=cfg, refine_supplements=[drawn_dataset], progress=False)
+
+
+def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
+    trained_run, drawn_dataset, tmp_path
+):
+    """With a second-stage supplement the first stage trains its adapt epochs from its best epoch (kept in
+    best.pt) on its images and the supplement's; the adapted weights ship in best.onnx and the later stages
+    train beside them; resumed again nothing trains, and with no adapt epochs the best epoch ships again."""
+    from rebar_data.perception.adapt_train import ADAPT_LAST, ADAPTED
+    from rebar_data.perception.card import CARD_NAME, ship
+    from rebar_data.perception.export import load_checkpoint
+    from rebar_data.perception.refine_train import load as load_refiner
+    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+
+    spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
+    extra = write_synthetic_dataset(tmp_path / "data", spec, seed=7, name="drawn-other")
+    run = tmp_path / "run"
+    shutil.copytree(trained_run.out_dir, run)
+    best_before, _, _ = load_checkpoint(run / "best.pt")
+    cfg = {**TINY_TRAIN, "epochs": 2, "adapt": {"epochs": 2, "supplement_repeats": 3}}
+    again = train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
+    assert again.epochs_run == trained_run.epochs_run  # the first epochs are not run again
+    best_after, _, _ = load_checkpoint(run / "best.pt")
+    adapted, meta, _ = load_checkpoint(run / ADAPTED)
+    for k, v in best_before.state_dict().items():
+        torch.testing.assert_close(best_after.state_dict()[k], v)
+    assert any(not torch.equal(adapted.state_dict()[k], v) for k, v in best_before.state_dict().items())
+    # the batch norms' statistics stayed the best epoch's
+    for k, v in best_before.state_dict().items():
+        if k.endswith(("running_mean", "running_var")):
+            torch.testing.assert_close(adapted.state_dict()[k], v)
+    results = json.loads((run / "results.json").read_text())
+    n_train = len(load_split(drawn_dataset, "train"))
+    steps = math.ceil((n_train + 3 * 6) / cfg["batch_size"])  # its own images, then the 6 extra three times
+    assert results["adapt_epochs"] == 2 and [h["steps"] for h in results["adapt_history"]] == [steps, steps]
+    # the adapted file carries the results (NaN where the tiny model found nothing: compared as text)
+    assert json.dumps(meta["results"], sort_keys=True) == json.dumps(results["results"], sort_keys=True)
+    # best.onnx is the adapted first stage
+    image = np.random.default_rng(0).integers(0, 255, (144, 192, 3), dtype=np.uint8)
+    shipped = Detector.load(run / "best.onnx").raw(image)
+    np.testing.assert_allclose(shipped, Detector.from_network(adapted).raw(image), atol=1e-3)
+    assert not np.allclose(shipped, Detector.from_network(best_after).raw(image), atol=1e-3)
+    refine = load_refiner(run / "refine_last.pt")[2]
+    assert refine["data"][0] == "drawn-other v0.0.0" and refine["data"][-1].startswith("adapted:")
+    ship(run, models_dir=tmp_path / "models")
+    card = (tmp_path / "models" / CARD_NAME).read_text()
+    assert "- Adapt epochs: 2 more after the best epoch" in card and "only in its adapt epochs" in card
+    stamp = (run / ADAPT_LAST).stat().st_mtime_ns
+    train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
+    assert (run / ADAPT_LAST).stat().st_mtime_ns == stamp  # finished on the same data: kept
+    # no adapt epochs: the best epoch ships again, and the later stages train beside it
+    train(
+        drawn_dataset, run, config={**cfg, "adapt": {"epochs": 0}}, refine_supplements=[extra], progress=False
+    )
+    assert not (run / ADAPTED).exists() and not (run / ADAPT_LAST).exists()
+    np.testing.assert_allclose(
+        Detector.load(run / "best.onnx").raw(image), Detector.from_network(best_after).raw(image), atol=1e-3
+    )
+    assert load_refiner(run / "refine_last.pt")[2]["data"][-1].startswith("first stage: epoch")
+
+
+def test_interrupted_adapt_epochs_resume_after_their_last_epoch(
+    trained_run, drawn_dataset, tmp_path, monkeypatch
+):
+    """Adapt epochs stopped during the second go on from the first's checkpoint to the same weights as
+    epochs that were not stopped."""
+    from rebar_data.perception import adapt_train
+    from rebar_data.perception.export import load_checkpoint
+    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+
+    spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=2, frames=2)
+    extra = load_split(write_synthetic_dataset(tmp_path / "data", spec, seed=8, name="drawn-x"), "train")
+    samples = load_split(drawn_dataset, "train")
+    cfg = TrainConfig.model_validate({**TINY_TRAIN, "adapt": {"epochs": 2}})
+    whole, stopped = tmp_path / "whole", tmp_path / "stopped"
+    for run in (whole, stopped):
+        shutil.copytree(trained_run.out_dir, run)
+    path, history = adapt_train.adapt_first_stage(whole, cfg, samples, extra, base_epoch=1, data=["x"])
+    assert path == whole / adapt_train.ADAPTED and len(history) == 2
+    epoch = adapt_train.train_epoch
+
+    def stop_in_the_second(*args, **kwargs):
+        if kwargs["epoch"] == 2:
+            raise KeyboardInterrupt
+        return epoch(*args, **kwargs)
+
+    monkeypatch.setattr(adapt_train, "train_epoch", stop_in_the_second)
+    with pytest.raises(KeyboardInterrupt):
+        adapt_train.adapt_first_stage(stopped, cfg, samples, extra, base_epoch=1, data=["x"])
+    assert not (stopped / adapt_train.ADAPTED).exists()
+    monkeypatch.setattr(adapt_train, "train_epoch", epoch)
+    path, history = adapt_train.adapt_first_stage(stopped, cfg, samples, extra, base_epoch=1, data=["x"])
+    assert len(history) == 2
+    a, b = load_checkpoint(whole / adapt_train.ADAPTED)[0], load_checkpoint(path)[0]
+    for k, v in a.state_dict().items():
+        torch.testing.assert_close(b.state_dict()[k], v)

@@ -1,0 +1,128 @@
+"""The first stage's adapt epochs: after its best epoch, a few more at a low learning rate on its training
+images and another renderer's frames (the run's second-stage supplements, each listed
+``AdaptConfig.supplement_repeats`` times), its batch norms frozen. What they train is the first stage the
+run ships and the later stages train beside; ``best.pt`` keeps the best epoch they started from, so they
+train again from it when their settings, their data or that epoch change.
+
+In the run folder: ``adapt_last.pt`` (after every epoch: weights, weight average, optimiser, random state,
+history and what they trained on, so an interrupted run resumes where it stopped) and ``adapted.pt`` (the
+weight average after the last epoch, in ``best.pt``'s format).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from rebar_data.perception.config import TrainConfig
+from rebar_data.perception.data import Sample
+from rebar_data.perception.epochs import WeightAverage, batch_stream, train_epoch
+from rebar_data.perception.export import load_checkpoint, save_checkpoint
+
+ADAPT_LAST = "adapt_last.pt"
+ADAPTED = "adapted.pt"
+FORMAT = "rebar-adapt"
+# the adapt epochs' batches come from generators of their own (seed + this, epoch), not the first epochs'
+SEED_OFFSET = 7919
+
+
+def adapt_first_stage(
+    out: Path,
+    cfg: TrainConfig,
+    samples: list[Sample],
+    extra: list[Sample],
+    *,
+    base_epoch: int,
+    data: list[str],
+    log=None,
+    progress: bool = False,
+) -> tuple[Path, list[dict[str, Any]]]:
+    """Train the adapt epochs from ``out/best.pt`` (the first stage's best epoch, ``base_epoch``) on
+    ``samples`` and ``extra`` (repeated), or take them from the run folder when they trained on the same
+    settings, data (``data``: what they are named by) and best epoch. Returns the first stage to ship
+    (``adapted.pt``; ``best.pt`` itself when there are no adapt epochs or no ``extra``) and the adapt
+    epochs' history."""
+    a = cfg.adapt
+    if a.epochs == 0 or not extra:
+        for stale in (out / ADAPT_LAST, out / ADAPTED):
+            stale.unlink(missing_ok=True)
+        return out / "best.pt", []
+    want = {"adapt": a.model_dump(mode="json"), "base_epoch": base_epoch, "data": list(data)}
+    net, meta, _ = load_checkpoint(out / "best.pt")
+    net = net.to(memory_format=torch.channels_last)
+    avg = WeightAverage(net)
+    opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=cfg.weight_decay)
+    state: dict[str, Any] = {"epoch": 0, "step": 0, "history": []}
+    path = out / ADAPT_LAST
+    saved = _read(path)
+    if saved is not None and saved["want"] == want:
+        net.load_state_dict(saved["state_dict"])
+        avg.net.load_state_dict(saved["average_state_dict"])
+        avg.updates = saved["average_updates"]
+        opt.load_state_dict(saved["optimizer"])
+        torch.set_rng_state(saved["torch_rng"])
+        state = saved["state"]
+        if state["epoch"] >= a.epochs and (out / ADAPTED).exists():
+            return out / ADAPTED, state["history"]
+    (out / ADAPTED).unlink(missing_ok=True)
+    mix = samples + extra * a.supplement_repeats
+    # the same epoch machinery as the first epochs: a cosine decay from ``a.lr`` over the adapt epochs, no
+    # mosaic, generators of their own
+    run = cfg.model_copy(
+        update={
+            "epochs": a.epochs,
+            "lr": a.lr,
+            "warmup_epochs": a.warmup_epochs,
+            "seed": cfg.seed + SEED_OFFSET,
+            "augment": cfg.augment.model_copy(update={"mosaic_epochs": 0}),
+        }
+    )
+    steps = max(1, math.ceil(len(mix) * cfg.crops_per_image / cfg.batch_size))
+    if log:
+        log(
+            f"adapt epochs: {a.epochs} from the first stage's epoch {base_epoch}, {len(samples)} images and "
+            f"{len(extra)} x {a.supplement_repeats} of {', '.join(data)}"
+        )
+    batches = batch_stream(mix, run, first=state["epoch"] + 1, last=a.epochs, steps=steps)
+    for epoch in range(state["epoch"] + 1, a.epochs + 1):
+        row = train_epoch(
+            net, avg, opt, batches, run, state, epoch=epoch, steps=steps, progress=progress, frozen_norm=True
+        )
+        if log:
+            log(f"adapt epoch {epoch}/{a.epochs}: loss {row['train_loss']:.4f}")
+        state["history"].append({**row, "seconds": row["train_seconds"]})
+        state["epoch"] = epoch
+        _save(
+            path,
+            format=FORMAT,
+            want=want,
+            state_dict=net.state_dict(),
+            average_state_dict=avg.net.state_dict(),
+            average_updates=avg.updates,
+            optimizer=opt.state_dict(),
+            torch_rng=torch.get_rng_state(),
+            state=state,
+        )
+    batches = None  # stops the loader process
+    save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
+    return out / ADAPTED, state["history"]
+
+
+def _read(path: Path) -> dict[str, Any] | None:
+    """The adapt checkpoint's payload, or None (to train afresh) when there is none or it cannot be read."""
+    if not path.exists():
+        return None
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception:
+        return None
+    return payload if isinstance(payload, dict) and payload.get("format") == FORMAT else None
+
+
+def _save(path: Path, **payload: Any) -> None:
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
