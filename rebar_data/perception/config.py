@@ -422,7 +422,7 @@ class AdaptConfig(Strict):
     epochs: NonNegativeInt = 3
     lr: Positive = 1e-3
     warmup_epochs: NonNegative = 0.05
-    supplement_repeats: PositiveInt = 20
+    supplement_repeats: PositiveInt = 15
 
 
 class TrainConfig(Strict):
