@@ -44,13 +44,14 @@ def test_training_supplements_train_only_and_share_no_seed_with_held_out_sets():
         assert cfg.render.engine == "cycles" or cfg.name in ("planar-slab", "smoke")
     seeds = [c.seed for c in training + second_stage + held_out]
     assert len(set(seeds)) == len(seeds), "two pipelines with one seed draw the same scenes"
-    for cfg in training:  # the first stage sees the project's own renderer alone
+    for cfg in training:  # the first stage's epochs see the project's own renderer alone (Cycles: adapt epochs)
         assert cfg.render.engine == "open3d"
 
 
-def test_cycles_frames_train_the_second_stage_on_meshes_the_cross_renderer_sets_do_not_have():
-    """The second stage's Cycles supplements are of the cross-renderer sets' kinds of mesh (one curved,
-    one planar) but with other spacings, so the sets' grids stay unseen as well as their scenes."""
+def test_cycles_frames_train_the_late_stages_on_meshes_the_cross_renderer_sets_do_not_have():
+    """The Cycles supplements (the first stage's adapt epochs and the second stage) are of the
+    cross-renderer sets' kinds of mesh (curved and planar) but with other spacings, each its own, so the
+    sets' grids stay unseen as well as their scenes."""
     second_stage = [load_pipeline(ROOT / f"pipelines/{p}.yaml") for p in _make_list("REFINE_SUPPLEMENTS")]
     crossval = [load_pipeline(ROOT / f"pipelines/{p}.yaml") for p in _make_list("CROSSVAL")]
     assert second_stage and all(c.render.engine == "cycles" for c in second_stage)
@@ -63,3 +64,4 @@ def test_cycles_frames_train_the_second_stage_on_meshes_the_cross_renderer_sets_
         return (m.kind, m.spacing_x_m, m.spacing_y_m)
 
     assert not {grid(c) for c in second_stage} & {grid(c) for c in crossval}
+    assert len({grid(c) for c in second_stage}) == len(second_stage)

@@ -417,6 +417,28 @@ class AdaptConfig(Strict):
     batch norms frozen (their statistics stay the first epochs'), no mosaic. The first stage the run ships
     and the later stages train beside is the adapted one. 0 epochs, or no supplements, ship the best epoch
     as it is.
+
+    Why: the first stage had seen only Open3D's images, and on the Cycles sets it scored the lower mat's
+    crossings seen through the top mat as surely as the top mat's (recall at precision 0.99 from RGB alone
+    0.160 on crossval-planar and 0.453 on crossval-tunnel, the first stage alone). The second stage's 32 px
+    patch cannot tell the mats apart; the first stage sees them whole. Frozen batch norms let the epochs go
+    on from any first stage (also one whose norms were folded into its convolutions) and keep its
+    statistics those of the data it learnt on.
+
+    Measured on the 16-epoch first stage before (RGB only on the Cycles sets, AP@0.5, PCK@2px,
+    recall@P0.99; paper-tunnel's test split with depth), scored with that model's later stages as they
+    were (not trained again), three epochs each:
+
+    - none: crossval-planar 0.937, 0.925, 0.840; crossval-tunnel 0.926, 0.876, 0.663; paper-tunnel 0.978,
+      0.927, 0.984; the first stage alone recall@P0.99 0.160 and 0.453;
+    - 120 Cycles frames (cycles-train-tunnel, -planar, -tunnel-b) 5 times, 20% of the images, lr 6e-4:
+      0.947, 0.925, 0.828; 0.933, 0.877, 0.734; 0.978, 0.928, 0.984; alone 0.223 and 0.532 (2.5 minutes
+      an epoch);
+    - the same 20 times, half the images, lr 1e-3: 0.949, 0.922, 0.826; 0.944, 0.887, 0.795; 0.979,
+      0.929, 0.983; alone 0.438 and 0.565 (4.5 minutes an epoch).
+
+    The defaults are the second with the fourth set (cycles-train-planar-b) beside: 168 frames, 15 times,
+    again about half the images.
     """
 
     epochs: NonNegativeInt = 3
