@@ -44,7 +44,9 @@ def test_training_supplements_train_only_and_share_no_seed_with_held_out_sets():
         assert cfg.render.engine == "cycles" or cfg.name in ("planar-slab", "smoke")
     seeds = [c.seed for c in training + second_stage + held_out]
     assert len(set(seeds)) == len(seeds), "two pipelines with one seed draw the same scenes"
-    for cfg in training:  # the first stage's epochs see the project's own renderer alone (Cycles: adapt epochs)
+    for (
+        cfg
+    ) in training:  # the first stage's epochs see the project's own renderer alone (Cycles: adapt epochs)
         assert cfg.render.engine == "open3d"
 
 

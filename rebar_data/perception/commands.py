@@ -180,8 +180,9 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--refine-supplement",
         action="append",
         metavar="DATASET",
-        help="another dataset whose every image trains the second stage alone, refine.supplement_repeats "
-        "times (repeatable); may change when a run resumes: the second stage then trains again",
+        help="another dataset (another renderer's frames) whose every image trains the first stage's adapt "
+        "epochs (adapt.supplement_repeats times) and the second stage (refine.supplement_repeats times), "
+        "never the first epochs (repeatable); may change when a run resumes: those stages then train again",
     )
     t.add_argument("--fresh", action="store_true", help="start afresh instead of resuming the run in --out")
     t.add_argument(

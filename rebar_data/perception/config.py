@@ -502,7 +502,10 @@ class TrainConfig(Strict):
     equal within 4e-6), trained the second, depth and crossing-point stages, placed both score biases on
     val and shipped them. The card's training time counts the first stage's 16 epochs as that run measured
     them (about 49 minutes: its card's 70.0 minutes less the later stages' times then) beside the later
-    stages' times now. Run from scratch, `make train` trains every stage with these settings.
+    stages' times now. Then the first stage's adapt epochs (``AdaptConfig``) trained on the four Cycles
+    supplements from that best epoch, and the second stage and the depth check again beside the adapted
+    first stage (`make train` resuming the same run folder). Run from scratch, `make train` trains every
+    stage with these settings.
 
     Earlier, with the first 1,680 images alone and the second stage's verification at full weight
     (``RefineConfig.verify_power`` 1): 22 epochs (best on val at 18) gave OKS AP@0.5 0.977, AP@0.5:0.95

@@ -140,9 +140,10 @@ def train(
         batch_size: Overrides ``config.batch_size``.
         supplements: Further datasets whose every image (all splits) joins the training images; the
             epoch is still chosen on ``dataset_path``'s val split and scored on its test split.
-        refine_supplements: Further datasets whose every image joins the second stage's training alone
-            (``config.refine.supplement_repeats`` times); they may change when a run resumes, and the
-            second stage then trains afresh on the first stage kept.
+        refine_supplements: Further datasets (another renderer's frames) whose every image joins the
+            first stage's adapt epochs (``config.adapt``) and the second stage's training, never the first
+            epochs; they may change when a run resumes, and those stages then train afresh from the first
+            stage's best epoch kept.
         resume: Continue from ``out_dir/last.pt`` if it exists (the settings must match, but for
             epochs, patience and val_every); False starts afresh and overwrites the run.
         progress: Show a progress bar per epoch and a summary line after it (on stderr).
