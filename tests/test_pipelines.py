@@ -19,7 +19,8 @@ PIPELINES = sorted((ROOT / "pipelines").glob("*.yaml"))
 
 
 def _make_list(name: str) -> list[str]:
-    m = re.search(rf"^{name} := (.+)$", (ROOT / "Makefile").read_text(), re.MULTILINE)
+    text = (ROOT / "Makefile").read_text().replace("\\\n", " ")  # continuation lines join theirs
+    m = re.search(rf"^{name} := (.+)$", text, re.MULTILINE)
     assert m, f"Makefile defines no {name}"
     return m.group(1).split()
 

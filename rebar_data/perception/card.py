@@ -24,6 +24,7 @@ from rebar_data.perception.metrics import oks_radius_px
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
 CARD_NAME = "MODEL_CARD.md"
+RENDERER_NAMES = {"cycles": "Blender Cycles", "open3d": "Open3D"}
 
 
 def _named(supplements: list[dict]) -> str:
@@ -52,6 +53,31 @@ def _refine_supplement_lines(supplements: list[dict], refine: dict, adapted: boo
         "  (`pipelines/<name>.yaml`; scenes of their own, rendered as the pipeline file says); the first stage"
         + (" saw them only in its adapt epochs." if adapted else " never saw them."),
     ]
+
+
+def _renderer(d: dict) -> str:
+    """The renderer a dataset's record names; one that names none was built before datasets recorded it,
+    by Open3D."""
+    engine = d.get("renderer") or "open3d"
+    return RENDERER_NAMES.get(engine, engine)
+
+
+def _renderer_line(ds: dict) -> str:
+    """The card's words on which renderers drew the training images."""
+    main = _renderer(ds)
+    other = [
+        d
+        for d in (ds.get("supplements") or []) + (ds.get("refine_supplements") or [])
+        if _renderer(d) != main
+    ]
+    if not other:
+        return f"- Trained on rendered images only, all from one renderer ({main}); no real photographs were seen."
+    frames = sum(int(d.get("images") or 0) for d in other)
+    return (
+        f"- Trained on rendered images only: from {main}, and {frames} frames from "
+        f"{' and '.join(sorted({_renderer(d) for d in other}))} (the datasets named above); no real photographs "
+        "were seen."
+    )
 
 
 def _adapt_lines(res: dict, tc: dict, ds: dict) -> list[str]:
@@ -376,7 +402,7 @@ def write_card(
         ),
         "",
         "## Limits",
-        "- Trained on rendered images only, all from one renderer (Open3D); no real photographs were seen.",
+        _renderer_line(ds),
         *(
             [
                 "- One mesh (the paper's tunnel segment, 12 mm bars at 100 mm) and one focal length in training; the",

@@ -192,7 +192,8 @@ def train(
 def supplement_images(
     supplements: Sequence[str | Path], *, trained_on: str | None
 ) -> tuple[list[Sample], list[dict[str, Any]]]:
-    """Every image of each supplement, and what the run records of them (path, name, version, images)."""
+    """Every image of each supplement, and what the run records of them (path, name, version, images and
+    the engine that rendered them)."""
     images: list[Sample] = []
     meta: list[dict[str, Any]] = []
     for path in supplements:
@@ -213,6 +214,7 @@ def supplement_images(
                 "name": info.get("name"),
                 "version": info.get("version"),
                 "images": len(these),
+                "renderer": (info.get("renderer") or {}).get("engine"),  # absent before schema 2.1
             }
         )
     return images, meta
@@ -297,6 +299,7 @@ def _run(
         "path": str(root),
         "name": info.get("name"),
         "version": info.get("version"),
+        "renderer": (info.get("renderer") or {}).get("engine"),
         "supplements": supplements,
         "refine_supplements": refine_supplements,
     }

@@ -55,3 +55,19 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     vs_3d = rows["other v0.0.1, cycles renderer, RGB only, vs 3D crossing points"]
     assert rgb["n_gt"] == vs_3d["n_gt"] == rows["own v0.0.1 (all splits)"]["n_gt"] > 0
     assert rgb["mean_px"] != vs_3d["mean_px"]
+
+
+def test_the_card_names_every_renderer_that_drew_training_images():
+    """The Limits line counts the frames another renderer drew (a dataset that names no renderer was built
+    by Open3D, before datasets recorded it)."""
+    from rebar_data.perception.card import _renderer_line
+
+    own = {"renderer": "open3d", "supplements": [{"name": "lower", "images": 720}]}
+    assert "all from one renderer (Open3D)" in _renderer_line(own)
+    cycles = [
+        {"name": "a", "images": 36, "renderer": "cycles"},
+        {"name": "b", "images": 48, "renderer": "cycles"},
+    ]
+    line = _renderer_line({**own, "refine_supplements": cycles})
+    assert "from Open3D, and 84 frames from Blender Cycles" in line and "one renderer" not in line
+    assert "720" not in line  # the lower-mat supplement is Open3D's own
