@@ -54,13 +54,14 @@ smoke: setup | $(DATA)
 # missing: the lower-mat one, 720 images, about 5 minutes; the four wide-randomization ones, 180 images each,
 # about 3 minutes each) and, for the first stage's adapt epochs and the second stage, the Cycles-rendered
 # supplements (REFINE_SUPPLEMENTS, built when missing with one worker, as Cycles takes both cores: 36 or 48
-# images each, 7-10 minutes each), and
+# images each, 7-11 minutes each), and
 # ship it with its model card, scored also on the planar-slab set (another config, built when missing: 90
 # images, a minute) and, from RGB alone, on the Cycles-rendered cross-renderer sets (built when missing: about
 # 12 minutes). See the model card for the training time on 2 cores.
 # An interrupted run resumes from runs/train/paper-tunnel/last.pt; a finished one is re-scored and re-shipped.
 SUPPLEMENTS := paper-tunnel-lower-mat wide-tunnel-a wide-tunnel-b wide-planar-a wide-planar-b
-REFINE_SUPPLEMENTS := cycles-train-tunnel cycles-train-planar cycles-train-tunnel-b cycles-train-planar-b
+REFINE_SUPPLEMENTS := cycles-train-tunnel cycles-train-planar cycles-train-tunnel-b cycles-train-planar-b \
+	cycles-train-tunnel-c cycles-train-planar-c
 train: setup
 	@ver=$$(sed -n 's/^version: *//p' pipelines/paper-tunnel.yaml | head -1); ds=$(DATA)/paper-tunnel/v$$ver; \
 	if [ ! -d "$$ds" ]; then $(MAKE) --no-print-directory dataset || exit 1; fi; \
