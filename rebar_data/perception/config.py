@@ -144,6 +144,14 @@ class RefineConfig(Strict):
     showed how far one training run differs from the next there (0.612 against 0.499 at w = 0.5); the
     shipped networks are the first draw's.
 
+    Swept again with the second stage that trained on 264 Cycles frames (the model shipped at w = 1),
+    from RGB alone at the shipped score bias (recall@P0.99, PCK@2px): w = 1 / 2 / 3: crossval-planar
+    0.823 / 0.857 / 0.875, 0.937 / 0.928 / 0.911; crossval-tunnel 0.729 / 0.741 / 0.782, 0.912 / 0.892 /
+    0.869; paper-tunnel test 0.963 / 0.959 / 0.958, 0.930 / 0.928 / 0.922; planar-slab 0.695 / 0.684 /
+    0.671. Having seen Cycles' false detections, the verification now doubts them more, and a harder
+    weight gains on the Cycles sets what it costs on the project's own renderer and on planar-slab, and
+    places fewer crossings within 2 px at the operating point; 1 stays.
+
     ``verify_power_with_depth`` is the weight beside the depth check (:class:`DepthCheckConfig`), which
     removes most of the same false detections from the depth image: there full weight only doubted
     true crossings. With the depth image, each with its score bias placed on val (paper-tunnel test
