@@ -10,7 +10,7 @@ from pathlib import Path
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
-from rebar_data.perception.data import check_dataset, load_split, read_info, stated_oks_sigma
+from rebar_data.perception.data import check_dataset, load_split, read_info, renderer_engine, stated_oks_sigma
 from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, at_crossing_points, predict
 from rebar_data.perception.infer import (
     MODELS_DIR,
@@ -56,8 +56,7 @@ def _refine_supplement_lines(supplements: list[dict], refine: dict, adapted: boo
 
 
 def _renderer(d: dict) -> str:
-    """The renderer a dataset's record names; one that names none was built before datasets recorded it,
-    by Open3D."""
+    """The renderer a run's dataset record names; runs before records named it trained on Open3D's."""
     engine = d.get("renderer") or "open3d"
     return RENDERER_NAMES.get(engine, engine)
 
@@ -479,7 +478,7 @@ def evaluation_rows(
         path = check_dataset(path)
         info = read_info(path)
         label = f"{info.get('name') or path.parent.name} v{info.get('version', '?')}"
-        engine = (info.get("renderer") or {}).get("engine", "open3d")
+        engine = renderer_engine(info)
         if engine == "open3d":
             rows[f"{label} (all splits)"] = score_dataset(detector, path, progress=progress)
             continue

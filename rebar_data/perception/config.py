@@ -219,20 +219,21 @@ class RefineConfig(Strict):
     ``pipelines/cycles-train-*.yaml``) join this stage's training images alone, each image listed
     ``supplement_repeats`` times (each time with its own jitter and colour changes), so that a few dozen
     frames of another renderer weigh against thousands of the project's own. The first stage's epochs
-    never see them (its adapt epochs do: ``AdaptConfig``). Measured with the 16-epoch first stage kept, the Cycles supplements' 72 frames (36 curved, 36
-    planar; grids and scenes the crossval sets do not have) beside the 2400 Open3D images, 11 epochs,
-    against the second stage trained without them (AP@0.5, PCK@2px, recall@P0.99; Cycles sets RGB only,
-    paper-tunnel's test split and planar-slab with depth):
+    never see them (its adapt epochs do: ``AdaptConfig``). Measured with the 16-epoch first stage kept,
+    the Cycles supplements' 72 frames (36 curved, 36 planar; grids and scenes the crossval sets do not
+    have) beside the 2400 Open3D images, 11 epochs, against the second stage trained without them
+    (AP@0.5, PCK@2px, recall@P0.99; Cycles sets RGB only, paper-tunnel's test split and planar-slab with
+    depth):
 
     - without (one view): crossval-planar 0.940, 0.908, 0.775; crossval-tunnel 0.917, 0.849, 0.579;
       paper-tunnel test 0.978, 0.927, 0.984; planar-slab PCK@2px 0.738, recall@P0.99 0.839;
     - 8 times (132 k crossings in all, 11.0 minutes), one view: 0.932, 0.925, 0.766; 0.926, 0.868, 0.534;
       0.978, 0.927, 0.981; 0.745, 0.798. Two views: 0.941, 0.924, 0.766; 0.923, 0.875, 0.542; 0.978,
       0.931, 0.983; 0.756, 0.821;
-    - 16 times (the default then: 151 k crossings, 12 minutes), two views: 0.937, 0.925, 0.840; 0.927, 0.876,
-      0.663; 0.978, 0.927, 0.984; 0.758, 0.793. From RGB alone on paper-tunnel's test split recall@P0.99
-      0.955 (without them 0.957); with depth on the Cycles sets PCK@2px 0.933 and 0.892, recall@P0.99
-      0.963 and 0.890 (without them 0.915, 0.940; 0.864, 0.884);
+    - 16 times (the default then: 151 k crossings, 12 minutes), two views: 0.937, 0.925, 0.840; 0.927,
+      0.876, 0.663; 0.978, 0.927, 0.984; 0.758, 0.793. From RGB alone on paper-tunnel's test split
+      recall@P0.99 0.955 (without them 0.957); with depth on the Cycles sets PCK@2px 0.933 and 0.892,
+      recall@P0.99 0.963 and 0.890 (without them 0.915, 0.940; 0.864, 0.884);
     - 32 times (189 k crossings, 14 minutes), two views: 0.948, 0.921, 0.828; 0.934, 0.883, 0.686;
       0.978, 0.928, 0.982; 0.752, 0.829. No better than 16 beyond one training's spread.
 

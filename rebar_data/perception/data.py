@@ -88,6 +88,12 @@ def read_info(root: str | Path) -> dict:
     return json.loads(p.read_text()) if p.exists() else {}
 
 
+def renderer_engine(info: dict) -> str:
+    """The engine that rendered a dataset, from its info.json; datasets before schema 2.1 name none and
+    were Open3D's."""
+    return (info.get("renderer") or {}).get("engine", "open3d")
+
+
 def stated_oks_sigma(root: str | Path) -> float:
     """The OKS sigma the dataset states in its info.json (the project's default when it states none)."""
     return float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))

@@ -40,7 +40,14 @@ from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.crossing_point_train import CrossingNet, train_crossing_point
 from rebar_data.perception.crossing_point_train import export_onnx as export_crossing_point
 from rebar_data.perception.crossing_point_train import save as save_crossing_point
-from rebar_data.perception.data import Sample, check_dataset, load_split, read_image, read_info
+from rebar_data.perception.data import (
+    Sample,
+    check_dataset,
+    load_split,
+    read_image,
+    read_info,
+    renderer_engine,
+)
 from rebar_data.perception.depth_check_train import (
     DepthNet,
     calibration_inputs,
@@ -214,7 +221,7 @@ def supplement_images(
                 "name": info.get("name"),
                 "version": info.get("version"),
                 "images": len(these),
-                "renderer": (info.get("renderer") or {}).get("engine"),  # absent before schema 2.1
+                "renderer": renderer_engine(info),
             }
         )
     return images, meta
@@ -299,7 +306,7 @@ def _run(
         "path": str(root),
         "name": info.get("name"),
         "version": info.get("version"),
-        "renderer": (info.get("renderer") or {}).get("engine"),
+        "renderer": renderer_engine(info),
         "supplements": supplements,
         "refine_supplements": refine_supplements,
     }
