@@ -86,7 +86,9 @@ def adapt_first_stage(
             f"adapt epochs: {a.epochs} from the first stage's epoch {base_epoch}, {len(samples)} images and "
             f"{len(extra)} x {a.supplement_repeats} of {', '.join(data)}"
         )
-    batches = batch_stream(mix, run, first=state["epoch"] + 1, last=a.epochs, steps=steps)
+    batches = batch_stream(
+        mix, run, first=state["epoch"] + 1, last=a.epochs, steps=steps, lower_mat_weight=a.lower_mat_weight
+    )
     for epoch in range(state["epoch"] + 1, a.epochs + 1):
         row = train_epoch(
             net, avg, opt, batches, run, state, epoch=epoch, steps=steps, progress=progress, frozen_norm=True

@@ -10,7 +10,7 @@ changes (brightness, contrast, saturation, hue, white balance, gamma, blur, nois
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
@@ -31,22 +31,26 @@ class Crop:
         ignore: (M, 2) points to leave out of the loss (occluded crossings, crossings cut by a seam).
         rays: (2, S / 4, S / 4) viewing ray ((u - cx) / fx, (v - cy) / fy) of each output cell's centre
             in the virtual camera that films the crop (see :func:`crop_rays`).
+        hard: (K, 2) places that look like crossings and are none (the lower mat's), in crop pixels.
     """
 
     image: np.ndarray
     positives: np.ndarray
     ignore: np.ndarray
     rays: np.ndarray
+    hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 @dataclass
 class Source:
-    """One image to crop from: pixels, crossings to learn, points to ignore, intrinsics (fx, fy, cx, cy)."""
+    """One image to crop from: pixels, crossings to learn, points to ignore, intrinsics (fx, fy, cx, cy) and
+    places that look like crossings and are none."""
 
     image: np.ndarray
     positives: np.ndarray
     ignore: np.ndarray
     camera: tuple[float, float, float, float]
+    hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
 
 
 def index_matrix(crop_from_image: np.ndarray) -> np.ndarray:
@@ -137,7 +141,14 @@ def single_crop(src: Source, rng: np.random.Generator, *, size: int, cfg: Augmen
     ign = apply_affine(src.ignore, crop_from_image)
     keep = _inside(pos, 0, 0, size, size)
     rays = crop_rays(crop_from_image, size, src.camera)
-    return Crop(out, pos[keep], ign[_inside(ign, -8, -8, size + 8, size + 8)], rays)
+    hard = apply_affine(src.hard, crop_from_image)
+    return Crop(
+        out,
+        pos[keep],
+        ign[_inside(ign, -8, -8, size + 8, size + 8)],
+        rays,
+        hard[_inside(hard, 0, 0, size, size)],
+    )
 
 
 def mosaic_crop(
@@ -155,7 +166,7 @@ def mosaic_crop(
     canvas = np.empty((size, size, 3), np.uint8)
     rays = np.empty((2, size // STRIDE, size // STRIDE), np.float32)
     cell = STRIDE * (np.arange(size // STRIDE) + 0.5)
-    pos_all, ign_all = [], []
+    pos_all, ign_all, hard_all = [], [], []
     fill = float(rng.uniform(0, 255))
     for x0, y0, x1, y1 in ((0, 0, xc, yc), (xc, 0, size, yc), (0, yc, xc, size), (xc, yc, size, size)):
         src = pick()
@@ -180,7 +191,15 @@ def mosaic_crop(
         ign_all.append(pos[inside & ~clear])
         ign = apply_affine(src.ignore, crop_from_image)
         ign_all.append(ign[_inside(ign, x0 - 8, y0 - 8, x1 + 8, y1 + 8)])
-    return Crop(canvas, np.concatenate(pos_all).reshape(-1, 2), np.concatenate(ign_all).reshape(-1, 2), rays)
+        hard = apply_affine(src.hard, crop_from_image)
+        hard_all.append(hard[_inside(hard, x0, y0, x1, y1)])
+    return Crop(
+        canvas,
+        np.concatenate(pos_all).reshape(-1, 2),
+        np.concatenate(ign_all).reshape(-1, 2),
+        rays,
+        np.concatenate(hard_all).reshape(-1, 2),
+    )
 
 
 def photometric(image: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:

@@ -298,6 +298,7 @@ class RefineConfig(Strict):
     verify: bool = True
     negative_score: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.1
     negative_gate_px: Positive = 6.0
+    lower_mat_negatives: NonNegativeInt = 16
     verify_weight: Positive = 1.0
     verify_power: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
     verify_power_with_depth: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
@@ -475,6 +476,7 @@ class AdaptConfig(Strict):
     lr: Positive = 1e-3
     warmup_epochs: NonNegative = 0.05
     supplement_repeats: PositiveInt = 10
+    lower_mat_weight: Positive = 3.0
 
 
 class TrainConfig(Strict):

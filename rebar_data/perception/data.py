@@ -49,6 +49,7 @@ class Sample:
         crossings: (N, 2) projected 3D crossing point of each visible crossing (the centerlines'
             midpoint, row for row with ``visible``; NaN where the dataset does not record it), None
             when the dataset's tables lack the 3D points.
+        dataset: The dataset folder the image belongs to.
     """
 
     image_id: str
@@ -62,6 +63,7 @@ class Sample:
     camera: tuple[float, float, float, float] | None = None
     depth_path: Path | None = None
     crossings: np.ndarray | None = None
+    dataset: Path | None = None
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -159,6 +161,7 @@ def load_split(root: str | Path, split: str, *, truth: str = "sight") -> list[Sa
                 camera=tuple(float(samples[k][i]) for k in ("fx", "fy", "cx", "cy")),
                 depth_path=depth if depth.exists() else None,
                 crossings=points[rows][v == 2] if points is not None else None,
+                dataset=root,
             )
         )
     return out

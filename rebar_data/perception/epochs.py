@@ -21,6 +21,7 @@ from rebar_data.perception.augment import Source, mosaic_crop, photometric, sing
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.data import Sample, read_image
 from rebar_data.perception.loss import detection_loss
+from rebar_data.perception.lower_mat import lower_mat_of
 from rebar_data.perception.model import STRIDE, KeypointNet
 from rebar_data.perception.schedule import warmup_cosine
 from rebar_data.perception.targets import encode
@@ -50,9 +51,13 @@ class WeightAverage:
 class TrainingImages:
     """The training split's images (decoded once when caching) and their crossings."""
 
-    def __init__(self, samples: list[Sample], *, cache: bool, occluded: str, progress: bool):
+    def __init__(
+        self, samples: list[Sample], *, cache: bool, occluded: str, progress: bool, lower_mat: bool = False
+    ):
         self.samples = samples
         self.ignore_occluded = occluded == "ignore"
+        # with ``lower_mat``, the crossings each image's lower mat shows (hard negatives), placed once
+        self.hard = lower_mat_of(samples) if lower_mat else None
         self.images = (
             [
                 read_image(s.path)
@@ -66,14 +71,23 @@ class TrainingImages:
         k = int(rng.integers(len(self.samples)))
         s = self.samples[k]
         image = self.images[k] if self.images is not None else read_image(s.path)
-        return Source(image, s.visible, s.occluded if self.ignore_occluded else np.zeros((0, 2)), s.camera)
+        hard = self.hard[k] if self.hard is not None else np.zeros((0, 2))
+        return Source(
+            image, s.visible, s.occluded if self.ignore_occluded else np.zeros((0, 2)), s.camera, hard
+        )
 
 
 def make_batch(
-    data: TrainingImages, rng: np.random.Generator, cfg: TrainConfig, *, mosaic: bool
+    data: TrainingImages,
+    rng: np.random.Generator,
+    cfg: TrainConfig,
+    *,
+    mosaic: bool,
+    lower_mat_weight: float = 1.0,
 ) -> tuple[torch.Tensor, ...]:
     """One augmented batch: images (B, 3, S, S), rays (B, 2, S, S) and the targets heat, heat weight,
-    offset, offset weight."""
+    offset, offset weight; the cells at the lower mat's crossings (``data``'s hard negatives) weigh
+    ``lower_mat_weight`` in the heatmap loss."""
     size, aug = cfg.crop_px, cfg.augment
     cells = size // STRIDE
     imgs, rays, heats, hws, offs, ows = [], [], [], [], [], []
@@ -83,7 +97,13 @@ def make_batch(
         else:
             crop = single_crop(data.pick(rng), rng, size=size, cfg=aug)
         heat, hw, off, ow = encode(
-            crop.positives, crop.ignore, cells, cells, sigma_cells=cfg.heatmap_sigma_cells
+            crop.positives,
+            crop.ignore,
+            cells,
+            cells,
+            sigma_cells=cfg.heatmap_sigma_cells,
+            hard=crop.hard,
+            hard_weight=lower_mat_weight,
         )
         imgs.append(photometric(crop.image, rng, aug))
         rays.append(crop.rays)
@@ -103,19 +123,33 @@ class BatchStream(torch.utils.data.IterableDataset):
     loader process keeps the one copy.
     """
 
-    def __init__(self, samples: list[Sample], cfg: TrainConfig, *, first: int, last: int, steps: int):
+    def __init__(
+        self,
+        samples: list[Sample],
+        cfg: TrainConfig,
+        *,
+        first: int,
+        last: int,
+        steps: int,
+        lower_mat_weight: float = 1.0,
+    ):
         super().__init__()
         self.samples, self.cfg, self.first, self.last, self.steps = samples, cfg, first, last, steps
+        self.lower_mat_weight = lower_mat_weight
 
     def __iter__(self):
         data = TrainingImages(
-            self.samples, cache=self.cfg.cache_images, occluded=self.cfg.occluded, progress=False
+            self.samples,
+            cache=self.cfg.cache_images,
+            occluded=self.cfg.occluded,
+            progress=False,
+            lower_mat=self.lower_mat_weight != 1.0,
         )
         for epoch in range(self.first, self.last + 1):
             rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, epoch]))
             mosaic = epoch <= self.cfg.augment.mosaic_epochs
             for _ in range(self.steps):
-                yield make_batch(data, rng, self.cfg, mosaic=mosaic)
+                yield make_batch(data, rng, self.cfg, mosaic=mosaic, lower_mat_weight=self.lower_mat_weight)
 
 
 def _loader_worker_init(_: int) -> None:
@@ -125,11 +159,20 @@ def _loader_worker_init(_: int) -> None:
     cv2.setNumThreads(1)
 
 
-def batch_stream(samples: list[Sample], cfg: TrainConfig, *, first: int, last: int, steps: int):
-    """An iterator over the batches of epochs ``first`` to ``last``. With ``loader_workers`` = 1 they are made
-    in a second process (started fresh, not forked: OpenCV's and OpenMP's thread pools do not survive a
-    fork) while the network trains on the previous ones."""
-    stream = BatchStream(samples, cfg, first=first, last=last, steps=steps)
+def batch_stream(
+    samples: list[Sample],
+    cfg: TrainConfig,
+    *,
+    first: int,
+    last: int,
+    steps: int,
+    lower_mat_weight: float = 1.0,
+):
+    """An iterator over the batches of epochs ``first`` to ``last`` (the lower mat's crossings weighing
+    ``lower_mat_weight``: :func:`make_batch`). With ``loader_workers`` = 1 they are made in a second
+    process (started fresh, not forked: OpenCV's and OpenMP's thread pools do not survive a fork) while
+    the network trains on the previous ones."""
+    stream = BatchStream(samples, cfg, first=first, last=last, steps=steps, lower_mat_weight=lower_mat_weight)
     if cfg.loader_workers == 0:
         return iter(stream)
     return iter(

@@ -269,6 +269,28 @@ def mine_negatives(
     return out
 
 
+def with_lower_mat(
+    samples: list[Sample], mined: list[np.ndarray], cfg: RefineConfig, *, seed: int
+) -> list[np.ndarray]:
+    """Each sample's mined negatives and up to ``cfg.lower_mat_negatives`` of the crossings its lower mat
+    shows (:mod:`~rebar_data.perception.lower_mat`), drawn at random for each listing of an image, those
+    within ``cfg.negative_gate_px`` of a visible crossing left out."""
+    if not cfg.lower_mat_negatives:
+        return mined
+    from rebar_data.perception.lower_mat import lower_mat_of
+
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 4111]))
+    out = []
+    for s, m, uv in zip(samples, mined, lower_mat_of(samples), strict=True):
+        if len(s.visible) and len(uv):
+            gap = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2).min(axis=1)
+            uv = uv[gap > cfg.negative_gate_px]
+        if len(uv) > cfg.lower_mat_negatives:
+            uv = uv[rng.choice(len(uv), cfg.lower_mat_negatives, replace=False)]
+        out.append(np.ascontiguousarray(np.concatenate([np.reshape(m, (-1, 2)), uv]), np.float64))
+    return out
+
+
 def train_refiner(
     samples: list[Sample],
     out: Path,

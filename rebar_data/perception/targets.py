@@ -25,6 +25,8 @@ def encode(
     out_w: int,
     *,
     sigma_cells: float,
+    hard: np.ndarray | None = None,
+    hard_weight: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Targets for one crop.
 
@@ -34,6 +36,10 @@ def encode(
         out_h: Output height in cells.
         out_w: Output width in cells.
         sigma_cells: Gaussian sigma of the heatmap target, in cells.
+        hard: (K, 2) places that look like crossings and are none, in input pixels: the 3x3 cells around
+            each weigh ``hard_weight`` in the heatmap loss (where no crossing's target reaches them and
+            they are not ignored).
+        hard_weight: Their cells' weight.
 
     Returns:
         heat (H, W) target in [0, 1] with exactly 1 at each crossing's cell; heat_weight (H, W), 0 where
@@ -72,6 +78,13 @@ def encode(
                     offset[0, ci, cj] = dx
                     offset[1, ci, cj] = dy
                     offset_weight[ci, cj] = 1.0
+    if hard is not None and hard_weight != 1.0:
+        for u, v in np.asarray(hard, float).reshape(-1, 2):
+            j, i = int(np.floor(u / STRIDE)), int(np.floor(v / STRIDE))
+            i0, i1, j0, j1 = max(i - 1, 0), min(i + 2, out_h), max(j - 1, 0), min(j + 2, out_w)
+            cells = heat_weight[i0:i1, j0:j1]
+            clear = (heat[i0:i1, j0:j1] < 0.01) & (cells > 0)
+            cells[clear] = hard_weight
     heat_weight[heat >= 1.0] = 1.0  # a crossing next to an ignored one is still a positive
     return heat, heat_weight, offset, offset_weight
 

@@ -76,7 +76,13 @@ from rebar_data.perception.metrics import (
     pixel_metrics,
 )
 from rebar_data.perception.model import KeypointNet, count_parameters
-from rebar_data.perception.refine_train import PatchNet, calibration_patches, mine_negatives, train_refiner
+from rebar_data.perception.refine_train import (
+    PatchNet,
+    calibration_patches,
+    mine_negatives,
+    train_refiner,
+    with_lower_mat,
+)
 from rebar_data.perception.refine_train import export_onnx as export_refiner
 from rebar_data.perception.refine_train import load as load_refiner
 from rebar_data.perception.refine_train import quantize_onnx as quantize_int8
@@ -393,17 +399,21 @@ def _run(
         progress=progress,
     )
     # what the later stages' negatives come from: a changed first stage trains them again
-    first_stage = [f"first stage: epoch {state['best_epoch']}"] + (
+    negatives_from = [f"first stage: epoch {state['best_epoch']}"] + (
         [f"adapted: {json.dumps(cfg.adapt.model_dump(mode='json'), sort_keys=True)}"]
         if first_path.name == ADAPTED
         else []
     )
+    # the lower mat's crossings join the mined negatives (a checkpoint from before they did trains again)
+    if cfg.refine.lower_mat_negatives:
+        negatives_from.append(f"lower-mat negatives: {cfg.refine.lower_mat_negatives}")
 
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
         first, _, _ = load_checkpoint(first_path)  # the trained first stage's misses
-        return mine_negatives(
+        mined = mine_negatives(
             Detector.from_network(first), samples, cfg.refine, images=images, progress=progress
         )
+        return with_lower_mat(samples, mined, cfg.refine, seed=cfg.seed)  # and the lower mat's crossings
 
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = train_samples + refine_extra * cfg.refine.supplement_repeats
@@ -416,7 +426,7 @@ def _run(
             cfg.augment,
             seed=cfg.seed,
             negatives_of=negatives_of,
-            data=_names(refine_supplements) + first_stage,
+            data=_names(refine_supplements) + negatives_from,
             progress=progress,
         )
     depth_net, depth_history = None, []
@@ -427,7 +437,7 @@ def _run(
             out,
             cfg.depth_check,
             seed=cfg.seed,
-            data=first_stage,
+            data=negatives_from,
             progress=progress,
         )
     crossing_net, crossing_history = None, []

@@ -8,11 +8,12 @@ stand-off. Heights are measured along the outward normal, positive outside.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.geometry.specs import MeshLayout
 
 
 @dataclass(frozen=True)
@@ -29,21 +30,27 @@ class MatSurface:
     @staticmethod
     def of(rm: RebarMesh) -> MatSurface:
         """The surface through ``rm``'s crossings (or its bars' points when it has none)."""
-        T = rm.layout.world_from_mesh
-        pts = rm.crossings.point if len(rm.crossings) else np.asarray(rm.mesh.vertices)
-        local = (pts - T[:3, 3]) @ T[:3, :3]
-        if rm.layout.kind == "tunnel_segment":
-            axis_point = np.asarray(rm.layout.axis_point, float)
+        vertices = np.asarray(rm.mesh.vertices)
+        surf = MatSurface.through(rm.layout, rm.crossings.point if len(rm.crossings) else vertices)
+        h = surf.height(vertices)
+        return replace(surf, height_range_m=(float(h.min()), float(h.max())))
+
+    @staticmethod
+    def through(layout: MeshLayout, points: np.ndarray) -> MatSurface:
+        """The surface of ``layout``'s kind and pose through ``points`` (world; the crossings), without the
+        solid mesh: its height range is left at zero."""
+        T = layout.world_from_mesh
+        local = (points - T[:3, 3]) @ T[:3, :3]
+        if layout.kind == "tunnel_segment":
+            axis_point = np.asarray(layout.axis_point, float)
             radial = local[:, 1:] - axis_point[1:]
             radius = float(np.mean(np.linalg.norm(radial, axis=1)))
             origin = axis_point
         else:
             origin = np.array([0.0, 0.0, float(np.mean(local[:, 2]))])
             radius = 0.0
-        surf = MatSurface(rm.layout.kind, T, origin, radius, np.zeros((0, 2)), (0.0, 0.0))
-        h = surf.height(np.asarray(rm.mesh.vertices))
-        ab = surf.to_ab(rm.crossings.point) if len(rm.crossings) else surf.to_ab(pts)
-        return MatSurface(rm.layout.kind, T, origin, radius, ab, (float(h.min()), float(h.max())))
+        surf = MatSurface(layout.kind, T, origin, radius, np.zeros((0, 2)), (0.0, 0.0))
+        return replace(surf, crossing_ab=surf.to_ab(points))
 
     @property
     def is_tunnel(self) -> bool:

@@ -1,0 +1,120 @@
+"""The lower mat's crossings, placed from a dataset's tables, where the renderer drew the lower mat."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from rebar_data.config import MeshConfig
+from rebar_data.dataset.worker import INSTANCE_OFFSET
+from rebar_data.geometry.build import build_rebar_mesh
+from rebar_data.perception.config import RefineConfig, TrainConfig
+from rebar_data.perception.data import load_split
+from rebar_data.perception.epochs import TrainingImages, make_batch
+from rebar_data.perception.lower_mat import lower_mat_crossings, lower_mat_of
+from rebar_data.perception.refine_train import with_lower_mat
+from rebar_data.scene.mat_surface import MatSurface
+from rebar_data.scene.surroundings import DISTRACTOR_ID
+from tests.dataset.conftest import TINY, write_config
+
+# a planar mat with its lower mat in every scene, seen steeply from close by, as the Cycles sets see it
+LOWER = {
+    **TINY,
+    "name": "lower",
+    "mesh": {"kind": "planar", "width_m": 0.8, "height_m": 0.6, "spacing_x_m": 0.12, "spacing_y_m": 0.12},
+    "camera": {
+        "intrinsics": {"width": 320, "height": 240, "fx": 262.5, "fy": 262.5, "cx": 160.0, "cy": 120.0},
+        "trajectories": [
+            {
+                "kind": "random_look_at",
+                "count": 3,
+                "frames": 1,
+                "standoff_m": [0.45, 0.6],
+                "tilt_deg": [20, 35],
+            }
+        ],
+    },
+    "scene": {
+        "surroundings": {"distractors": {"lower_layer_probability": 1.0, "lower_layer_depth_m": [0.1, 0.12]}}
+    },
+    "dataset": {"split": {"rule": "scene", "train": 1.0, "val": 0.0, "test": 0.0}},
+}
+
+
+@pytest.fixture(scope="module")
+def lower_dataset(tmp_path_factory):
+    from rebar_data.dataset.build import build_dataset
+
+    cfg = write_config(tmp_path_factory.mktemp("cfg"), LOWER, "lower.yaml")
+    return build_dataset(cfg, tmp_path_factory.mktemp("ds"), workers=1)
+
+
+def test_the_surface_through_the_crossings_is_the_one_the_scene_drew_on():
+    rm = build_rebar_mesh(
+        MeshConfig(
+            mesh={"kind": "tunnel_segment", "width_m": 0.6, "intrados_arc_m": 0.78, "extrados_arc_m": 0.86},
+            seed=3,
+        )
+    )
+    whole, bare = MatSurface.of(rm), MatSurface.through(rm.layout, rm.crossings.point)
+    assert bare.kind == whole.kind and bare.radius_m == pytest.approx(whole.radius_m)
+    np.testing.assert_allclose(bare.origin_mesh, whole.origin_mesh)
+    np.testing.assert_allclose(bare.crossing_ab, whole.crossing_ab)
+    assert whole.height_range_m[0] < 0 < whole.height_range_m[1]
+
+
+def test_each_lower_mat_crossing_lies_on_the_drawn_lower_mat(lower_dataset):
+    samples = load_split(lower_dataset, "train")
+    found = lower_mat_crossings(lower_dataset, samples)
+    assert all(len(f) >= 3 for f in found), [len(f) for f in found]
+    on = near = total = 0
+    for s, uv in zip(samples, found, strict=True):
+        instance = cv2.imread(str(lower_dataset / f"instances/train/{s.image_id}.png"), cv2.IMREAD_UNCHANGED)
+        lower = (instance.astype(np.int32) - INSTANCE_OFFSET) == DISTRACTOR_ID
+        for u, v in uv:
+            i, j = int(v), int(u)
+            on += bool(lower[i, j])  # the lower mat's own crossing, seen between the top bars
+            near += bool(lower[max(i - 8, 0) : i + 9, max(j - 8, 0) : j + 9].any())  # or behind a top bar
+            total += 1
+        if len(uv) and len(s.visible):  # none of them is a labelled crossing
+            assert np.linalg.norm(uv[:, None] - s.visible[None], axis=2).min() > 1.0
+    assert near == total
+    assert on >= 0.2 * total, (on, total)
+
+
+def test_the_lower_mat_joins_the_mined_negatives_sampled_and_gated(lower_dataset):
+    samples = load_split(lower_dataset, "train")
+    twice = samples + samples[:1]
+    cfg = RefineConfig(lower_mat_negatives=2, negative_gate_px=6.0)
+    mined = [np.array([[1.0, 2.0]]) for _ in twice]
+    out = with_lower_mat(twice, mined, cfg, seed=0)
+    placed = lower_mat_of(twice)
+    np.testing.assert_array_equal(placed[0], placed[-1])  # one image listed twice is placed once
+    for s, m, o, p in zip(twice, mined, out, placed, strict=True):
+        np.testing.assert_array_equal(o[:1], m)
+        extra = o[1:]
+        assert len(extra) == min(2, len(p))
+        assert all(np.isclose(p, e).all(axis=1).any() for e in extra)
+        if len(extra) and len(s.visible):
+            assert np.linalg.norm(extra[:, None] - s.visible[None], axis=2).min() > 6.0
+    assert with_lower_mat(twice, mined, RefineConfig(lower_mat_negatives=0), seed=0) is mined
+
+
+def test_a_dataset_without_a_lower_mat_has_no_lower_mat_crossings(drawn_dataset):
+    samples = load_split(drawn_dataset, "train")
+    assert [len(f) for f in lower_mat_of(samples)] == [0] * len(samples)
+
+
+def test_training_batches_weigh_the_lower_mat_crossings_only_when_asked(lower_dataset):
+    samples = load_split(lower_dataset, "train")
+    cfg = TrainConfig(batch_size=6, crop_px=128, augment={"mosaic_epochs": 0})
+    plain = TrainingImages(samples, cache=True, occluded="ignore", progress=False)
+    hard = TrainingImages(samples, cache=True, occluded="ignore", progress=False, lower_mat=True)
+    assert plain.hard is None and sum(len(h) for h in hard.hard) > 0
+    weighed = make_batch(hard, np.random.default_rng(1), cfg, mosaic=False, lower_mat_weight=3.0)
+    same = make_batch(plain, np.random.default_rng(1), cfg, mosaic=False)
+    assert (weighed[3] == 3.0).any() and not (same[3] == 3.0).any()
+    np.testing.assert_array_equal(weighed[0].numpy(), same[0].numpy())  # the same crops and targets
+    np.testing.assert_array_equal(weighed[2].numpy(), same[2].numpy())
+    assert ((weighed[3] == same[3]) | (weighed[3] == 3.0)).all()
