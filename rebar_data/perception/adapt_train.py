@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from rebar_data.perception.config import TrainConfig
+from rebar_data.perception.config import AdaptConfig, TrainConfig
 from rebar_data.perception.data import Sample
 from rebar_data.perception.epochs import WeightAverage, batch_stream, train_epoch
 from rebar_data.perception.export import load_checkpoint, save_checkpoint
@@ -50,7 +50,7 @@ def adapt_first_stage(
         for stale in (out / ADAPT_LAST, out / ADAPTED):
             stale.unlink(missing_ok=True)
         return out / "best.pt", []
-    want = {"adapt": a.model_dump(mode="json"), "base_epoch": base_epoch, "data": list(data)}
+    want = {"adapt": adapt_settings(a), "base_epoch": base_epoch, "data": list(data)}
     net, meta, _ = load_checkpoint(out / "best.pt")
     net = net.to(memory_format=torch.channels_last)
     avg = WeightAverage(net)
@@ -111,6 +111,12 @@ def adapt_first_stage(
     batches = None  # stops the loader process
     save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
     return out / ADAPTED, state["history"]
+
+
+def adapt_settings(a: AdaptConfig) -> dict[str, Any]:
+    """What the adapt epochs train by: their settings, without a lower-mat weight of 1 (they train as they did
+    before it existed, so a checkpoint from then still counts)."""
+    return a.model_dump(mode="json", exclude={"lower_mat_weight"} if a.lower_mat_weight == 1.0 else set())
 
 
 def _read(path: Path) -> dict[str, Any] | None:

@@ -90,6 +90,14 @@ def _adapt_lines(res: dict, tc: dict, ds: dict) -> list[str]:
         f"  every image of {_named(ds.get('refine_supplements') or [])}, each listed {a['supplement_repeats']} times;",
         f"  AdamW from lr {a['lr']:g} down a cosine, the batch norms' statistics frozen, no mosaic. The first stage",
         "  shipped is the adapted one.",
+        *(
+            [
+                f"  The cells at the crossings a lower mat shows (its own, and top bars in front of its bars; placed "
+                f"from the tables) weigh {a['lower_mat_weight']:g} in the heatmap loss."
+            ]
+            if a.get("lower_mat_weight", 1.0) != 1.0
+            else []
+        ),
     ]
 
 
@@ -327,6 +335,14 @@ def write_card(
                         f"{refine['negative_score']:g})",
                         f"  on the training images farther than {refine['negative_gate_px']:g} px from every "
                         "visible crossing; cross-entropy beside the offset loss.",
+                        *(
+                            [
+                                f"  With them, up to {refine['lower_mat_negatives']} of the crossings each image's lower "
+                                "mat shows (its own, and top bars in front of its bars; placed from the tables)."
+                            ]
+                            if refine.get("lower_mat_negatives")
+                            else []
+                        ),
                     ]
                     if verifies
                     else []

@@ -476,7 +476,7 @@ class AdaptConfig(Strict):
     lr: Positive = 1e-3
     warmup_epochs: NonNegative = 0.05
     supplement_repeats: PositiveInt = 10
-    lower_mat_weight: Positive = 3.0
+    lower_mat_weight: Positive = 1.0
 
 
 class TrainConfig(Strict):

@@ -35,7 +35,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError, format_validation_error
 from rebar_data.dataset.writers.manifest import sha256_file
-from rebar_data.perception.adapt_train import ADAPTED, adapt_first_stage
+from rebar_data.perception.adapt_train import ADAPTED, adapt_first_stage, adapt_settings
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.crossing_point_train import CrossingNet, train_crossing_point
 from rebar_data.perception.crossing_point_train import export_onnx as export_crossing_point
@@ -400,7 +400,7 @@ def _run(
     )
     # what the later stages' negatives come from: a changed first stage trains them again
     negatives_from = [f"first stage: epoch {state['best_epoch']}"] + (
-        [f"adapted: {json.dumps(cfg.adapt.model_dump(mode='json'), sort_keys=True)}"]
+        [f"adapted: {json.dumps(adapt_settings(cfg.adapt), sort_keys=True)}"]
         if first_path.name == ADAPTED
         else []
     )

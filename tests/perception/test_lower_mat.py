@@ -9,7 +9,8 @@ import pytest
 from rebar_data.config import MeshConfig
 from rebar_data.dataset.worker import INSTANCE_OFFSET
 from rebar_data.geometry.build import build_rebar_mesh
-from rebar_data.perception.config import RefineConfig, TrainConfig
+from rebar_data.perception.adapt_train import adapt_settings
+from rebar_data.perception.config import AdaptConfig, RefineConfig, TrainConfig
 from rebar_data.perception.data import load_split
 from rebar_data.perception.epochs import TrainingImages, make_batch
 from rebar_data.perception.lower_mat import lower_mat_crossings, lower_mat_of
@@ -118,3 +119,8 @@ def test_training_batches_weigh_the_lower_mat_crossings_only_when_asked(lower_da
     np.testing.assert_array_equal(weighed[0].numpy(), same[0].numpy())  # the same crops and targets
     np.testing.assert_array_equal(weighed[2].numpy(), same[2].numpy())
     assert ((weighed[3] == same[3]) | (weighed[3] == 3.0)).all()
+
+
+def test_a_lower_mat_weight_of_one_keeps_the_adapt_epochs_checkpoints_from_before_it():
+    assert "lower_mat_weight" not in adapt_settings(AdaptConfig())
+    assert adapt_settings(AdaptConfig(lower_mat_weight=3.0))["lower_mat_weight"] == 3.0
