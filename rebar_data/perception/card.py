@@ -360,6 +360,14 @@ def write_card(
                 f"  the second stage's negatives ({res.get('depth_check_seconds', 0.0) / 60:.1f} minutes, in the total above), "
                 f"centred with a Gaussian error of {dc['jitter_px']:g} px,",
                 f"  turned by quarter turns, flipped, the relative depth scaled by {dc['gain'][0]:g}-{dc['gain'][1]:g}; cross-entropy.",
+                *(
+                    [
+                        f"  Its negatives also hold up to {dc['lower_mat_negatives']} of the crossings each image's lower "
+                        "mat shows (its own, and top bars in front of its bars; placed from the tables)."
+                    ]
+                    if dc.get("lower_mat_negatives")
+                    else []
+                ),
             ]
             if dc
             else []

@@ -263,6 +263,26 @@ class RefineConfig(Strict):
     shows too little of the mats to tell which one a crossing is on; the first stage sees more, and has
     seen only Open3D's mats.
 
+    ``lower_mat_negatives``: up to this many of the crossings each training image's lower mat shows (its
+    own, and where top bars pass in front of its bars; :mod:`~rebar_data.perception.lower_mat` places
+    them from the dataset's tables, so they are there whether or not the first stage fires on them)
+    join its mined negatives, drawn anew for each listing of an image. At the score where recall
+    reaches 0.97 on the Cycles sets, 42 of the slab's 48 false detections and 92 of the curved set's 108
+    lie within 6 px of one; the mined negatives miss most of them on the Cycles training frames, where
+    the adapted first stage no longer fires on its own training images' lower mat. 16 of them (about 40 k
+    more negatives, 2 more minutes), the depth check trained again beside it, the first stage as
+    shipped (figures as above; RGB only on the Cycles sets, with depth on paper-tunnel's test split):
+    0.947, 0.928, 0.799; 0.944, 0.904, 0.727; 0.979, 0.931, 0.984; RGB only on paper-tunnel recall@P0.99
+    0.957 (0.963 without them). With depth on the Cycles sets recall@P0.99 0.975 and 0.971 (0.975 and
+    0.930 without them). An earlier placement, which also put some where the ground hides the lower mat:
+    0.948, 0.935, 0.799; 0.937, 0.919, 0.791; 0.979, 0.930, 0.986. The verification classed 64-66% of
+    its negatives rightly after 11 epochs (61% without them) and 89.7% of the crossings (94.6%): a 32
+    px patch tells the lower mat's crossings from the top mat's no better than it did, the false
+    detections above that score stayed as many (69 and 91; without them 48 and 108) and the placement
+    of crossings from RGB alone lost about 0.01 of PCK@2px on the Cycles sets in each of three
+    trainings. So the default is 0; the depth check, which sees the lower mat's depth, learns from them
+    instead (``DepthCheckConfig.lower_mat_negatives``).
+
     ``views`` (1, 2, 4 or 8; inference only, stored in the model file) reads each patch also turned and
     flipped in the same batch and averages the offsets, turned back
     (:class:`~rebar_data.perception.refine.Refiner`); the verification logit stays the plain view's.
@@ -298,7 +318,7 @@ class RefineConfig(Strict):
     verify: bool = True
     negative_score: Annotated[float, Field(gt=0.0, lt=1.0)] = 0.1
     negative_gate_px: Positive = 6.0
-    lower_mat_negatives: NonNegativeInt = 16
+    lower_mat_negatives: NonNegativeInt = 0
     verify_weight: Positive = 1.0
     verify_power: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
     verify_power_with_depth: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
@@ -362,6 +382,17 @@ class DepthCheckConfig(Strict):
     encoded patches around training crossings set the ranges). It scored as the float file did
     (recall@P0.99 0.983, PCK@2px 0.932) but ran slower: 3.2 ms against 2.4 for the 45 detections of a
     rendered frame (2 threads), so the float file ships.
+
+    ``lower_mat_negatives``: up to this many of the crossings each training image's lower mat shows (its
+    own, and where top bars pass in front of its bars; placed from the dataset's tables by
+    :mod:`~rebar_data.perception.lower_mat`) join the second stage's negatives it learns from, drawn
+    anew for each image. Most confident false detections on the Cycles sets lie on them (see
+    ``RefineConfig.lower_mat_negatives``), and depth tells them apart: the lower mat lies 80-250 mm
+    deeper. 16 (6.3 minutes of training against 1.9: 51 s an epoch against 19, and placing them), the
+    RGB stages as shipped before: with depth on the Cycles sets PCK@2px 0.940 and 0.915, recall@P0.99 0.975 and 0.956
+    (without them 0.939 and 0.916, 0.975 and 0.930); paper-tunnel's test split AP@0.5 0.979, PCK@2px
+    0.932, recall@P0.99 0.984 (the same); planar-slab, never trained on, PCK@2px 0.775 and recall@P0.99
+    0.847 (0.776 and 0.819). From RGB alone nothing changes.
     """
 
     enabled: bool = True
@@ -381,6 +412,7 @@ class DepthCheckConfig(Strict):
     power: Annotated[float, Field(gt=0.0, le=1.0)] = 1.0
     quantize: Literal["int8", "none"] = "none"
     calibration_patches: PositiveInt = 2048
+    lower_mat_negatives: NonNegativeInt = 16
 
 
 class CrossingPointConfig(Strict):
@@ -470,6 +502,19 @@ class AdaptConfig(Strict):
     three epochs); with the second stage trained again (``RefineConfig.supplement_repeats``, where the
     figures are) 0.949, 0.937, 0.823; 0.937, 0.912, 0.729; 0.979, 0.932, 0.984; the first stage alone
     recall@P0.99 0.937 and PCK@2px 0.805 on paper-tunnel (0.930 and 0.815 with 168 frames).
+
+    ``lower_mat_weight``: the heatmap loss's weight of the 3x3 cells at the crossings each training image's
+    lower mat shows (its own, and where top bars pass in front of its bars; placed from the dataset's
+    tables by :mod:`~rebar_data.perception.lower_mat`, none within three cells of a labelled crossing).
+    They are where the confident false detections on the Cycles sets lie: at the score where recall
+    reaches 0.97, 42 of the slab's 48 and 92 of the curved set's 108 lie within 6 px of one. At 3, with
+    the second stage and depth check trained again beside it (``RefineConfig.lower_mat_negatives`` 16;
+    figures as above): 0.946, 0.927, 0.805; 0.939, 0.908, 0.708; 0.979, 0.929, 0.984 (at 1, the same
+    second stage: 0.947, 0.928, 0.799; 0.944, 0.904, 0.727; 0.979, 0.931, 0.984); the first stage alone
+    recall@P0.99 0.548 and 0.646 on the Cycles sets (at 1: 0.501 and 0.616) and 0.931 on paper-tunnel
+    (0.937). It taught the first stage a little of the difference, and the whole detector nothing beyond
+    one training's spread, so the default stays 1 (no extra weight; the adapt epochs then train as
+    before it existed, and their checkpoints from then still count).
     """
 
     epochs: NonNegativeInt = 3

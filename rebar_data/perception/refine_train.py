@@ -270,12 +270,12 @@ def mine_negatives(
 
 
 def with_lower_mat(
-    samples: list[Sample], mined: list[np.ndarray], cfg: RefineConfig, *, seed: int
+    samples: list[Sample], mined: list[np.ndarray], count: int, *, gate_px: float, seed: int
 ) -> list[np.ndarray]:
-    """Each sample's mined negatives and up to ``cfg.lower_mat_negatives`` of the crossings its lower mat
-    shows (:mod:`~rebar_data.perception.lower_mat`), drawn at random for each listing of an image, those
-    within ``cfg.negative_gate_px`` of a visible crossing left out."""
-    if not cfg.lower_mat_negatives:
+    """Each sample's mined negatives and up to ``count`` of the crossings its lower mat shows
+    (:mod:`~rebar_data.perception.lower_mat`), drawn at random for each listing of an image, those within
+    ``gate_px`` of a visible crossing left out."""
+    if not count:
         return mined
     from rebar_data.perception.lower_mat import lower_mat_of
 
@@ -284,9 +284,9 @@ def with_lower_mat(
     for s, m, uv in zip(samples, mined, lower_mat_of(samples), strict=True):
         if len(s.visible) and len(uv):
             gap = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2).min(axis=1)
-            uv = uv[gap > cfg.negative_gate_px]
-        if len(uv) > cfg.lower_mat_negatives:
-            uv = uv[rng.choice(len(uv), cfg.lower_mat_negatives, replace=False)]
+            uv = uv[gap > gate_px]
+        if len(uv) > count:
+            uv = uv[rng.choice(len(uv), count, replace=False)]
         out.append(np.ascontiguousarray(np.concatenate([np.reshape(m, (-1, 2)), uv]), np.float64))
     return out
 

@@ -413,7 +413,10 @@ def _run(
         mined = mine_negatives(
             Detector.from_network(first), samples, cfg.refine, images=images, progress=progress
         )
-        return with_lower_mat(samples, mined, cfg.refine, seed=cfg.seed)  # and the lower mat's crossings
+        r = cfg.refine  # and the lower mat's crossings
+        return with_lower_mat(
+            samples, mined, r.lower_mat_negatives, gate_px=r.negative_gate_px, seed=cfg.seed
+        )
 
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = train_samples + refine_extra * cfg.refine.supplement_repeats
@@ -431,13 +434,20 @@ def _run(
         )
     depth_net, depth_history = None, []
     if cfg.depth_check.enabled:
+        n = cfg.depth_check.lower_mat_negatives  # the lower mat's crossings join its negatives
         depth_net, depth_history = train_depth_check(
             train_samples,
-            _negatives(out, train_samples, len(refine_samples), negatives_of),
+            with_lower_mat(
+                train_samples,
+                _negatives(out, train_samples, len(refine_samples), negatives_of),
+                n,
+                gate_px=cfg.refine.negative_gate_px,
+                seed=cfg.seed + 1,
+            ),
             out,
             cfg.depth_check,
             seed=cfg.seed,
-            data=negatives_from,
+            data=negatives_from + ([f"its own lower-mat negatives: {n}"] if n else []),
             progress=progress,
         )
     crossing_net, crossing_history = None, []

@@ -10,7 +10,7 @@ from rebar_data.config import MeshConfig
 from rebar_data.dataset.worker import INSTANCE_OFFSET
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.perception.adapt_train import adapt_settings
-from rebar_data.perception.config import AdaptConfig, RefineConfig, TrainConfig
+from rebar_data.perception.config import AdaptConfig, TrainConfig
 from rebar_data.perception.data import load_split
 from rebar_data.perception.epochs import TrainingImages, make_batch
 from rebar_data.perception.lower_mat import lower_mat_crossings, lower_mat_of
@@ -87,9 +87,8 @@ def test_each_lower_mat_crossing_lies_on_the_drawn_lower_mat(lower_dataset):
 def test_the_lower_mat_joins_the_mined_negatives_sampled_and_gated(lower_dataset):
     samples = load_split(lower_dataset, "train")
     twice = samples + samples[:1]
-    cfg = RefineConfig(lower_mat_negatives=2, negative_gate_px=6.0)
     mined = [np.array([[1.0, 2.0]]) for _ in twice]
-    out = with_lower_mat(twice, mined, cfg, seed=0)
+    out = with_lower_mat(twice, mined, 2, gate_px=6.0, seed=0)
     placed = lower_mat_of(twice)
     np.testing.assert_array_equal(placed[0], placed[-1])  # one image listed twice is placed once
     for s, m, o, p in zip(twice, mined, out, placed, strict=True):
@@ -99,7 +98,7 @@ def test_the_lower_mat_joins_the_mined_negatives_sampled_and_gated(lower_dataset
         assert all(np.isclose(p, e).all(axis=1).any() for e in extra)
         if len(extra) and len(s.visible):
             assert np.linalg.norm(extra[:, None] - s.visible[None], axis=2).min() > 6.0
-    assert with_lower_mat(twice, mined, RefineConfig(lower_mat_negatives=0), seed=0) is mined
+    assert with_lower_mat(twice, mined, 0, gate_px=6.0, seed=0) is mined
 
 
 def test_a_dataset_without_a_lower_mat_has_no_lower_mat_crossings(drawn_dataset):

@@ -180,9 +180,8 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     for k, v in first_before.state_dict().items():
         torch.testing.assert_close(first_after.state_dict()[k], v)
     _, _, refine_after = load_refiner(run / "refine_last.pt")
-    lower = "lower-mat negatives: 16"
-    assert refine_before["data"] == [f"first stage: epoch {trained_run.best_epoch}", lower]
-    assert refine_after["data"] == ["drawn-second v0.0.0", f"first stage: epoch {trained_run.best_epoch}", lower]
+    assert refine_before["data"] == [f"first stage: epoch {trained_run.best_epoch}"]
+    assert refine_after["data"] == ["drawn-second v0.0.0", f"first stage: epoch {trained_run.best_epoch}"]
     assert not (run / "adapted.pt").exists()
     n_train = len(load_split(drawn_dataset, "train"))
     assert len(refine_after["negatives"]) == n_train + 3 * 6  # its own images, then the 6 extra three times
@@ -245,12 +244,15 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     np.testing.assert_allclose(shipped, Detector.from_network(adapted).raw(image), atol=1e-3)
     assert not np.allclose(shipped, Detector.from_network(best_after).raw(image), atol=1e-3)
     refine = load_refiner(run / "refine_last.pt")[2]
-    assert refine["data"][0] == "drawn-other v0.0.0" and refine["data"][-2].startswith("adapted:")
-    assert refine["data"][-1] == "lower-mat negatives: 16"  # the default; a drawn dataset has no lower mat
+    assert refine["data"][0] == "drawn-other v0.0.0" and refine["data"][-1].startswith("adapted:")
+    from rebar_data.perception.depth_check_train import load as load_depth_check
+
+    depth_data = load_depth_check(run / "depth_last.pt")[2]["data"]
+    assert depth_data[-2].startswith("adapted:") and depth_data[-1] == "its own lower-mat negatives: 16"
     ship(run, models_dir=tmp_path / "models")
     card = (tmp_path / "models" / CARD_NAME).read_text()
     assert "- Adapt epochs: 2 more after the best epoch" in card and "only in its adapt epochs" in card
-    assert "up to 16 of the crossings each image's lower mat shows" in card
+    assert "hold up to 16 of the crossings each image's lower mat shows" in card  # the depth check's
     stamp = (run / ADAPT_LAST).stat().st_mtime_ns
     train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
     assert (run / ADAPT_LAST).stat().st_mtime_ns == stamp  # finished on the same data: kept
@@ -262,7 +264,7 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     np.testing.assert_allclose(
         Detector.load(run / "best.onnx").raw(image), Detector.from_network(best_after).raw(image), atol=1e-3
     )
-    assert load_refiner(run / "refine_last.pt")[2]["data"][-2].startswith("first stage: epoch")
+    assert load_refiner(run / "refine_last.pt")[2]["data"][-1].startswith("first stage: epoch")
 
 
 def test_interrupted_adapt_epochs_resume_after_their_last_epoch(
