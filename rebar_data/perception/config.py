@@ -512,8 +512,12 @@ class AdaptConfig(Strict):
     figures as above): 0.946, 0.927, 0.805; 0.939, 0.908, 0.708; 0.979, 0.929, 0.984 (at 1, the same
     second stage: 0.947, 0.928, 0.799; 0.944, 0.904, 0.727; 0.979, 0.931, 0.984); the first stage alone
     recall@P0.99 0.548 and 0.646 on the Cycles sets (at 1: 0.501 and 0.616) and 0.931 on paper-tunnel
-    (0.937). It taught the first stage a little of the difference, and the whole detector nothing beyond
-    one training's spread, so the default stays 1 (no extra weight; the adapt epochs then train as
+    (0.937). At 10, the second stage (without lower-mat negatives) and depth check trained again beside
+    it: 0.947, 0.938, 0.787; 0.936, 0.910, 0.751; 0.979, 0.928, 0.982; with depth on the Cycles sets
+    recall@P0.99 0.960 and 0.880 (at 1: 0.975 and 0.956); the first stage alone 0.605 and 0.635, and
+    0.926 on paper-tunnel, whose crossings it placed less well (PCK@2px 0.790 against 0.804). It taught
+    the first stage a little of the difference, and the whole detector nothing beyond one training's
+    spread, so the default stays 1 (no extra weight; the adapt epochs then train as
     before it existed, and their checkpoints from then still count).
     """
 
