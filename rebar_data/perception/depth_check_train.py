@@ -10,7 +10,7 @@ from __future__ import annotations
 import copy
 import sys
 import time
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from pathlib import Path
 from typing import Any
 
@@ -192,7 +192,7 @@ def patch_batches(
 
 def train_depth_check(
     samples: list[Sample],
-    negatives: list[np.ndarray],
+    negatives: list[np.ndarray] | Callable[[], list[np.ndarray]],
     out: Path,
     cfg: DepthCheckConfig,
     *,
@@ -204,7 +204,8 @@ def train_depth_check(
 
     ``out/depth_last.pt`` holds the weights, optimiser and the epochs done after every epoch; a finished
     one with the same settings and ``data`` (what its negatives came from, as the caller names it) is
-    returned as it is.
+    returned as it is. ``negatives`` (each sample's (M, 2) points) may be a function that gives them, called
+    only when there is training to do.
 
     Returns:
         The trained network (eval mode) and one row per epoch (loss, the share of patches classed
@@ -222,6 +223,8 @@ def train_depth_check(
     threads_before = torch.get_num_threads()
     torch.set_num_threads(cfg.threads)
     try:
+        if callable(negatives):
+            negatives = negatives()
         depths = [
             PaddedDepth(read_depth(s.depth_path), cfg.patch_px)
             for s in tqdm(samples, desc="depth images", disable=not progress, leave=False, file=sys.stderr)

@@ -29,7 +29,7 @@ from rebar_data.dataset.worker import INSTANCE_OFFSET
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.specs import build_layout
-from rebar_data.labels.projection import camera_from_world
+from rebar_data.labels.projection import Projection, project
 from rebar_data.perception.data import Sample, read_info
 from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.scene.surroundings import DISTRACTOR_ID
@@ -125,28 +125,23 @@ class _Camera:
     """One image's pinhole camera, to find chords in view and where two sets of chords cross in it."""
 
     def __init__(self, world_from_camera: np.ndarray, s: Sample) -> None:
+        self.world_from_camera = world_from_camera
         self.centre = world_from_camera[:3, 3]
-        self.camera_from_world = camera_from_world(world_from_camera)
-        self.fx, self.fy, self.cx, self.cy = s.camera
-        self.width, self.height = s.width, s.height
+        fx, fy, cx, cy = s.camera
+        self.intrinsics = dict(fx=fx, fy=fy, cx=cx, cy=cy, width=s.width, height=s.height)
 
-    def _camera(self, points: np.ndarray) -> np.ndarray:
-        R, t = self.camera_from_world[:3, :3], self.camera_from_world[:3, 3]
-        return points @ R.T + t
-
-    def _pixel(self, pc: np.ndarray) -> np.ndarray:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            return np.c_[self.fx * pc[:, 0] / pc[:, 2] + self.cx, self.fy * pc[:, 1] / pc[:, 2] + self.cy]
+    def _project(self, points: np.ndarray) -> Projection:
+        return project(points, self.world_from_camera, **self.intrinsics)
 
     def visible(self, chords: np.ndarray) -> np.ndarray:
         """The chords (N, 2, 3) with both ends in front of the camera and one within a chord's reach of the
         frame."""
-        pc = self._camera(chords.reshape(-1, 3)).reshape(-1, 2, 3)
-        uv = self._pixel(pc.reshape(-1, 3)).reshape(-1, 2, 2)
-        margin = 0.1 * max(self.width, self.height)
-        inside = (uv[..., 0] > -margin) & (uv[..., 0] < self.width + margin)
-        inside &= (uv[..., 1] > -margin) & (uv[..., 1] < self.height + margin)
-        return chords[(pc[..., 2] > 0.05).all(1) & inside.any(1)]
+        pr = self._project(chords.reshape(-1, 3))
+        w, h = self.intrinsics["width"], self.intrinsics["height"]
+        margin = 0.1 * max(w, h)
+        u, v = pr.u.reshape(-1, 2), pr.v.reshape(-1, 2)
+        inside = (u > -margin) & (u < w + margin) & (v > -margin) & (v < h + margin)
+        return chords[(pr.depth_m.reshape(-1, 2) > 0.05).all(1) & inside.any(1)]
 
     def cross(self, a: np.ndarray, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Where chords ``a`` and ``b`` cross in the image, inside the frame: (K, 2) pixels and (K,) the
@@ -162,12 +157,10 @@ class _Camera:
         i, j = np.nonzero(hit)
         tb = fb[i, j, 0] / (fb[i, j, 0] - fb[i, j, 1])
         ta = fa[i, j, 0] / (fa[i, j, 0] - fa[i, j, 1])
-        pb = b[j, 0] + tb[:, None] * (b[j, 1] - b[j, 0])
-        pa = a[i, 0] + ta[:, None] * (a[i, 1] - a[i, 0])
-        ca, cb = self._camera(pa), self._camera(pb)
-        uv = self._pixel(cb)
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < self.width) & (uv[:, 1] >= 0) & (uv[:, 1] < self.height)
-        return uv[inside], np.minimum(ca[:, 2], cb[:, 2])[inside]
+        pb = self._project(b[j, 0] + tb[:, None] * (b[j, 1] - b[j, 0]))
+        pa = self._project(a[i, 0] + ta[:, None] * (a[i, 1] - a[i, 0]))
+        keep = pb.in_image
+        return np.c_[pb.u, pb.v][keep], np.minimum(pa.depth_m, pb.depth_m)[keep]
 
 
 def _chords(root: Path) -> _Chords:

@@ -29,6 +29,7 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import Sample, read_image, read_images
+from rebar_data.perception.lower_mat import lower_mat_of
 from rebar_data.perception.refine_data import patch_batches, steps_per_epoch
 from rebar_data.perception.schedule import warmup_cosine
 from rebar_data.perception.stage_files import (
@@ -277,8 +278,6 @@ def with_lower_mat(
     ``gate_px`` of a visible crossing left out."""
     if not count:
         return mined
-    from rebar_data.perception.lower_mat import lower_mat_of
-
     rng = np.random.default_rng(np.random.SeedSequence([seed, 4111]))
     out = []
     for s, m, uv in zip(samples, mined, lower_mat_of(samples), strict=True):

@@ -437,7 +437,7 @@ def _run(
         n = cfg.depth_check.lower_mat_negatives  # the lower mat's crossings join its negatives
         depth_net, depth_history = train_depth_check(
             train_samples,
-            with_lower_mat(
+            lambda: with_lower_mat(  # placed only when the depth check trains
                 train_samples,
                 _negatives(out, train_samples, len(refine_samples), negatives_of),
                 n,
