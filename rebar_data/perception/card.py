@@ -13,6 +13,7 @@ from rebar_data.perception.bench import DetectorLatency, detector_latency, laten
 from rebar_data.perception.data import check_dataset, load_split, read_info, renderer_engine, stated_oks_sigma
 from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, at_crossing_points, predict
 from rebar_data.perception.infer import (
+    DUPLICATE_PX,
     MODELS_DIR,
     SHIPPED_MODEL,
     Detector,
@@ -25,6 +26,11 @@ from rebar_data.perception.metrics import oks_radius_px
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
 CARD_NAME = "MODEL_CARD.md"
 RENDERER_NAMES = {"cycles": "Blender Cycles", "open3d": "Open3D"}
+
+
+def _step(refine: dict) -> str:
+    step = float(refine.get("step", 1.0))
+    return "all the way" if step == 1.0 else f"{step:g} of the way"
 
 
 def _named(supplements: list[dict]) -> str:
@@ -243,6 +249,15 @@ def write_card(
                         " crossing at the mean of their offsets, turned back; the verification is the plain view's.",
                     ]
                     if refine.get("views", 1) > 1
+                    else []
+                ),
+                *(
+                    [
+                        f"  It runs {refine['iterations']} passes: each later one reads the patch centred where the pass"
+                        f" before placed the crossing and moves the point {_step(refine)} to where it places it;"
+                        f" a detection within {DUPLICATE_PX:g} px of a better one is then dropped.",
+                    ]
+                    if refine.get("iterations", 1) > 1
                     else []
                 ),
                 "  `Detector.load` loads both; set `detector.refiner = None` for the first stage alone.",

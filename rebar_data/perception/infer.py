@@ -27,6 +27,10 @@ DEFAULT_FOCAL_PER_WIDTH = 525.0 / 640.0  # Kinect v1 colour camera, when neither
 MODELS_DIR = Path(__file__).parent / "models"
 SHIPPED_MODEL = MODELS_DIR / "rebar_keypoint.onnx"
 RUN_FILES = ("best.onnx", "best.pt", "last.pt")
+# two detections placed nearer than this are one crossing (the second stage's passes can move two
+# detections of one crossing onto it); no two visible crossings of paper-tunnel's test split lie nearer
+# than 7.5 px
+DUPLICATE_PX = 3.0
 
 
 def resolve_model_path(path: str | Path | None) -> Path:
@@ -257,10 +261,25 @@ class Detector:
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
-        det = det[inside]  # a crossing seen inside the frame stays, wherever its 3D point projects
+        # a crossing seen inside the frame stays, wherever its 3D point projects
+        det = drop_duplicates(det[inside], DUPLICATE_PX)
         if point == "crossing" and len(det):
             det[:, :2] = self.crossing_point.points(image, det[:, :2], camera)
         return det
+
+
+def drop_duplicates(det: np.ndarray, radius_px: float) -> np.ndarray:
+    """``det`` (N, 3) u, v, score, best first, without each detection nearer than ``radius_px`` to a
+    better one (the better stays)."""
+    if len(det) < 2:
+        return det
+    d = np.hypot(*(det[:, None, :2] - det[None, :, :2]).transpose(2, 0, 1))
+    near = np.triu(d < radius_px, k=1)  # near[i, j]: j (worse) lies within the radius of i (better)
+    keep = np.ones(len(det), bool)
+    for i in range(len(det)):
+        if keep[i]:
+            keep[near[i]] = False
+    return det[keep]
 
 
 def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:
@@ -380,6 +399,7 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
         return None
     path, entry = found
     iterations, views = int(entry.get("iterations", 1)), int(entry.get("views", 1))
+    step = float(entry.get("step", 1.0))  # files written before it was stored: each pass all the way
     if path.suffix == ".onnx":
         return Refiner.load_onnx(
             path,
@@ -387,11 +407,12 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
             iterations=iterations,
             context_scale=int(entry.get("context_scale", 0)),
             views=views,
+            step=step,
         )
     from rebar_data.perception.refine_train import load
 
     net, _, _ = load(path)
-    return Refiner.from_network(net, iterations=iterations, views=views)
+    return Refiner.from_network(net, iterations=iterations, views=views, step=step)
 
 
 def _check_image(rgb: np.ndarray) -> np.ndarray:

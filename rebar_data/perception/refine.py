@@ -137,7 +137,12 @@ class Refiner:
     :data:`SYMMETRIES`, in one batch) and averages the offsets, turned back: the network trained on
     patches turned and flipped alike, so each view is another draw of its placement errors. The
     verification logit stays the plain view's (averaged too, it lowered recall at precision 0.99 on the
-    curved Cycles set: :class:`~rebar_data.perception.config.RefineConfig` ``views``)."""
+    curved Cycles set: :class:`~rebar_data.perception.config.RefineConfig` ``views``).
+
+    With ``iterations`` > 1 each later pass reads the patch centred where the pass before placed the
+    crossing and moves the point ``step`` of the way to where it places it (1: all the way); the
+    verification logit stays the first pass's (``RefineConfig.iterations`` and ``step``: why two passes,
+    half a step)."""
 
     def __init__(
         self,
@@ -149,13 +154,17 @@ class Refiner:
         border: str = "mirror",
         context_scale: int = 0,
         views: int = 1,
+        step: float = 1.0,
     ):
         if views not in VIEWS:
             raise ConfigError(
                 f"views = {views} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}"
             )
+        if not 0.0 < step <= 1.0:
+            raise ConfigError(f"step = {step} is not accepted; accepted: a number above 0, at most 1")
         self._run = run
         self.views = views
+        self.step = step
         self.patch_px = patch_px
         self.border = border
         self.context_scale = context_scale
@@ -163,7 +172,7 @@ class Refiner:
         self.verifies = verifies
 
     @classmethod
-    def from_network(cls, net, *, iterations: int = 1, views: int = 1) -> Refiner:
+    def from_network(cls, net, *, iterations: int = 1, views: int = 1, step: float = 1.0) -> Refiner:
         """Wrap a :class:`~rebar_data.perception.refine_train.PatchNet` (eager PyTorch)."""
         import torch
 
@@ -183,11 +192,19 @@ class Refiner:
             border=net.border,
             context_scale=net.context_scale,
             views=views,
+            step=step,
         )
 
     @classmethod
     def load_onnx(
-        cls, path: Path, *, threads: int, iterations: int = 1, context_scale: int = 0, views: int = 1
+        cls,
+        path: Path,
+        *,
+        threads: int,
+        iterations: int = 1,
+        context_scale: int = 0,
+        views: int = 1,
+        step: float = 1.0,
     ) -> Refiner:
         """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
         meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on)."""
@@ -220,6 +237,7 @@ class Refiner:
             border=border,
             context_scale=context_scale,
             views=views,
+            step=step,
         )
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -240,7 +258,8 @@ class Refiner:
             out = self._read(x)
             if it == 0 and self.verifies:
                 logit = out[:, 2].copy()
-            uv = corners + out[:, :2]
+            placed = corners + out[:, :2]
+            uv = placed if it == 0 else uv + self.step * (placed - uv)
         return uv, logit
 
     def _read(self, x: np.ndarray) -> np.ndarray:

@@ -44,7 +44,15 @@ from rebar_data.perception.stage_files import export_onnx as export_stage
 FORMAT = "rebar-keypoint-refiner"
 FORMAT_VERSION = 1
 # RefineConfig settings that leave training alone: they shape the exported file or how its output is used
-EXPORT_ONLY = {"quantize", "calibration_patches", "verify_power", "verify_power_with_depth", "views"}
+EXPORT_ONLY = {
+    "quantize",
+    "calibration_patches",
+    "verify_power",
+    "verify_power_with_depth",
+    "views",
+    "iterations",
+    "step",
+}
 
 
 def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:

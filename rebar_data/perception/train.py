@@ -575,6 +575,7 @@ def _finish(
         meta["refiner"] = {
             "patch_px": cfg.refine.patch_px,
             "iterations": cfg.refine.iterations,
+            "step": cfg.refine.step,
             "quantize": cfg.refine.quantize,
             "verify": refiner.verify,
             "verify_power": cfg.refine.verify_power,

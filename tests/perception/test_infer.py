@@ -48,6 +48,21 @@ def test_detect_pads_any_size_and_returns_points_inside(tiny_net):
     assert np.all(np.diff(out[:, 2]) <= 0)  # best first
 
 
+def test_a_detection_next_to_a_better_one_is_dropped():
+    det = np.array(
+        [
+            [10.0, 10.0, 0.9],
+            [12.0, 11.0, 0.8],  # 2.2 px from the best: the same crossing
+            [14.5, 10.0, 0.7],  # 4.5 px from the best, 2.7 from the dropped one: a crossing of its own
+            [10.0, 12.9, 0.6],  # 2.9 px from the best
+            [30.0, 30.0, 0.5],
+        ]
+    )
+    kept = infer.drop_duplicates(det, 3.0)
+    np.testing.assert_array_equal(kept, det[[0, 2, 4]])
+    assert len(infer.drop_duplicates(det[:1], 3.0)) == 1 and len(infer.drop_duplicates(det[:0], 3.0)) == 0
+
+
 def test_checkpoint_round_trip(tiny_net, tmp_path):
     save_checkpoint(tmp_path / "m.pt", tiny_net, {"epoch": 3})
     net, meta, _ = load_checkpoint(tmp_path / "m.pt")

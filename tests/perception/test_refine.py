@@ -93,6 +93,33 @@ def test_turned_views_of_a_patch_are_turned_back_to_one_answer(border):
         Refiner(run, patch_px=size, iterations=1, verifies=True, views=3)
 
 
+def test_a_later_pass_moves_the_point_its_step_of_the_way():
+    """A stand-in network that always reads the crossing 1 px right of the patch's corner, and as its logit
+    how many times it has been run: the first pass moves the point all the way, each later one ``step`` of
+    the way to where it then reads the crossing, and the logit is the first pass's."""
+    calls = []
+
+    def run(x: np.ndarray) -> np.ndarray:
+        calls.append(len(x))
+        out = np.zeros((len(x), 3), np.float32)
+        out[:, 0], out[:, 2] = 1.0, len(calls)
+        return out
+
+    img = np.zeros((40, 50, 3), np.uint8)
+    start = np.array([[20.0, 15.0]])
+    for iterations, step, want in ((1, 0.5, 21.0), (2, 1.0, 22.0), (2, 0.5, 21.5), (3, 0.5, 22.25)):
+        calls.clear()
+        r = Refiner(run, patch_px=16, iterations=iterations, verifies=True, step=step)
+        uv, logit = r.refine_and_verify(img, start)
+        # the second pass cuts its patch at the corner nearest 21.0 (21), reads 22 and goes half way; the
+        # third at the corner nearest 21.5 (22), reads 23 and goes half way from 21.5 (22.25)
+        assert uv[0, 0] == pytest.approx(want) and uv[0, 1] == pytest.approx(15.0)
+        assert len(calls) == iterations and logit[0] == 1.0
+    for step in (0.0, 1.5):
+        with pytest.raises(ConfigError, match=f"step = {step}"):
+            Refiner(run, patch_px=16, iterations=2, verifies=True, step=step)
+
+
 def test_a_training_patch_moves_its_offset_with_the_pixels():
     crossing = np.array([41.7, 30.2])
     image = _blob(64, 80, crossing)
