@@ -414,7 +414,7 @@ def write_card(
         "  much like one just inside it.",
         "- `test, scenes with (without) a lower mat`: the test scenes with a second mat beneath the bars",
         f"  (the samples table's `{LOWER_MAT_COLUMN}`), where a bar passing over the mat beneath looks like a",
-        "  crossing; and the others.",
+        "  crossing; and the others. The rows of another renderer's sets split the same way.",
         "- `random ... of frames`: frames drawn at random from the whole dataset, as the paper's frame-level",
         "  80:20 split draws its test set. Most of them were trained on (and the rest are a few centimetres of",
         "  camera motion from frames that were), so the gap to the test row is what a random split hides.",
@@ -527,6 +527,9 @@ def evaluation_rows(
         samples = load_splits(path)
         preds = predict(detector, samples, depth=False, progress=progress)
         rows[f"{label}, {engine} renderer, RGB only"] = score(samples, preds, sigma=sigma)
+        for name, m in breakdown(path, samples, preds, sigma=sigma).items():
+            if name.startswith("scenes"):  # where its misses and false detections lie
+                rows[f"{label}, {engine} renderer, RGB only, {name}"] = m
         crossing = load_splits(path, truth="crossing")
         rows[f"{label}, {engine} renderer, RGB only, vs 3D crossing points"] = score(
             crossing, preds, sigma=sigma

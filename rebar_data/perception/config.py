@@ -323,7 +323,14 @@ class RefineConfig(Strict):
     the second stage's time. And the patch read again from the image shrunk to 0.75 and the two placements
     averaged: of the first stage's detections of paper-tunnel's test crossings, 95.7% within 2 px against
     95.1% (one pass) and 95.6% (two passes); the shrunk view alone helps crossings seen larger than 60 px
-    (a box of four bar diameters: 90.6% against 84.1% at 60-80 px) and costs the small ones.
+    (a box of four bar diameters: 90.6% against 84.1% at 60-80 px) and costs the small ones. As the second
+    view instead of the half turn (the same cost), two passes: paper-tunnel val PCK@2px 0.957 but
+    AP@0.5:0.95 0.935 (the half turn: 0.956, 0.947), test 0.936 (0.939); crossval-planar 0.938 (0.944) and
+    crossval-tunnel 0.907 (0.914) from RGB alone; planar-slab 0.819 (0.785), recall@P0.99 0.813 (0.845).
+    The second pass's verification logit, or the mean or the least of the two passes', in place of the
+    first's (the second pass's patch is centred on the crossing): recall@P0.99 from RGB alone on
+    crossval-planar 0.761 / 0.819 / 0.816, crossval-tunnel 0.709 / 0.747 / 0.749, paper-tunnel test 0.964 /
+    0.965 / 0.964 (the first's: 0.823, 0.729, 0.963); within these small sets' spread, so the first's stays.
     """
 
     enabled: bool = True
