@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Literal
 
-from pydantic import Field, field_validator
+from pydantic import Field, field_validator, model_validator
 
 from rebar_data.config import Fraction, NonNegative, Positive, Strict
 
@@ -375,6 +375,9 @@ class RefineConfig(Strict):
     context_scale: NonNegativeInt = 0
     supplement_repeats: PositiveInt = 6
     views: Literal[1, 2, 4, 8] = 2
+    size: bool = False
+    size_weight: Positive = 1.0
+    shrink_above_px: tuple[Positive, Positive] = (50.0, 90.0)
 
     @field_validator("context_scale")
     @classmethod
@@ -382,6 +385,18 @@ class RefineConfig(Strict):
         if v == 1:
             raise ValueError("1 is not accepted; accepted: 0 (no context) or a shrink factor of 2 or more")
         return v
+
+    @model_validator(mode="after")
+    def _size_needs_verify(self) -> RefineConfig:
+        if self.size and not self.verify:
+            raise ValueError(
+                "size: true needs verify: true (the size is the column after the verification's)"
+            )
+        if self.shrink_above_px[0] > self.shrink_above_px[1]:
+            raise ValueError(
+                f"shrink_above_px {self.shrink_above_px} is not accepted; accepted: two sizes, the smaller first"
+            )
+        return self
 
 
 class DepthCheckConfig(Strict):

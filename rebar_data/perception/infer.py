@@ -400,6 +400,7 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
     path, entry = found
     iterations, views = int(entry.get("iterations", 1)), int(entry.get("views", 1))
     step = float(entry.get("step", 1.0))  # files written before it was stored: each pass all the way
+    shrink = entry.get("shrink_above_px")  # None: every pass at full resolution
     if path.suffix == ".onnx":
         return Refiner.load_onnx(
             path,
@@ -408,11 +409,12 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
             context_scale=int(entry.get("context_scale", 0)),
             views=views,
             step=step,
+            shrink_above_px=shrink,
         )
     from rebar_data.perception.refine_train import load
 
     net, _, _ = load(path)
-    return Refiner.from_network(net, iterations=iterations, views=views, step=step)
+    return Refiner.from_network(net, iterations=iterations, views=views, step=step, shrink_above_px=shrink)
 
 
 def _check_image(rgb: np.ndarray) -> np.ndarray:

@@ -37,6 +37,9 @@ SYMMETRIES = (
     (True, False, True),
 )
 VIEWS = (1, 2, 4, 8)
+# the resolutions a later pass reads a crossing at, by the size the first pass gives it (a refiner with a
+# size output): at or below the first of ``shrink_above_px``, above it, above the second
+SHRINKS = (1.0, 0.75, 0.5)
 
 
 def turned(x: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
@@ -142,7 +145,10 @@ class Refiner:
     With ``iterations`` > 1 each later pass reads the patch centred where the pass before placed the
     crossing and moves the point ``step`` of the way to where it places it (1: all the way); the
     verification logit stays the first pass's (``RefineConfig.iterations`` and ``step``: why two passes,
-    half a step)."""
+    half a step). A refiner with a size output (``sizes``) also gives, in the first pass, each crossing's
+    box side (four bar diameters); with ``shrink_above_px`` the later passes read a crossing seen larger
+    than its first size from the image shrunk to 0.75, larger than the second to 0.5 (:data:`SHRINKS`), so
+    that the patch shows all of it (``RefineConfig.size``)."""
 
     def __init__(
         self,
@@ -155,6 +161,8 @@ class Refiner:
         context_scale: int = 0,
         views: int = 1,
         step: float = 1.0,
+        sizes: bool = False,
+        shrink_above_px: tuple[float, float] | None = None,
     ):
         if views not in VIEWS:
             raise ConfigError(
@@ -170,9 +178,19 @@ class Refiner:
         self.context_scale = context_scale
         self.iterations = iterations
         self.verifies = verifies
+        self.sizes = sizes
+        self.shrink_above_px = tuple(shrink_above_px) if shrink_above_px is not None else None
 
     @classmethod
-    def from_network(cls, net, *, iterations: int = 1, views: int = 1, step: float = 1.0) -> Refiner:
+    def from_network(
+        cls,
+        net,
+        *,
+        iterations: int = 1,
+        views: int = 1,
+        step: float = 1.0,
+        shrink_above_px: tuple[float, float] | None = None,
+    ) -> Refiner:
         """Wrap a :class:`~rebar_data.perception.refine_train.PatchNet` (eager PyTorch)."""
         import torch
 
@@ -193,6 +211,8 @@ class Refiner:
             context_scale=net.context_scale,
             views=views,
             step=step,
+            sizes=getattr(net, "size", False),
+            shrink_above_px=shrink_above_px,
         )
 
     @classmethod
@@ -205,6 +225,7 @@ class Refiner:
         context_scale: int = 0,
         views: int = 1,
         step: float = 1.0,
+        shrink_above_px: tuple[float, float] | None = None,
     ) -> Refiner:
         """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
         meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on)."""
@@ -219,7 +240,8 @@ class Refiner:
         def run(x: np.ndarray) -> np.ndarray:
             return sess.run(None, {name: x})[0]
 
-        columns = sess.get_outputs()[0].shape[-1]  # 2: offsets; 3: offsets and the verification logit
+        # 2: offsets; 3: offsets and the verification logit; 4: and the log box side
+        columns = sess.get_outputs()[0].shape[-1]
         # per view 3: RGB, mirrored beyond the border; 4: RGB and the mask; with context, two views
         channels = sess.get_inputs()[0].shape[-1]
         per_view = channels // 2 if context_scale else channels
@@ -233,11 +255,13 @@ class Refiner:
             run,
             patch_px=size,
             iterations=iterations,
-            verifies=columns == 3,
+            verifies=columns >= 3,
             border=border,
             context_scale=context_scale,
             views=views,
             step=step,
+            sizes=columns == 4,
+            shrink_above_px=shrink_above_px,
         )
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -250,17 +274,47 @@ class Refiner:
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
             return uv, (np.zeros(0) if self.verifies else None)
-        logit = None
+        logit = box = None
         for it in range(self.iterations):
-            x, corners = stage_input(
-                image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
-            )
-            out = self._read(x)
+            if it and box is not None:
+                placed = self._placed_at_size(image, uv, box)
+            else:
+                x, corners = stage_input(
+                    image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
+                )
+                out = self._read(x)
+                placed = corners + out[:, :2]
             if it == 0 and self.verifies:
                 logit = out[:, 2].copy()
-            placed = corners + out[:, :2]
+            if it == 0 and self.sizes and self.shrink_above_px is not None:
+                box = self.patch_px * np.exp(out[:, 3])
             uv = placed if it == 0 else uv + self.step * (placed - uv)
         return uv, logit
+
+    def box_sizes(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        """(N,) each point's crossing's box side in pixels (four bar diameters), as the patch centred there
+        shows it; needs a refiner with a size output."""
+        if not self.sizes:
+            raise ConfigError("this refiner has no size output; accepted: one trained with size: true")
+        x, _ = stage_input(image, uv, self.patch_px, border=self.border, context_scale=self.context_scale)
+        return self.patch_px * np.exp(self._read(x)[:, 3])
+
+    def _placed_at_size(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray) -> np.ndarray:
+        """Where each point's patch places its crossing, read at the resolution of :data:`SHRINKS` its
+        box side ``box`` calls for."""
+        lo, hi = self.shrink_above_px
+        level = (box > lo).astype(int) + (box > hi)
+        placed = np.empty_like(uv)
+        for lv, f in enumerate(SHRINKS):
+            pick = level == lv
+            if not pick.any():
+                continue
+            img, factors = (image, np.ones(2)) if f == 1.0 else shrunk(image, 1.0 / f)
+            x, corners = stage_input(
+                img, uv[pick] * factors, self.patch_px, border=self.border, context_scale=self.context_scale
+            )
+            placed[pick] = (corners + self._read(x)[:, :2]) / factors
+        return placed
 
     def _read(self, x: np.ndarray) -> np.ndarray:
         """The network's output for patches ``x``: the offsets averaged over the views (turned back), the

@@ -39,9 +39,10 @@ def training_patch(
     geometry: AugmentConfig,
     *,
     uniform: bool = True,
-) -> tuple[np.ndarray, np.ndarray]:
-    """One patch around a labelled crossing, before colour changes, and the crossing's offset from its
-    centre; ``geometry`` is :func:`patch_geometry`'s. ``uniform = False`` draws the centre's error from the
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """One patch around a labelled crossing, before colour changes, the crossing's offset from its
+    centre, and how many patch pixels an image pixel became (the patch's scale); ``geometry`` is
+    :func:`patch_geometry`'s. ``uniform = False`` draws the centre's error from the
     Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing).
 
     With ``cfg.border = "mask"`` the patch has a fourth channel, 255 where it shows the image (0 and 0 in
@@ -59,11 +60,12 @@ def training_patch(
         cfg=geometry,
     )
     offset = apply_affine(crossing, patch_from_image)[0] - size / 2
+    scale = float(np.sqrt(abs(np.linalg.det(patch_from_image[:, :2]))))
     if cfg.border == "mirror":
         x = warp(image, patch_from_image, size, fill=None)
         if cfg.context_scale:
             x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=None)], axis=2)
-        return x, offset
+        return x, offset, scale
     edge = None
     if rng.uniform() < cfg.border_fraction:
         edge = _own_edge(rng, size / 2 + offset, size, cfg.border_reach_px)
@@ -71,7 +73,7 @@ def training_patch(
     x = np.concatenate([x, (on_image * np.uint8(255))[..., None]], axis=2)
     if cfg.context_scale:
         x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=edge)], axis=2)
-    return x, offset
+    return x, offset, scale
 
 
 def _context(
@@ -172,15 +174,19 @@ def patch_batch(
     aug: AugmentConfig,
 ) -> Batch:
     """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, C) uint8, their (B, 2)
-    offsets of the crossing from the centre (meaningless for negatives), (B,) whether each is around a
+    offsets of the crossing from the centre (meaningless for negatives; with ``cfg.size`` a third column,
+    the log of the crossing's box side in the patch over the patch's side), (B,) whether each is around a
     labelled crossing, and (B,) whether that crossing lies on the image the patch shows (the
     verification's label: with the border mask, not one beyond the patch's own border)."""
     geometry = patch_geometry(cfg, aug)
     xs, ys = [], []
     for i, k, positive in rows:
         centre = samples[i].visible[k] if positive else negatives[i][k]
-        x, y = training_patch(image_of(i), centre, rng, cfg, geometry, uniform=bool(positive))
+        x, y, scale = training_patch(image_of(i), centre, rng, cfg, geometry, uniform=bool(positive))
         xs.append(x)
+        if cfg.size:
+            box = samples[i].box_size_px[k] * scale if positive else cfg.patch_px
+            y = np.append(y, np.log(box / cfg.patch_px))
         ys.append(y)
     x, y = np.stack(xs), np.stack(ys)
     positive = rows[:, 2].astype(bool)
@@ -192,7 +198,7 @@ def patch_batch(
         # a real border, near a crossing just outside it, is not): its offset still trains, its
         # verification learns "no"
         size = x.shape[1]
-        j, i = np.clip(np.floor(size / 2 + y).astype(np.int64), 0, size - 1).T
+        j, i = np.clip(np.floor(size / 2 + y[:, :2]).astype(np.int64), 0, size - 1).T
         crossing &= x[np.arange(len(x)), i, j, 3] > 0
     return (
         torch.from_numpy(x),

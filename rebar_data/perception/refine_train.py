@@ -52,6 +52,7 @@ EXPORT_ONLY = {
     "views",
     "iterations",
     "step",
+    "shrink_above_px",
 }
 
 
@@ -65,7 +66,8 @@ class PatchNet(nn.Module):
     """(N, C, P, P) patches, values 0-255 (RGB, and with ``border = "mask"`` a fourth channel that marks the
     pixels on the image) -> (N, 2) offset (x, y) of the crossing from the patch centre,
     in the patch's pixels, and with ``verify`` a third column: the logit that the patch shows a crossing
-    near its centre at all.
+    near its centre at all; with ``size`` a fourth: the log of the crossing's box side (four bar diameters)
+    over the patch's side, as the patch shows it.
 
     Plain 3x3 convolutions, the first at full resolution (folding 2x2 pixels into channels first was
     cheaper but measurably less accurate), three halvings to P / 8 with ``blocks`` more convolutions after
@@ -83,11 +85,13 @@ class PatchNet(nn.Module):
         verify: bool = False,
         border: str = "mirror",
         context_scale: int = 0,
+        size: bool = False,
     ):
         super().__init__()
         a, b, c, d = widths
         self.patch_px = patch_px
         self.verify = verify
+        self.size = size
         self.border = border
         self.context_scale = context_scale
         layers = [_conv(self.channels, a)]
@@ -99,7 +103,7 @@ class PatchNet(nn.Module):
             nn.Flatten(),
             nn.Linear(d * cells * cells, hidden),
             nn.ReLU(inplace=True),
-            nn.Linear(hidden, 3 if verify else 2),
+            nn.Linear(hidden, 2 + int(verify) + int(size)),
         )
 
     @property
@@ -133,6 +137,7 @@ def build(cfg: RefineConfig) -> PatchNet:
         verify=cfg.verify,
         border=cfg.border,
         context_scale=cfg.context_scale,
+        size=cfg.size,
     )
 
 
@@ -424,10 +429,12 @@ def _epochs(
             pred = net(x)
             offset = pred[labelled, :2]
             loss = (
-                F.smooth_l1_loss(offset, y[labelled], beta=cfg.loss_beta_px)
+                F.smooth_l1_loss(offset, y[labelled, :2], beta=cfg.loss_beta_px)
                 if len(offset)
                 else pred.sum() * 0.0  # a batch of negatives alone
             )
+            if net.size and len(offset):  # the log box side, of the labelled crossings alone
+                loss = loss + cfg.size_weight * F.smooth_l1_loss(pred[labelled, 3], y[labelled, 2], beta=0.1)
             if net.verify:
                 logit = pred[:, 2]
                 loss = loss + cfg.verify_weight * F.binary_cross_entropy_with_logits(
@@ -441,7 +448,7 @@ def _epochs(
             opt.step()
             loss_sum += loss.item()
             if len(offset):
-                err_sum += float((offset.detach() - y[labelled]).norm(dim=1).mean())
+                err_sum += float((offset.detach() - y[labelled, :2]).norm(dim=1).mean())
             bar.set_postfix(loss=f"{loss.item():.3f}")
         row = {
             "epoch": epoch,

@@ -576,6 +576,7 @@ def _finish(
             "patch_px": cfg.refine.patch_px,
             "iterations": cfg.refine.iterations,
             "step": cfg.refine.step,
+            "shrink_above_px": list(cfg.refine.shrink_above_px) if cfg.refine.size else None,
             "quantize": cfg.refine.quantize,
             "verify": refiner.verify,
             "verify_power": cfg.refine.verify_power,

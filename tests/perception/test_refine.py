@@ -120,6 +120,64 @@ def test_a_later_pass_moves_the_point_its_step_of_the_way():
             Refiner(run, patch_px=16, iterations=2, verifies=True, step=step)
 
 
+def test_a_refiner_with_sizes_reads_a_large_crossing_again_from_the_shrunk_image():
+    """A stand-in network that reads a spot's centroid and says the crossing's box is ``box`` px: the later
+    pass reads the patch at full resolution, at 0.75 or at 0.5 as the box exceeds neither, the first or
+    the second of ``shrink_above_px``, and places the spot where it is at every resolution."""
+    size, point = 24, np.array([40.3, 27.8])
+    img = _blob(64, 80, point, sigma=3.0)
+    seen: list[float] = []
+
+    def stand_in(box: float):
+        def run(x: np.ndarray) -> np.ndarray:
+            g = x[..., 0].astype(float)
+            y, xx = np.mgrid[0:size, 0:size] + 0.5 - size / 2
+            c = (
+                np.stack([(g * xx).sum(axis=(1, 2)), (g * y).sum(axis=(1, 2))], axis=1)
+                / g.sum(axis=(1, 2))[:, None]
+            )
+            seen.extend(_spread(p) for p in x)
+            return np.concatenate(
+                [c, np.zeros((len(x), 1)), np.full((len(x), 1), np.log(box / size))], 1
+            ).astype(np.float32)
+
+        return run
+
+    start = np.array([[38.2, 29.1]])
+    for box, shrink in ((40.0, 1.0), (70.0, 0.75), (120.0, 0.5)):
+        seen.clear()
+        r = Refiner(
+            stand_in(box), patch_px=size, iterations=2, verifies=True, sizes=True, shrink_above_px=(50, 90)
+        )
+        uv, _ = r.refine_and_verify(img, start)
+        np.testing.assert_allclose(uv[0], point, atol=0.1)
+        # the spot's spread in the second pass's patch: shrunk with the image
+        assert seen[1] / seen[0] == pytest.approx(shrink, rel=0.08)
+        np.testing.assert_allclose(r.box_sizes(img, start), [box], rtol=1e-5)
+    without = Refiner(stand_in(120.0), patch_px=size, iterations=2, verifies=True, sizes=True)
+    seen.clear()
+    without.refine_and_verify(img, start)
+    assert seen[1] == pytest.approx(seen[0], rel=0.02)  # no shrink_above_px: every pass at full resolution
+    with pytest.raises(ConfigError, match="no size output"):
+        Refiner(stand_in(40.0), patch_px=size, iterations=1, verifies=True).box_sizes(img, start)
+
+
+def test_the_size_target_is_the_box_as_the_patch_shows_it(drawn_dataset):
+    samples = load_split(drawn_dataset, "train")
+    negatives = [s.visible[:1] + 9.0 for s in samples]
+    cfg = RefineConfig(patch_px=16, epochs=1, batch_size=64, size=True, scale=(1.5, 1.5), border_fraction=0.0)
+    # turned and flipped at random; scaled 1.5 times (the patches' own scale range)
+    x, y, labelled, _ = next(patch_batches(samples, negatives, cfg, STILL, seed=1, first=1))
+    assert y.shape == (64, 3) and labelled.any()
+    boxes = np.concatenate([s.box_size_px for s in samples])
+    got = np.exp(y[labelled, 2].numpy()) * 16 / 1.5  # back to the image's pixels
+    assert (np.abs(got[:, None] - boxes[None]).min(axis=1) < 1e-3 * got).all()  # each one of the boxes
+    with pytest.raises(ValueError, match="needs verify"):
+        RefineConfig(size=True, verify=False)
+    with pytest.raises(ValueError, match="smaller first"):
+        RefineConfig(shrink_above_px=(90, 50))
+
+
 def test_a_training_patch_moves_its_offset_with_the_pixels():
     crossing = np.array([41.7, 30.2])
     image = _blob(64, 80, crossing)
@@ -127,7 +185,7 @@ def test_a_training_patch_moves_its_offset_with_the_pixels():
     rng = np.random.default_rng(3)
     offsets = []
     for _ in range(20):  # random errors, turns, flips and scales: the spot is where the offset says
-        x, y = training_patch(image, crossing, rng, cfg, patch_geometry(cfg, STILL))
+        x, y, _ = training_patch(image, crossing, rng, cfg, patch_geometry(cfg, STILL))
         np.testing.assert_allclose(_centroid(x), 16 + y, atol=0.15)
         offsets.append(y)
     assert np.std(offsets) > 0.5  # the centre really was off the crossing
@@ -161,7 +219,7 @@ def test_a_training_patch_sees_the_frame_end_as_inference_does():
     cfg = RefineConfig(
         patch_px=16, jitter_px=0.0, jitter_uniform_fraction=0.0, scale=(1.0, 1.0), border_fraction=0.0
     )
-    x, y = training_patch(image, crossing, np.random.default_rng(0), cfg, patch_geometry(cfg, plain))
+    x, y, _ = training_patch(image, crossing, np.random.default_rng(0), cfg, patch_geometry(cfg, plain))
     cut, _ = patches(image, crossing[None], 16, border="mask")
     np.testing.assert_allclose(y, 0.0, atol=1e-9)
     assert (cut[0, :, :5, 3] == 0).all() and (cut[0, :, 5:, 3] == 255).all()
@@ -184,7 +242,7 @@ def test_a_training_patch_sees_its_context_as_inference_cuts_it():
     assert cut.shape == (1, 16, 16, 8)
     rng = np.random.default_rng(0)
     for _ in range(10):
-        x, y = training_patch(image, crossing, rng, cfg, patch_geometry(cfg, plain))
+        x, y, _ = training_patch(image, crossing, rng, cfg, patch_geometry(cfg, plain))
         assert x.shape == (16, 16, 8)
         np.testing.assert_array_equal(x[..., :4], cut[0, ..., :4])  # the patch itself as before
         wide, wide_cut = x[..., 4:], cut[0, ..., 4:]
@@ -227,7 +285,7 @@ def test_a_training_patch_gets_a_border_of_its_own_near_its_crossing():
     rng = np.random.default_rng(5)
     axes = set()
     for _ in range(40):
-        x, y = training_patch(image, crossing, rng, cfg, patch_geometry(cfg, STILL))
+        x, y, _ = training_patch(image, crossing, rng, cfg, patch_geometry(cfg, STILL))
         beyond = x[..., 3] == 0
         assert beyond.any() and (x[beyond, :3] == 0).all()
         assert not beyond[15:17, 15:17].all()  # the patch centre (a point inside the frame) is on the image
@@ -241,8 +299,10 @@ def test_a_training_patch_gets_a_border_of_its_own_near_its_crossing():
     assert axes == {0, 1}
     # the border leaves the offset as it is, also for a crossing beyond it: the refiner learns to place it
     cfg_none = cfg.model_copy(update={"border_fraction": 0.0})
-    x, y = training_patch(image, crossing, np.random.default_rng(5), cfg, patch_geometry(cfg, STILL))
-    x0, y0 = training_patch(image, crossing, np.random.default_rng(5), cfg_none, patch_geometry(cfg, STILL))
+    x, y, _ = training_patch(image, crossing, np.random.default_rng(5), cfg, patch_geometry(cfg, STILL))
+    x0, y0, _ = training_patch(
+        image, crossing, np.random.default_rng(5), cfg_none, patch_geometry(cfg, STILL)
+    )
     np.testing.assert_array_equal(y, y0)
     assert (x0[..., 3] == 255).all() and (x[..., 3] == 0).any()
 
