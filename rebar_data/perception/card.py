@@ -260,6 +260,15 @@ def write_card(
                     if refine.get("iterations", 1) > 1
                     else []
                 ),
+                *(
+                    [
+                        "  Its first pass also gives each crossing's box side (four bar diameters); the later passes"
+                        f" read a crossing seen larger than {refine['shrink_above_px'][0]:g} px from the image shrunk"
+                        f" to 0.75, larger than {refine['shrink_above_px'][1]:g} px to 0.5, so its patch shows all of it.",
+                    ]
+                    if refine.get("shrink_above_px") and refine.get("iterations", 1) > 1
+                    else []
+                ),
                 "  `Detector.load` loads both; set `detector.refiner = None` for the first stage alone.",
             ]
             if refine
