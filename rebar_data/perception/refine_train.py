@@ -153,6 +153,7 @@ def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
     settings = dict(payload["refine_config"])
     settings.setdefault("verify", False)  # written before the second stage could verify
     settings.setdefault("border", "mirror")  # written before it could see the border
+    settings.setdefault("size", False)  # written before it could size a crossing
     cfg = RefineConfig.model_validate(settings)
     net = fit_weights(build(cfg), payload, path, retrain=" (train the second stage again)")
     return net, cfg, payload
@@ -160,7 +161,8 @@ def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
 
 def export_onnx(net: PatchNet, path: Path) -> Path:
     """The refiner as ONNX: uint8 patches (N, P, P, C) -> offsets (N, 2), or (N, 3) with the
-    verification logit; N dynamic; C = 4 with the border mask, else 3, twice that with context."""
+    verification logit, (N, 4) with the log box side too; N dynamic; C = 4 with the border mask, else 3,
+    twice that with context."""
     size = net.patch_px
     example = torch.zeros((4, size, size, net.channels), dtype=torch.uint8)
     return export_stage(PatchExportWrapper(net), example, path, input_name="patches", output_name="offset")

@@ -315,7 +315,7 @@ def test_a_crossing_beyond_its_patch_border_is_placed_but_not_called_a_crossing(
     assert x.shape[3] == 4
     assert not crossing[~labelled].any()  # negatives stay negatives
     # a labelled crossing is a crossing to the verification where the patch shows it, not beyond its border
-    j, i = np.clip(np.floor(8 + y.numpy()).astype(int), 0, 15).T
+    j, i = np.clip(np.floor(8 + y.numpy()[:, :2]).astype(int), 0, 15).T
     shown = x.numpy()[np.arange(len(x)), i, j, 3] == 255
     np.testing.assert_array_equal(crossing.numpy(), labelled.numpy() & shown)
     beyond = labelled & ~crossing
@@ -456,13 +456,15 @@ def test_a_second_stage_file_that_does_not_fit_its_settings_is_named_and_retrain
     net, history = train_refiner(samples, tmp_path, small, STILL, seed=0)  # trains afresh, no error
     assert len(history) == 1 and load(tmp_path / "refine_last.pt")[1] == small
     # a file from before verification (no such setting, two outputs) loads as a refiner that does not verify
-    old = small.model_copy(update={"verify": False})
+    old = small.model_copy(update={"verify": False, "size": False})
     payload = {**torch.load(tmp_path / "refine_last.pt", weights_only=False)}
-    payload["refine_config"] = {k: v for k, v in old.model_dump(mode="json").items() if k != "verify"}
+    payload["refine_config"] = {
+        k: v for k, v in old.model_dump(mode="json").items() if k not in ("verify", "size")
+    }
     payload["state_dict"] = build(old).state_dict()
     torch.save(payload, tmp_path / "old.pt")
     loaded, cfg, _ = load(tmp_path / "old.pt")
-    assert not cfg.verify and not loaded.verify
+    assert not cfg.verify and not loaded.verify and not cfg.size and not loaded.size
 
 
 def test_verification_only_lowers_a_score_and_keeps_the_score_bias_a_shift():
