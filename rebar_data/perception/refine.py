@@ -211,7 +211,7 @@ class Refiner:
             context_scale=net.context_scale,
             views=views,
             step=step,
-            sizes=getattr(net, "size", False),
+            sizes=net.size,
             shrink_above_px=shrink_above_px,
         )
 
@@ -274,21 +274,14 @@ class Refiner:
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
             return uv, (np.zeros(0) if self.verifies else None)
-        logit = box = None
-        for it in range(self.iterations):
-            if it and box is not None:
-                placed = self._placed_at_size(image, uv, box)
-            else:
-                x, corners = stage_input(
-                    image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
-                )
-                out = self._read(x)
-                placed = corners + out[:, :2]
-            if it == 0 and self.verifies:
-                logit = out[:, 2].copy()
-            if it == 0 and self.sizes and self.shrink_above_px is not None:
-                box = self.patch_px * np.exp(out[:, 3])
-            uv = placed if it == 0 else uv + self.step * (placed - uv)
+        corners, out = self._read_at(image, uv)
+        logit = out[:, 2].copy() if self.verifies else None
+        box = None  # the first pass's sizes, when later passes read by them
+        if self.sizes and self.shrink_above_px is not None:
+            box = self.patch_px * np.exp(out[:, 3])
+        uv = corners + out[:, :2]
+        for _ in range(1, self.iterations):
+            uv = uv + self.step * (self._placed_at_size(image, uv, box) - uv)
         return uv, logit
 
     def box_sizes(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -296,12 +289,21 @@ class Refiner:
         shows it; needs a refiner with a size output."""
         if not self.sizes:
             raise ConfigError("this refiner has no size output; accepted: one trained with size: true")
-        x, _ = stage_input(image, uv, self.patch_px, border=self.border, context_scale=self.context_scale)
-        return self.patch_px * np.exp(self._read(x)[:, 3])
+        return self.patch_px * np.exp(self._read_at(image, uv)[1][:, 3])
 
-    def _placed_at_size(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray) -> np.ndarray:
+    def _read_at(self, image: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The corners the patches around ``uv`` are centred on, and the network's output for them."""
+        x, corners = stage_input(
+            image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
+        )
+        return corners, self._read(x)
+
+    def _placed_at_size(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None) -> np.ndarray:
         """Where each point's patch places its crossing, read at the resolution of :data:`SHRINKS` its
-        box side ``box`` calls for."""
+        box side ``box`` calls for (None: all at full resolution)."""
+        if box is None:
+            corners, out = self._read_at(image, uv)
+            return corners + out[:, :2]
         lo, hi = self.shrink_above_px
         level = (box > lo).astype(int) + (box > hi)
         placed = np.empty_like(uv)
@@ -310,10 +312,8 @@ class Refiner:
             if not pick.any():
                 continue
             img, factors = (image, np.ones(2)) if f == 1.0 else shrunk(image, 1.0 / f)
-            x, corners = stage_input(
-                img, uv[pick] * factors, self.patch_px, border=self.border, context_scale=self.context_scale
-            )
-            placed[pick] = (corners + self._read(x)[:, :2]) / factors
+            corners, out = self._read_at(img, uv[pick] * factors)
+            placed[pick] = (corners + out[:, :2]) / factors
         return placed
 
     def _read(self, x: np.ndarray) -> np.ndarray:

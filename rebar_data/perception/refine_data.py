@@ -185,6 +185,7 @@ def patch_batch(
         x, y, scale = training_patch(image_of(i), centre, rng, cfg, geometry, uniform=bool(positive))
         xs.append(x)
         if cfg.size:
+            # a negative shows no crossing to size: its 0 never trains (the loss takes labelled crossings)
             box = samples[i].box_size_px[k] * scale if positive else cfg.patch_px
             y = np.append(y, np.log(box / cfg.patch_px))
         ys.append(y)

@@ -39,6 +39,16 @@ def _centroid(img: np.ndarray) -> np.ndarray:
     return np.array([(g * x).sum(), (g * y).sum()]) / g.sum()
 
 
+def _centroid_offsets(x: np.ndarray) -> np.ndarray:
+    """(N, 2) each patch's spot centroid (channel 0) from the patch centre: what a stand-in network reads."""
+    size = x.shape[1]
+    g = x[..., 0].astype(float)
+    y, xx = np.mgrid[0:size, 0:size] + 0.5 - size / 2
+    return (
+        np.stack([(g * xx).sum(axis=(1, 2)), (g * y).sum(axis=(1, 2))], axis=1) / g.sum(axis=(1, 2))[:, None]
+    )
+
+
 def _spread(img: np.ndarray) -> float:
     """The RMS distance of a spot's brightness from its centroid (pixels)."""
     g = img[..., 0].astype(float)
@@ -73,12 +83,7 @@ def test_turned_views_of_a_patch_are_turned_back_to_one_answer(border):
     img = _blob(64, 80, point, sigma=1.5)
 
     def run(x: np.ndarray) -> np.ndarray:
-        g = x[..., 0].astype(float)
-        y, xx = np.mgrid[0:size, 0:size] + 0.5 - size / 2
-        c = (
-            np.stack([(g * xx).sum(axis=(1, 2)), (g * y).sum(axis=(1, 2))], axis=1)
-            / g.sum(axis=(1, 2))[:, None]
-        )
+        c = _centroid_offsets(x)
         return np.concatenate([c, c[:, :1]], axis=1).astype(np.float32)
 
     start = np.array([[38.2, 29.1]])
@@ -130,12 +135,7 @@ def test_a_refiner_with_sizes_reads_a_large_crossing_again_from_the_shrunk_image
 
     def stand_in(box: float):
         def run(x: np.ndarray) -> np.ndarray:
-            g = x[..., 0].astype(float)
-            y, xx = np.mgrid[0:size, 0:size] + 0.5 - size / 2
-            c = (
-                np.stack([(g * xx).sum(axis=(1, 2)), (g * y).sum(axis=(1, 2))], axis=1)
-                / g.sum(axis=(1, 2))[:, None]
-            )
+            c = _centroid_offsets(x)
             seen.extend(_spread(p) for p in x)
             return np.concatenate(
                 [c, np.zeros((len(x), 1)), np.full((len(x), 1), np.log(box / size))], 1
