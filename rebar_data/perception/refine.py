@@ -16,6 +16,7 @@ This module needs no PyTorch for ONNX files, so the servo's detector loads witho
 from __future__ import annotations
 
 from collections.abc import Callable
+from fractions import Fraction
 from pathlib import Path
 
 import cv2
@@ -114,6 +115,41 @@ def shrunk(image: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
     h, w = image.shape[:2]
     size = (max(1, round(w / scale)), max(1, round(h / scale)))
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA), np.array([size[0] / w, size[1] / h])
+
+
+def shrunk_around(
+    image: np.ndarray, centres: np.ndarray, scale: float, size: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """What :func:`shrunk` gives, computed only where ``size`` x ``size`` patches around ``centres`` (points
+    in ``image``) read it in the shrunk image, and 0 elsewhere: the same pixels there, for a fraction of
+    the work when the points are few (a 640 x 480 frame shrunk to 0.75 takes 0.64 ms whole).
+
+    Area averaging at a factor p / q (lowest terms) maps each q x q block of pixels to a p x p block on
+    its own, so each patch's region is widened to whole blocks and resized alone. Where the factor does
+    not divide the image's sides into whole blocks, or ``scale`` is a whole number (OpenCV's own path for
+    those shrinks a whole frame in about 0.06 ms), the whole image is shrunk (:func:`shrunk`)."""
+    h, w = image.shape[:2]
+    out_w, out_h = max(1, round(w / scale)), max(1, round(h / scale))
+    factors = np.array([out_w / w, out_h / h])
+    ratio = Fraction(out_w, w).limit_denominator(16)
+    p, q = ratio.numerator, ratio.denominator
+    if Fraction(out_h, h) != ratio or Fraction(out_w, w) != ratio or q > 16 or p == 1:
+        return shrunk(image, scale)
+    canvas = np.zeros((out_h, out_w) + image.shape[2:], image.dtype)
+    centres = np.asarray(centres, float).reshape(-1, 2)
+    if not len(centres):
+        return canvas, factors
+    half = size // 2
+    # each patch's window in the shrunk image (as :func:`patches` cuts it), widened to whole blocks
+    corners = np.clip(np.floor(centres * factors + 0.5), 0, [out_w, out_h]).astype(np.int64)
+    lo = np.clip(corners - half, 0, None) // p * p
+    hi = np.minimum(-(-(corners + half) // p) * p, [out_w, out_h])
+    for (x0, y0), (x1, y1) in zip(lo, hi, strict=True):
+        if x1 <= x0 or y1 <= y0:
+            continue
+        block = image[y0 // p * q : y1 * q // p, x0 // p * q : x1 * q // p]
+        canvas[y0:y1, x0:x1] = cv2.resize(block, (x1 - x0, y1 - y0), interpolation=cv2.INTER_AREA)
+    return canvas, factors
 
 
 def stage_input(
@@ -311,7 +347,12 @@ class Refiner:
             pick = level == lv
             if not pick.any():
                 continue
-            img, factors = (image, np.ones(2)) if f == 1.0 else shrunk(image, 1.0 / f)
+            if f == 1.0:
+                img, factors = image, np.ones(2)
+            elif self.context_scale:  # the context view reads the whole shrunk image
+                img, factors = shrunk(image, 1.0 / f)
+            else:
+                img, factors = shrunk_around(image, uv[pick], 1.0 / f, self.patch_px)
             corners, out = self._read_at(img, uv[pick] * factors)
             placed[pick] = (corners + out[:, :2]) / factors
         return placed

@@ -12,7 +12,7 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import load_split, read_image
 from rebar_data.perception.infer import Detector, verified_score
-from rebar_data.perception.refine import Refiner, patches, stage_input
+from rebar_data.perception.refine import Refiner, patches, shrunk, shrunk_around, stage_input
 from rebar_data.perception.refine_data import patch_batches, patch_geometry, training_patch
 from rebar_data.perception.refine_train import (
     build,
@@ -160,6 +160,35 @@ def test_a_refiner_with_sizes_reads_a_large_crossing_again_from_the_shrunk_image
     assert seen[1] == pytest.approx(seen[0], rel=0.02)  # no shrink_above_px: every pass at full resolution
     with pytest.raises(ConfigError, match="no size output"):
         Refiner(stand_in(40.0), patch_px=size, iterations=1, verifies=True).box_sizes(img, start)
+
+
+@pytest.mark.parametrize("height, width", [(480, 640), (484, 644), (481, 641), (30, 36)])
+@pytest.mark.parametrize("scale", [4 / 3, 2.0])
+def test_shrinking_only_around_the_points_cuts_the_patches_the_whole_shrunk_image_gives(height, width, scale):
+    """The later pass's shrunk patches, from only the regions they read (:func:`shrunk_around`): pixel for
+    pixel those of the whole image shrunk, for points inside, at and beyond the frame's edges, at frame
+    sizes the factor divides into whole blocks and sizes where it falls back to the whole image."""
+    rng = np.random.default_rng(int(height * scale))
+    img = rng.integers(0, 256, (height, width, 3), dtype=np.uint8)
+    points = np.concatenate(
+        [
+            rng.uniform([-6, -6], [width + 6, height + 6], (25, 2)),
+            [[0.0, 0.0], [width, height], [width / 2, 1.2]],
+        ]
+    )
+    whole, whole_factors = shrunk(img, scale)
+    around, factors = shrunk_around(img, points, scale, 32)
+    np.testing.assert_array_equal(factors, whole_factors)
+    assert around.shape == whole.shape
+    want, want_corners = patches(whole, points * factors, 32, border="mask")
+    got, corners = patches(around, points * factors, 32, border="mask")
+    np.testing.assert_array_equal(corners, want_corners)
+    np.testing.assert_array_equal(got, want)
+    if (height, width, scale) == (480, 640, 4 / 3):  # a few points: most of the shrunk frame left undone
+        few, _ = shrunk_around(img, points[:3], scale, 32)
+        assert (few == 0).all(axis=2).mean() > 0.5
+    empty, _ = shrunk_around(img, np.zeros((0, 2)), scale, 32)
+    assert empty.shape == whole.shape
 
 
 def test_the_size_target_is_the_box_as_the_patch_shows_it(drawn_dataset):
