@@ -23,6 +23,8 @@ from rebar_data.perception.data import Sample, read_image
 
 # uint8 patches, offsets, has an offset (a labelled crossing), is a crossing in the frame (verification)
 Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+# how far from where the first stage put a crossing a patch cut there is centred (``first_stage_starts``)
+START_JITTER_PX = 0.5
 
 
 def patch_geometry(cfg: RefineConfig, aug: AugmentConfig) -> AugmentConfig:
@@ -39,16 +41,20 @@ def training_patch(
     geometry: AugmentConfig,
     *,
     uniform: bool = True,
+    error: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """One patch around a labelled crossing, before colour changes, the crossing's offset from its
     centre, and how many patch pixels an image pixel became (the patch's scale); ``geometry`` is
     :func:`patch_geometry`'s. ``uniform = False`` draws the centre's error from the
-    Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing).
+    Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing); an
+    ``error`` given is the centre's error instead of a drawn one.
 
     With ``cfg.border = "mask"`` the patch has a fourth channel, 255 where it shows the image (0 and 0 in
     colour beyond the image's border, as :func:`~rebar_data.perception.refine.patches` cuts them), and a
     ``cfg.border_fraction`` of patches get a border of their own (:func:`_own_edge`)."""
-    if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
+    if error is not None:
+        error = np.asarray(error, float)
+    elif uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
     else:
         error = rng.normal(0.0, cfg.jitter_px, 2)
@@ -172,17 +178,29 @@ def patch_batch(
     rng: np.random.Generator,
     cfg: RefineConfig,
     aug: AugmentConfig,
+    starts: list[np.ndarray] | None = None,
 ) -> Batch:
     """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, C) uint8, their (B, 2)
     offsets of the crossing from the centre (meaningless for negatives; with ``cfg.size`` a third column,
     the log of the crossing's box side in the patch over the patch's side), (B,) whether each is around a
     labelled crossing, and (B,) whether that crossing lies on the image the patch shows (the
-    verification's label: with the border mask, not one beyond the patch's own border)."""
+    verification's label: with the border mask, not one beyond the patch's own border).
+
+    With ``cfg.first_stage_starts`` and ``starts`` (per sample, where the first stage put each visible
+    crossing: (N, 2), NaN where it found none), that share of the crossings it found are cut centred
+    where it put them, within :data:`START_JITTER_PX` (Gaussian), instead of at a drawn error."""
     geometry = patch_geometry(cfg, aug)
     xs, ys = [], []
     for i, k, positive in rows:
         centre = samples[i].visible[k] if positive else negatives[i][k]
-        x, y, scale = training_patch(image_of(i), centre, rng, cfg, geometry, uniform=bool(positive))
+        error = None
+        if positive and starts is not None and cfg.first_stage_starts > 0:
+            start = starts[i][k]
+            if rng.uniform() < cfg.first_stage_starts and np.isfinite(start).all():
+                error = start - centre + rng.normal(0.0, START_JITTER_PX, 2)
+        x, y, scale = training_patch(
+            image_of(i), centre, rng, cfg, geometry, uniform=bool(positive), error=error
+        )
         xs.append(x)
         if cfg.size:
             # a negative shows no crossing to size: its 0 never trains (the loss takes labelled crossings)
@@ -232,10 +250,11 @@ def patch_batches(
     seed: int,
     first: int,
     images: list[np.ndarray] | None = None,
+    starts: list[np.ndarray] | None = None,
 ) -> Iterator[Batch]:
     """Every batch of the second stage's epochs ``first`` to ``cfg.epochs``, in order; each epoch's from a
     generator seeded by (seed, epoch) alone, so a resumed run gets the batches it would have got. Without
-    ``images`` each image is read when first needed.
+    ``images`` each image is read when first needed; ``starts``: :func:`patch_batch`'s.
 
     They are made in the training process: a loader process beside it, as the first stage has, made
     training slower here (181 against 133 ms a batch of 256 on two cores), as the network's two threads
@@ -259,4 +278,4 @@ def patch_batches(
         order = rng.permutation(len(keys))
         for b in range(steps):
             rows = keys[order[b * size : (b + 1) * size]]
-            yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug)
+            yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug, starts)

@@ -258,8 +258,42 @@ def mine_negatives(
 ) -> list[np.ndarray]:
     """Where ``detector`` (the trained first stage alone) finds crossings that are not there: per sample,
     its detections scoring at least ``cfg.negative_score`` that lie farther than ``cfg.negative_gate_px``
-    from every visible crossing, as (M, 2) u, v. A file listed more than once (a repeated supplement) is
-    run once and its answer shared."""
+    from every visible crossing, as (M, 2) u, v."""
+    out = []
+    for s, p in zip(samples, _found(detector, samples, cfg, images=images, progress=progress), strict=True):
+        uv = p[:, :2].reshape(-1, 2)
+        if len(s.visible) and len(uv):
+            gap = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2).min(axis=1)
+            uv = uv[gap > cfg.negative_gate_px]
+        out.append(np.ascontiguousarray(uv, np.float64))
+    return out
+
+
+def mine_starts(
+    detector, samples: list[Sample], cfg: RefineConfig, *, images: list[np.ndarray], progress: bool = False
+) -> list[np.ndarray]:
+    """Where ``detector`` (the trained first stage alone) puts each visible crossing: per sample (N, 2) u, v,
+    its detection nearest the crossing when that lies within ``cfg.negative_gate_px`` and no other visible
+    crossing lies nearer to it; NaN where there is none (``RefineConfig.first_stage_starts``)."""
+    out = []
+    for s, p in zip(samples, _found(detector, samples, cfg, images=images, progress=progress), strict=True):
+        starts = np.full((len(s.visible), 2), np.nan)
+        uv = p[:, :2].reshape(-1, 2)
+        if len(s.visible) and len(uv):
+            d = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2)  # (detections, crossings)
+            nearest = d.argmin(axis=0)
+            mine = d.argmin(axis=1)[nearest] == np.arange(len(s.visible))
+            near = d[nearest, np.arange(len(s.visible))] <= cfg.negative_gate_px
+            starts[mine & near] = uv[nearest[mine & near]]
+        out.append(starts)
+    return out
+
+
+def _found(
+    detector, samples: list[Sample], cfg: RefineConfig, *, images: list[np.ndarray], progress: bool
+) -> list[np.ndarray]:
+    """``detector``'s detections scoring at least ``cfg.negative_score`` on each sample's image; a file
+    listed more than once (a repeated supplement) is run once and its answer shared."""
     from rebar_data.perception.evaluate import predict
 
     first: dict[str, int] = {}  # each file's first place in samples
@@ -274,15 +308,7 @@ def mine_negatives(
         progress=progress,
     )
     of_file = {str(samples[i].path): p for i, p in zip(kept, ran, strict=True)}
-    found = [of_file[str(s.path)] for s in samples]
-    out = []
-    for s, p in zip(samples, found, strict=True):
-        uv = p[:, :2].reshape(-1, 2)
-        if len(s.visible) and len(uv):
-            gap = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2).min(axis=1)
-            uv = uv[gap > cfg.negative_gate_px]
-        out.append(np.ascontiguousarray(uv, np.float64))
-    return out
+    return [of_file[str(s.path)] for s in samples]
 
 
 def with_lower_mat(
@@ -314,6 +340,7 @@ def train_refiner(
     seed: int,
     images: list[np.ndarray] | None = None,
     negatives_of: Callable[[list[Sample], list[np.ndarray]], list[np.ndarray]] | None = None,
+    starts_of: Callable[[list[Sample], list[np.ndarray]], list[np.ndarray]] | None = None,
     data: list[str] | None = None,
     progress: bool = False,
 ) -> tuple[PatchNet, list[dict[str, float]]]:
@@ -322,7 +349,9 @@ def train_refiner(
     With ``cfg.verify``, ``negatives_of(samples, images)`` gives each sample's negatives ((M, 2) points, usually
     :func:`mine_negatives` with the trained first stage); it is called once, only when there is
     training to do, and its answer is kept in the checkpoint for a resumed run. Without it there are
-    no negatives and the verification output learns from positives alone.
+    no negatives and the verification output learns from positives alone. With
+    ``cfg.first_stage_starts``, ``starts_of(samples, images)`` gives where the first stage put each
+    visible crossing (:func:`mine_starts`), called and kept alike.
 
     ``out/refine_last.pt`` holds the weights, optimiser, the negatives and the epochs done with their
     losses after every epoch. A finished one with the same settings is returned as it is, without
@@ -347,6 +376,7 @@ def train_refiner(
     payload = resume_stage(last, net, opt, load=load, settings=_training_settings, want=want, data=data)
     history: list[dict[str, float]] = payload["history"] if payload else []
     negatives: list[np.ndarray] | None = payload.get("negatives") if payload else None
+    starts: list[np.ndarray] | None = payload.get("starts") if payload else None
     if len(history) < cfg.epochs:  # otherwise a finished stage: kept as it is
         threads_before = torch.get_num_threads()
         torch.set_num_threads(cfg.threads)
@@ -364,11 +394,16 @@ def train_refiner(
                     )
             elif negatives is None:
                 negatives = [np.zeros((0, 2)) for _ in samples]
+            if starts is None and cfg.first_stage_starts > 0 and starts_of is not None:
+                if images is None:
+                    images = read_images(samples)
+                starts = starts_of(samples, images)
             _epochs(
                 net,
                 opt,
                 history,
                 negatives,
+                starts,
                 samples,
                 images,
                 out,
@@ -393,6 +428,7 @@ def _epochs(
     opt: torch.optim.Optimizer,
     history: list[dict[str, float]],
     negatives: list[np.ndarray],
+    starts: list[np.ndarray] | None,
     samples: list[Sample],
     images: list[np.ndarray] | None,
     out: Path,
@@ -408,7 +444,9 @@ def _epochs(
     steps = steps_per_epoch(samples, negatives, cfg)
     total = cfg.epochs * steps
     first = len(history) + 1
-    batches = patch_batches(samples, negatives, cfg, aug, seed=seed, first=first, images=images)
+    batches = patch_batches(
+        samples, negatives, cfg, aug, seed=seed, first=first, images=images, starts=starts
+    )
     for epoch in range(first, cfg.epochs + 1):
         net.train()
         t0, loss_sum, err_sum = time.perf_counter(), 0.0, 0.0
@@ -474,4 +512,13 @@ def _epochs(
                 f"mean error {err_sum / steps:.2f} px on jittered training patches{checked}",
                 file=sys.stderr,
             )
-        save(last, net, cfg, optimizer=opt.state_dict(), history=history, negatives=negatives, data=data)
+        save(
+            last,
+            net,
+            cfg,
+            optimizer=opt.state_dict(),
+            history=history,
+            negatives=negatives,
+            starts=starts,
+            data=data,
+        )

@@ -80,6 +80,7 @@ from rebar_data.perception.refine_train import (
     PatchNet,
     calibration_patches,
     mine_negatives,
+    mine_starts,
     train_refiner,
     with_lower_mat,
 )
@@ -418,6 +419,12 @@ def _run(
             samples, mined, r.lower_mat_negatives, gate_px=r.negative_gate_px, seed=cfg.seed
         )
 
+    def starts_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
+        first, _, _ = load_checkpoint(first_path)  # where the trained first stage puts the crossings
+        return mine_starts(
+            Detector.from_network(first), samples, cfg.refine, images=images, progress=progress
+        )
+
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = train_samples + refine_extra * cfg.refine.supplement_repeats
     refiner, refine_history = None, []
@@ -429,6 +436,7 @@ def _run(
             cfg.augment,
             seed=cfg.seed,
             negatives_of=negatives_of,
+            starts_of=starts_of,
             data=_names(refine_supplements) + negatives_from,
             progress=progress,
         )

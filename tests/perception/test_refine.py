@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import dataclasses
 import json
 import shutil
 
@@ -13,12 +14,13 @@ from rebar_data.perception.config import AugmentConfig, RefineConfig
 from rebar_data.perception.data import load_split, read_image
 from rebar_data.perception.infer import Detector, verified_score
 from rebar_data.perception.refine import Refiner, patches, shrunk, shrunk_around, stage_input
-from rebar_data.perception.refine_data import patch_batches, patch_geometry, training_patch
+from rebar_data.perception.refine_data import patch_batch, patch_batches, patch_geometry, training_patch
 from rebar_data.perception.refine_train import (
     build,
     calibration_patches,
     export_onnx,
     mine_negatives,
+    mine_starts,
     quantize_onnx,
     train_refiner,
 )
@@ -593,3 +595,67 @@ def test_mined_negatives_are_first_stage_detections_away_from_every_crossing(tra
         np.testing.assert_allclose(neg, found[far])
         total += len(neg)
     assert total > 0
+
+
+class _Found:
+    """A stand-in first stage: the given detections (u, v, score) for each image, by file."""
+
+    depth_check = None
+
+    def __init__(self, by_file: dict[str, np.ndarray]):
+        self.by_file = by_file
+        self.paths: list[str] = []
+
+    def detect(self, rgb, *, threshold, camera=None, depth=None, point="sight"):
+        return self.by_file[self.paths.pop(0)]
+
+
+def test_mined_starts_are_where_the_first_stage_put_each_crossing(drawn_dataset):
+    """Each visible crossing's start is the first stage's detection nearest it, within the gate and not
+    nearer another crossing; NaN where it found none near."""
+    s = load_split(drawn_dataset, "train")[0]
+    a, b = s.visible[0], s.visible[1]
+    pair = dataclasses.replace(s, visible=np.array([a, b, a + [4.0, 0.0]]), box_size_px=np.full(3, 30.0))
+    found = np.array([[a[0] + 1.0, a[1] - 0.5, 0.9], [b[0] + 7.0, b[1], 0.8], [-50.0, -50.0, 0.7]])
+    det = _Found({str(s.path): found})
+    det.paths = [str(s.path)]  # a file listed twice runs once
+    cfg = RefineConfig(negative_gate_px=6.0)
+    starts = mine_starts(det, [pair, pair], cfg, images=[np.zeros((s.height, s.width, 3), np.uint8)] * 2)
+    assert len(starts) == 2 and not det.paths
+    for got in starts:
+        np.testing.assert_allclose(got[0], a + [1.0, -0.5])  # 1.1 px away: its start
+        assert np.isnan(got[1]).all()  # the nearest detection 7 px away: beyond the gate
+        # 3 px from the detection too, but the detection is nearer the first crossing: no start
+        assert np.isnan(got[2]).all()
+
+
+def test_a_crossing_with_a_start_is_cut_where_the_first_stage_put_it(drawn_dataset):
+    """With ``first_stage_starts`` 1 every crossing with a start is cut centred there (within the start's
+    jitter), its offset the way back to the crossing; one without a start gets the drawn error."""
+    samples = load_split(drawn_dataset, "train")[:2]
+    images = [read_image(x.path) for x in samples]
+    error = np.array([3.0, -2.0])
+    starts = [x.visible + error for x in samples]
+    starts[1][:] = np.nan
+    rows = np.array([(i, k, 1) for i, x in enumerate(samples) for k in range(len(x.visible))])
+    cfg = RefineConfig(
+        first_stage_starts=1.0,
+        jitter_px=0.0,
+        jitter_uniform_fraction=0.0,
+        border_fraction=0.0,
+        scale=(1.0, 1.0),
+        size=False,
+    )
+    rng = np.random.default_rng(0)
+    _, y, labelled, _ = patch_batch(
+        rows, images.__getitem__, samples, [np.zeros((0, 2))] * 2, rng, cfg, STILL, starts
+    )
+    assert labelled.all()
+    y = y.numpy()
+    first = rows[:, 0] == 0
+    # at scale 1 (turned and flipped at random) the offset is as long as the error, up to the start's
+    # jitter (0.5 px, Gaussian)
+    length = np.linalg.norm(y[first, :2], axis=1)
+    assert np.mean(length) == pytest.approx(np.linalg.norm(error), abs=0.3)
+    assert np.abs(length - np.linalg.norm(error)).max() < 4 * 0.5
+    np.testing.assert_allclose(y[~first, :2], 0.0, atol=1e-6)  # no start, no jitter: centred on it
