@@ -246,7 +246,13 @@ def write_card(
                 *(
                     [
                         f"  It reads each patch in {refine['views']} views (turned and flipped, one batch) and places the"
-                        " crossing at the mean of their offsets, turned back; the verification is the plain view's.",
+                        " crossing at the mean of their offsets, turned back; the verification is the plain view's."
+                        + (
+                            f" Its first pass reads {refine['first_pass_views']}"
+                            f" view{'s' if refine['first_pass_views'] > 1 else ''}."
+                            if refine.get("first_pass_views", refine["views"]) != refine["views"]
+                            else ""
+                        ),
                     ]
                     if refine.get("views", 1) > 1
                     else []

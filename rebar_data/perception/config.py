@@ -231,6 +231,18 @@ class RefineConfig(Strict):
     `pipelines/smoke.yaml` it scored 7 of its 325 test crossings 0.31-0.48, under the operating point
     (PCK@2px 0.963, below the acceptance floor of 0.97; the default: 0.975), so the default stays.
 
+    Since then (the border mask, verification, Cycles supplements, the size output and two passes) the
+    same wider layers, 11 epochs over `make train`'s data (19.4 minutes, 248 k parameters; the first
+    stage and depth check kept), against (16, 24, 32, 48) (PCK@2px / recall@P0.99, with depth unless
+    marked): paper-tunnel val 0.969 / 0.995 (0.962 / 0.995); test 0.955 / 0.987, AP@0.5:0.95 0.930,
+    PCK@1px 0.804 (0.944 / 0.986, 0.917, 0.773); test RGB 0.951 / 0.964 (0.941 / 0.963); planar-slab
+    0.842 / 0.884 (0.820 / 0.853); from RGB alone crossval-planar 0.953 / 0.817, AP@0.5 0.960 (0.946 /
+    0.793, 0.957) and crossval-tunnel 0.931 / 0.730, AP@0.5 0.949 (0.925 / 0.737, 0.947); with depth
+    0.958 / 0.974 and 0.935 / 0.962 (0.950 / 0.974, 0.929 / 0.974). Its training patches' mean error
+    0.96 px after the last epoch (1.03), 63.6% of the negatives classed rightly (60.5%). It places
+    crossings better everywhere, Cycles' included, and costs 1.16x the detector's time a frame (16.5
+    against 14.2 ms in the same process; ``first_pass_views`` buys most of it back), so it ships.
+
     Second-stage supplements (``rebar train --refine-supplement``; `make train` passes the Cycles-rendered
     ``pipelines/cycles-train-*.yaml``) join this stage's training images alone, each image listed
     ``supplement_repeats`` times (each time with its own jitter and colour changes), so that a few dozen
@@ -312,6 +324,17 @@ class RefineConfig(Strict):
     and 10.1 ms a frame (90th percentile 8.2, 12.3 and 19.8 ms; `rebar bench`'s 8 rendered frames, 47
     candidates each, load 0.2), so the default is 2 (a half turn), within 15 ms at the 90th percentile.
 
+    ``first_pass_views`` (inference only, stored in the model file; files written before it read every
+    pass in ``views``): the views the first pass reads. The first pass needs only to come within the
+    later pass's reach, and its verification and size are the plain view's either way. With the wider
+    layers, one view in the first pass and two in the second against two in both: paper-tunnel val
+    PCK@2px 0.967, AP@0.5:0.95 0.953 (0.969, 0.956); test 0.953 / 0.988, AP@0.5:0.95 0.927 (0.955 /
+    0.987, 0.930); test RGB 0.950 / 0.965 (0.951 / 0.964); planar-slab 0.834 / 0.879 (0.842 / 0.884);
+    crossval-planar RGB 0.959 / 0.817 (0.953 / 0.817), crossval-tunnel RGB 0.930 / 0.730 (0.931 / 0.730).
+    The detector's time a frame (`rebar bench`'s 8 rendered frames, the four set-ups timed in turn in one
+    process, three rounds, load 0.7-0.9): 14.8 ms against 16.5, where the narrower layers took 14.2 with
+    two views in both passes and 12.4 with one in the first. So the default is 1.
+
     ``iterations`` (inference only, stored in the model file): passes of the second stage. Each later pass
     reads the patch centred where the pass before placed the crossing, and moves the point ``step`` of
     the way to where it places it now; the verification stays the first pass's. The first pass starts
@@ -380,7 +403,7 @@ class RefineConfig(Strict):
 
     enabled: bool = True
     patch_px: Annotated[int, Field(ge=16, multiple_of=8)] = 32
-    widths: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 24, 32, 48)
+    widths: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (24, 32, 48, 64)
     blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (1, 1, 1)
     hidden: PositiveInt = 128
     epochs: PositiveInt = 11
@@ -411,6 +434,7 @@ class RefineConfig(Strict):
     context_scale: NonNegativeInt = 0
     supplement_repeats: PositiveInt = 6
     views: Literal[1, 2, 4, 8] = 2
+    first_pass_views: Literal[1, 2, 4, 8] = 1
     size: bool = True
     size_weight: Positive = 1.0
     shrink_above_px: tuple[Positive, Positive] = (50.0, 90.0)

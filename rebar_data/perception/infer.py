@@ -399,6 +399,7 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
         return None
     path, entry = found
     iterations, views = int(entry.get("iterations", 1)), int(entry.get("views", 1))
+    first_views = int(entry.get("first_pass_views", views))  # files written before it: every pass alike
     step = float(entry.get("step", 1.0))  # files written before it was stored: each pass all the way
     shrink = entry.get("shrink_above_px")  # None: every pass at full resolution
     if path.suffix == ".onnx":
@@ -410,11 +411,19 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
             views=views,
             step=step,
             shrink_above_px=shrink,
+            first_pass_views=first_views,
         )
     from rebar_data.perception.refine_train import load
 
     net, _, _ = load(path)
-    return Refiner.from_network(net, iterations=iterations, views=views, step=step, shrink_above_px=shrink)
+    return Refiner.from_network(
+        net,
+        iterations=iterations,
+        views=views,
+        step=step,
+        shrink_above_px=shrink,
+        first_pass_views=first_views,
+    )
 
 
 def _check_image(rgb: np.ndarray) -> np.ndarray:

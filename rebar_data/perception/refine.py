@@ -176,7 +176,8 @@ class Refiner:
     :data:`SYMMETRIES`, in one batch) and averages the offsets, turned back: the network trained on
     patches turned and flipped alike, so each view is another draw of its placement errors. The
     verification logit stays the plain view's (averaged too, it lowered recall at precision 0.99 on the
-    curved Cycles set: :class:`~rebar_data.perception.config.RefineConfig` ``views``).
+    curved Cycles set: :class:`~rebar_data.perception.config.RefineConfig` ``views``). The first pass
+    reads ``first_pass_views`` views (None: ``views``).
 
     With ``iterations`` > 1 each later pass reads the patch centred where the pass before placed the
     crossing and moves the point ``step`` of the way to where it places it (1: all the way); the
@@ -199,15 +200,19 @@ class Refiner:
         step: float = 1.0,
         sizes: bool = False,
         shrink_above_px: tuple[float, float] | None = None,
+        first_pass_views: int | None = None,
     ):
-        if views not in VIEWS:
-            raise ConfigError(
-                f"views = {views} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}"
-            )
+        first_pass_views = views if first_pass_views is None else first_pass_views
+        for name, value in (("views", views), ("first_pass_views", first_pass_views)):
+            if value not in VIEWS:
+                raise ConfigError(
+                    f"{name} = {value} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}"
+                )
         if not 0.0 < step <= 1.0:
             raise ConfigError(f"step = {step} is not accepted; accepted: a number above 0, at most 1")
         self._run = run
         self.views = views
+        self.first_pass_views = first_pass_views
         self.step = step
         self.patch_px = patch_px
         self.border = border
@@ -226,6 +231,7 @@ class Refiner:
         views: int = 1,
         step: float = 1.0,
         shrink_above_px: tuple[float, float] | None = None,
+        first_pass_views: int | None = None,
     ) -> Refiner:
         """Wrap a :class:`~rebar_data.perception.refine_train.PatchNet` (eager PyTorch)."""
         import torch
@@ -249,6 +255,7 @@ class Refiner:
             step=step,
             sizes=net.size,
             shrink_above_px=shrink_above_px,
+            first_pass_views=first_pass_views,
         )
 
     @classmethod
@@ -262,6 +269,7 @@ class Refiner:
         views: int = 1,
         step: float = 1.0,
         shrink_above_px: tuple[float, float] | None = None,
+        first_pass_views: int | None = None,
     ) -> Refiner:
         """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
         meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on)."""
@@ -298,6 +306,7 @@ class Refiner:
             step=step,
             sizes=columns == 4,
             shrink_above_px=shrink_above_px,
+            first_pass_views=first_pass_views,
         )
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -310,7 +319,7 @@ class Refiner:
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
             return uv, (np.zeros(0) if self.verifies else None)
-        corners, out = self._read_at(image, uv)
+        corners, out = self._read_at(image, uv, self.first_pass_views)
         logit = out[:, 2].copy() if self.verifies else None
         box = None  # the first pass's sizes, when later passes read by them
         if self.sizes and self.shrink_above_px is not None:
@@ -325,14 +334,17 @@ class Refiner:
         shows it; needs a refiner with a size output."""
         if not self.sizes:
             raise ConfigError("this refiner has no size output; accepted: one trained with size: true")
-        return self.patch_px * np.exp(self._read_at(image, uv)[1][:, 3])
+        return self.patch_px * np.exp(self._read_at(image, uv, self.first_pass_views)[1][:, 3])
 
-    def _read_at(self, image: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The corners the patches around ``uv`` are centred on, and the network's output for them."""
+    def _read_at(
+        self, image: np.ndarray, uv: np.ndarray, views: int | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The corners the patches around ``uv`` are centred on, and the network's output for them, read in
+        ``views`` views (None: ``self.views``)."""
         x, corners = stage_input(
             image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
         )
-        return corners, self._read(x)
+        return corners, self._read(x, self.views if views is None else views)
 
     def _placed_at_size(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None) -> np.ndarray:
         """Where each point's patch places its crossing, read at the resolution of :data:`SHRINKS` its
@@ -357,14 +369,14 @@ class Refiner:
             placed[pick] = (corners + out[:, :2]) / factors
         return placed
 
-    def _read(self, x: np.ndarray) -> np.ndarray:
-        """The network's output for patches ``x``: the offsets averaged over the views (turned back), the
-        rest the plain view's."""
-        if self.views == 1:
+    def _read(self, x: np.ndarray, views: int) -> np.ndarray:
+        """The network's output for patches ``x``: the offsets averaged over ``views`` views (turned back),
+        the rest the plain view's."""
+        if views == 1:
             return self._run(x).astype(np.float64)
-        sym = SYMMETRIES[: self.views]
+        sym = SYMMETRIES[:views]
         out = self._run(np.ascontiguousarray(np.concatenate([turned(x, s) for s in sym]))).astype(np.float64)
-        out = out.reshape(self.views, len(x), -1)
+        out = out.reshape(views, len(x), -1)
         plain = out[0].copy()  # SYMMETRIES[0] is the identity
         plain[:, :2] = np.mean([turned_back(o[:, :2], s) for o, s in zip(out, sym, strict=True)], axis=0)
         return plain

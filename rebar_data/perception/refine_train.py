@@ -50,6 +50,7 @@ EXPORT_ONLY = {
     "verify_power",
     "verify_power_with_depth",
     "views",
+    "first_pass_views",
     "iterations",
     "step",
     "shrink_above_px",

@@ -591,6 +591,7 @@ def _finish(
             "verify_power_with_depth": cfg.refine.verify_power_with_depth,
             "context_scale": cfg.refine.context_scale,
             "views": cfg.refine.views,
+            "first_pass_views": cfg.refine.first_pass_views,
             "sha256": sha256_file(onnx_path),
         }
     if depth_net is not None:

@@ -147,3 +147,18 @@ def test_shipped_model_detects_the_crossings_of_a_freshly_rendered_frame(tmp_pat
     px = pixel_metrics([Truth(truth, box)], [det])
     assert px.recall >= 0.95 and px.precision >= 0.95, (px.recall, px.precision)
     assert px.pck[2.0] >= 0.9 and px.median_px < 1.0, (px.pck, px.median_px)
+
+
+def test_a_model_file_without_first_pass_views_reads_every_pass_in_its_views():
+    """Files written before ``first_pass_views`` was stored ran their first pass in ``views`` views, and
+    load so; one that stores it reads its first pass so."""
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    meta = Detector.load(threads=1).meta
+    entry = {k: v for k, v in meta["refiner"].items() if k != "first_pass_views"} | {"views": 4}
+    old = infer._load_refiner(infer.SHIPPED_MODEL, {**meta, "refiner": entry}, 1)
+    assert old.views == old.first_pass_views == 4
+    stored = infer._load_refiner(
+        infer.SHIPPED_MODEL, {**meta, "refiner": {**entry, "first_pass_views": 1}}, 1
+    )
+    assert stored.views == 4 and stored.first_pass_views == 1

@@ -127,6 +127,27 @@ def test_a_later_pass_moves_the_point_its_step_of_the_way():
             Refiner(run, patch_px=16, iterations=2, verifies=True, step=step)
 
 
+def test_the_first_pass_reads_its_own_number_of_views():
+    """``first_pass_views`` views in the first pass, ``views`` in each later one (one batch each); without
+    it every pass reads ``views``; a count that is no symmetry group's size is refused by name."""
+    calls = []
+
+    def run(x: np.ndarray) -> np.ndarray:
+        calls.append(len(x))
+        return np.zeros((len(x), 3), np.float32)
+
+    img = np.zeros((40, 50, 3), np.uint8)
+    start = np.array([[20.0, 15.0], [30.0, 22.0]])
+    for first, want in ((1, [2, 4, 4]), (4, [8, 4, 4]), (None, [4, 4, 4])):
+        calls.clear()
+        Refiner(
+            run, patch_px=16, iterations=3, verifies=True, views=2, first_pass_views=first
+        ).refine_and_verify(img, start)
+        assert calls == want
+    with pytest.raises(ConfigError, match="first_pass_views = 3"):
+        Refiner(run, patch_px=16, iterations=2, verifies=True, first_pass_views=3)
+
+
 def test_a_refiner_with_sizes_reads_a_large_crossing_again_from_the_shrunk_image():
     """A stand-in network that reads a spot's centroid and says the crossing's box is ``box`` px: the later
     pass reads the patch at full resolution, at 0.75 or at 0.5 as the box exceeds neither, the first or
