@@ -212,6 +212,13 @@ def run(repeats: int = 100) -> list[str]:
             f"{'met' if med <= BUDGET_MS else 'MISSED'})"
         )
         lines += _stages(lat)
+        if det.depth_check is not None:  # a camera without depth: the RGB stages alone, on the same frames
+            rgb_only = detector_latency(det, [(f[0], None) for f in frames], repeats=repeats)
+            lines.append(
+                f"perception:   without the depth image (the RGB stages alone): median {rgb_only.median_ms:.1f} ms, "
+                f"p90 {rgb_only.p90_ms:.1f} ms ({rgb_only.median_ms / med:.2f}x the call with depth; budget "
+                f"{BUDGET_MS:g} ms: {'met' if rgb_only.median_ms <= BUDGET_MS else 'MISSED'})"
+            )
         if det.crossing_point is not None:  # the 3D crossing points as well, on the same frames
             each = max(3, -(-repeats // len(frames)))
             both = np.concatenate(

@@ -245,7 +245,12 @@ class Detector:
         det = decode(out[0] + bias, out[1:], threshold=threshold, max_detections=max_detections)
         log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing (0: no verification)
         if self.refiner is not None and len(det):
-            det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2])
+            scores = det[:, 2].copy()
+            det[:, :2], verify = self.refiner.refine_and_verify(
+                image,
+                det[:, :2],
+                keep=lambda logit: self._may_reach(scores, logit, threshold, checked=checked, bias=bias),
+            )
             if verify is not None:
                 log_p = log_probability(verify)
         power = np.full(len(det), self.verify_power)  # the verification's weight, per detection
@@ -266,6 +271,25 @@ class Detector:
         if point == "crossing" and len(det):
             det[:, :2] = self.crossing_point.points(image, det[:, :2], camera)
         return det
+
+    def _may_reach(
+        self, score: np.ndarray, verify_logit: np.ndarray, threshold: float, *, checked: bool, bias: float
+    ) -> np.ndarray:
+        """Which of the first stage's detections (``score``, read with the score bias ``bias``) can still
+        score ``threshold`` once the second stage's verification (``verify_logit``) counts: the highest
+        final score each can reach, whatever the depth check says (it only lowers a score, and a detection
+        it has no measurement for is scored as without depth). The later passes are spent on these alone;
+        the others never reach the caller."""
+        log_p = log_probability(verify_logit)
+        best = self.verify_power * log_p
+        if checked:
+            best = np.maximum(
+                self.verify_power_with_depth * log_p,
+                self.score_bias_without_depth - bias + self.verify_power * log_p,
+            )
+        t = min(max(threshold, 1e-12), 1 - 1e-12)
+        # a hair below the threshold's logit: rounding never spares a detection that reaches it
+        return np.log(score / (1 - score)) + best >= np.log(t / (1 - t)) - 1e-6
 
 
 def drop_duplicates(det: np.ndarray, radius_px: float) -> np.ndarray:

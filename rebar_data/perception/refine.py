@@ -313,9 +313,19 @@ class Refiner:
         """(N, 2) refined positions of the (N, 2) points ``uv`` in ``image`` (pixels, COCO corner origin)."""
         return self.refine_and_verify(image, uv)[0]
 
-    def refine_and_verify(self, image: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+    def refine_and_verify(
+        self,
+        image: np.ndarray,
+        uv: np.ndarray,
+        *,
+        keep: Callable[[np.ndarray], np.ndarray] | None = None,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
         """The refined positions (N, 2) and, when the refiner verifies, (N,) logits that each point's
-        first patch (centred where the first stage put it) shows a crossing; None otherwise."""
+        first patch (centred where the first stage put it) shows a crossing; None otherwise.
+
+        ``keep`` (for a refiner that verifies) takes the first pass's logits and says which points the
+        later passes go on moving; the others stay where the first pass placed them (the detector drops
+        those its verification has already put under its threshold, so their later passes are spared)."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
             return uv, (np.zeros(0) if self.verifies else None)
@@ -325,9 +335,20 @@ class Refiner:
         if self.sizes and self.shrink_above_px is not None:
             box = self.patch_px * np.exp(out[:, 3])
         uv = corners + out[:, :2]
+        if self.iterations > 1 and keep is not None and logit is not None:
+            moving = np.asarray(keep(logit), bool)
+            if not moving.all():
+                uv[moving] = self._later_passes(image, uv[moving], None if box is None else box[moving])
+                return uv, logit
+        return self._later_passes(image, uv, box), logit
+
+    def _later_passes(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None) -> np.ndarray:
+        """``uv`` moved by the passes after the first (each ``step`` of the way to where it places them)."""
         for _ in range(1, self.iterations):
+            if not len(uv):
+                break
             uv = uv + self.step * (self._placed_at_size(image, uv, box) - uv)
-        return uv, logit
+        return uv
 
     def box_sizes(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N,) each point's crossing's box side in pixels (four bar diameters), as the patch centred there

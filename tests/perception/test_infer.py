@@ -162,3 +162,32 @@ def test_a_model_file_without_first_pass_views_reads_every_pass_in_its_views():
         infer.SHIPPED_MODEL, {**meta, "refiner": {**entry, "first_pass_views": 1}}, 1
     )
     assert stored.views == 4 and stored.first_pass_views == 1
+
+
+def test_the_later_passes_skip_only_detections_that_cannot_reach_the_threshold(monkeypatch):
+    """The detector spares the second stage's later passes for the detections its verification has put
+    out of reach of the threshold (with or without depth); what it returns is what it returns without
+    sparing them, at the operating point and at a low threshold."""
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    from rebar_data.perception.bench import drawn_frame
+
+    det = Detector.load(threads=1)
+    rgb, depth = drawn_frame()  # dense with bars on the ground: many candidates the later stages reject
+    may_reach = Detector._may_reach
+    spared = []
+
+    def counted(self, score, *args, **kwargs):
+        keep = may_reach(self, score, *args, **kwargs)
+        spared.append(int((~keep).sum()))
+        return keep
+
+    for threshold in (0.5, 0.05):
+        for d in (depth, None):
+            monkeypatch.setattr(Detector, "_may_reach", counted)
+            got = det.detect(rgb, depth=d, threshold=threshold)
+            monkeypatch.setattr(
+                Detector, "_may_reach", lambda self, score, *a, **k: np.ones(len(score), bool)
+            )
+            np.testing.assert_array_equal(got, det.detect(rgb, depth=d, threshold=threshold))
+    assert spared[0] > 0  # at the operating point some really were spared

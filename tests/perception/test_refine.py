@@ -144,6 +144,12 @@ def test_the_first_pass_reads_its_own_number_of_views():
             run, patch_px=16, iterations=3, verifies=True, views=2, first_pass_views=first
         ).refine_and_verify(img, start)
         assert calls == want
+    # ``keep`` says which points the later passes go on moving: only those are read again
+    calls.clear()
+    r = Refiner(run, patch_px=16, iterations=3, verifies=True, views=1)
+    kept = r.refine_and_verify(img, start, keep=lambda logit: np.array([False, True]))[0]
+    assert calls == [2, 1, 1]
+    np.testing.assert_array_equal(kept, r.refine_and_verify(img, start)[0])  # the stand-in never moves them
     with pytest.raises(ConfigError, match="first_pass_views = 3"):
         Refiner(run, patch_px=16, iterations=2, verifies=True, first_pass_views=3)
 
