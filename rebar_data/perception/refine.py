@@ -335,12 +335,11 @@ class Refiner:
         if self.sizes and self.shrink_above_px is not None:
             box = self.patch_px * np.exp(out[:, 3])
         uv = corners + out[:, :2]
+        moving = slice(None)  # the points the later passes move: all, or those ``keep`` names
         if self.iterations > 1 and keep is not None and logit is not None:
             moving = np.asarray(keep(logit), bool)
-            if not moving.all():
-                uv[moving] = self._later_passes(image, uv[moving], None if box is None else box[moving])
-                return uv, logit
-        return self._later_passes(image, uv, box), logit
+        uv[moving] = self._later_passes(image, uv[moving], None if box is None else box[moving])
+        return uv, logit
 
     def _later_passes(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None) -> np.ndarray:
         """``uv`` moved by the passes after the first (each ``step`` of the way to where it places them)."""
