@@ -223,7 +223,11 @@ class RefineConfig(Strict):
     0.955 (0.946 / 0.793, 0.957) and crossval-tunnel 0.915 / 0.731, AP@0.5 0.936 (0.925 / 0.737, 0.947).
     Started 2-3 px off it leaves 7.7% beyond 2 px (10.1%), 3-4 px off 28.6% (27.1%): it learnt the
     near misses, not the crossings the patch misleads it on, and it placed the curved Cycles set's
-    crossings worse, so the default is 0 (no mining, the batches as before it existed).
+    crossings worse, so the default is 0 (no mining, the batches as before it existed). With the wider
+    layers (first pass in one view) at 0.5, against the shipped stage: paper-tunnel test 0.955 / 0.989
+    (0.953 / 0.988), test RGB 0.951 / 0.965 (0.950 / 0.965), planar-slab 0.845 / 0.871 (0.834 / 0.879);
+    from RGB alone crossval-planar 0.958 / 0.807, AP@0.5 0.969 (0.959 / 0.817, 0.961) and crossval-tunnel
+    0.931 / 0.673 (0.930 / 0.730): again no clear gain on Cycles' frames, and recall@P0.99 lost there.
 
     Wider layers, (24, 32, 48, 64) for 12 epochs (248 k parameters against 159 k), placed crossings
     better on paper-tunnel's test split (PCK@2px 0.920, AP@0.5:0.95 0.905, median 0.52 px) in as much
