@@ -211,7 +211,7 @@ class RefineConfig(Strict):
 
     ``first_stage_starts``: this share of the labelled crossings' patches is cut where the trained first
     stage put the crossing on that training image (within 0.5 px, Gaussian; ``refine_train.mine_starts``
-    finds each crossing's detection, run once more over the second stage's images, about 40 s), the rest
+    finds each crossing's detection, from the same run of the first stage as the mined negatives), the rest
     jittered as above. Why: the second stage places a crossing the worse the farther the first stage
     started it. Of paper-tunnel's test crossings the first stage put 3-4 px off, 27% end beyond 2 px
     after both passes (1-2 px off: 2.1%), where the same network started on the labelled point leaves

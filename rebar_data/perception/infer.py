@@ -245,11 +245,10 @@ class Detector:
         det = decode(out[0] + bias, out[1:], threshold=threshold, max_detections=max_detections)
         log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing (0: no verification)
         if self.refiner is not None and len(det):
-            scores = det[:, 2].copy()
             det[:, :2], verify = self.refiner.refine_and_verify(
                 image,
                 det[:, :2],
-                keep=lambda logit: self._may_reach(scores, logit, threshold, checked=checked, bias=bias),
+                keep=lambda logit: self._may_reach(det[:, 2], logit, threshold, checked=checked, bias=bias),
             )
             if verify is not None:
                 log_p = log_probability(verify)
@@ -287,9 +286,8 @@ class Detector:
                 self.verify_power_with_depth * log_p,
                 self.score_bias_without_depth - bias + self.verify_power * log_p,
             )
-        t = min(max(threshold, 1e-12), 1 - 1e-12)
-        # a hair below the threshold's logit: rounding never spares a detection that reaches it
-        return np.log(score / (1 - score)) + best >= np.log(t / (1 - t)) - 1e-6
+        # a hair above the best: rounding never spares a detection that reaches the threshold
+        return shifted_score(score, best + 1e-6) >= threshold
 
 
 def drop_duplicates(det: np.ndarray, radius_px: float) -> np.ndarray:
@@ -422,32 +420,22 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
     if found is None:
         return None
     path, entry = found
-    iterations, views = int(entry.get("iterations", 1)), int(entry.get("views", 1))
-    first_views = int(entry.get("first_pass_views", views))  # files written before it: every pass alike
-    step = float(entry.get("step", 1.0))  # files written before it was stored: each pass all the way
-    shrink = entry.get("shrink_above_px")  # None: every pass at full resolution
+    views = int(entry.get("views", 1))
+    passes = {  # how the passes run, as the file says (keys written later default to how older files ran)
+        "iterations": int(entry.get("iterations", 1)),
+        "views": views,
+        "first_pass_views": int(entry.get("first_pass_views", views)),  # every pass alike
+        "step": float(entry.get("step", 1.0)),  # each pass all the way
+        "shrink_above_px": entry.get("shrink_above_px"),  # None: every pass at full resolution
+    }
     if path.suffix == ".onnx":
         return Refiner.load_onnx(
-            path,
-            threads=threads,
-            iterations=iterations,
-            context_scale=int(entry.get("context_scale", 0)),
-            views=views,
-            step=step,
-            shrink_above_px=shrink,
-            first_pass_views=first_views,
+            path, threads=threads, context_scale=int(entry.get("context_scale", 0)), **passes
         )
     from rebar_data.perception.refine_train import load
 
     net, _, _ = load(path)
-    return Refiner.from_network(
-        net,
-        iterations=iterations,
-        views=views,
-        step=step,
-        shrink_above_px=shrink,
-        first_pass_views=first_views,
-    )
+    return Refiner.from_network(net, **passes)
 
 
 def _check_image(rgb: np.ndarray) -> np.ndarray:

@@ -113,8 +113,13 @@ def shrunk(image: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
     """``image`` shrunk ``scale`` times (area averaging, each side rounded), and the (2,) factors that take a
     point's (u, v) in ``image`` to the shrunk one (COCO corner origin in both)."""
     h, w = image.shape[:2]
-    size = (max(1, round(w / scale)), max(1, round(h / scale)))
+    size = _shrunk_size(h, w, scale)
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA), np.array([size[0] / w, size[1] / h])
+
+
+def _shrunk_size(h: int, w: int, scale: float) -> tuple[int, int]:
+    """(width, height) of an h x w image shrunk ``scale`` times, each side rounded."""
+    return max(1, round(w / scale)), max(1, round(h / scale))
 
 
 def shrunk_around(
@@ -129,11 +134,11 @@ def shrunk_around(
     not divide the image's sides into whole blocks, or ``scale`` is a whole number (OpenCV's own path for
     those shrinks a whole frame in about 0.06 ms), the whole image is shrunk (:func:`shrunk`)."""
     h, w = image.shape[:2]
-    out_w, out_h = max(1, round(w / scale)), max(1, round(h / scale))
+    out_w, out_h = _shrunk_size(h, w, scale)
     factors = np.array([out_w / w, out_h / h])
-    ratio = Fraction(out_w, w).limit_denominator(16)
+    ratio = Fraction(out_w, w).limit_denominator(16)  # blocks of at most 16 pixels a side
     p, q = ratio.numerator, ratio.denominator
-    if Fraction(out_h, h) != ratio or Fraction(out_w, w) != ratio or q > 16 or p == 1:
+    if Fraction(out_h, h) != ratio or Fraction(out_w, w) != ratio or p == 1:
         return shrunk(image, scale)
     canvas = np.zeros((out_h, out_w) + image.shape[2:], image.dtype)
     centres = np.asarray(centres, float).reshape(-1, 2)

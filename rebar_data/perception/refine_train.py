@@ -260,8 +260,16 @@ def mine_negatives(
     """Where ``detector`` (the trained first stage alone) finds crossings that are not there: per sample,
     its detections scoring at least ``cfg.negative_score`` that lie farther than ``cfg.negative_gate_px``
     from every visible crossing, as (M, 2) u, v."""
+    return negatives_in(
+        first_stage_detections(detector, samples, cfg, images=images, progress=progress), samples, cfg
+    )
+
+
+def negatives_in(found: list[np.ndarray], samples: list[Sample], cfg: RefineConfig) -> list[np.ndarray]:
+    """:func:`mine_negatives` from each sample's first-stage detections ``found``
+    (:func:`first_stage_detections`)."""
     out = []
-    for s, p in zip(samples, _found(detector, samples, cfg, images=images, progress=progress), strict=True):
+    for s, p in zip(samples, found, strict=True):
         uv = p[:, :2].reshape(-1, 2)
         if len(s.visible) and len(uv):
             gap = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2).min(axis=1)
@@ -276,8 +284,16 @@ def mine_starts(
     """Where ``detector`` (the trained first stage alone) puts each visible crossing: per sample (N, 2) u, v,
     its detection nearest the crossing when that lies within ``cfg.negative_gate_px`` and no other visible
     crossing lies nearer to it; NaN where there is none (``RefineConfig.first_stage_starts``)."""
+    return starts_in(
+        first_stage_detections(detector, samples, cfg, images=images, progress=progress), samples, cfg
+    )
+
+
+def starts_in(found: list[np.ndarray], samples: list[Sample], cfg: RefineConfig) -> list[np.ndarray]:
+    """:func:`mine_starts` from each sample's first-stage detections ``found``
+    (:func:`first_stage_detections`)."""
     out = []
-    for s, p in zip(samples, _found(detector, samples, cfg, images=images, progress=progress), strict=True):
+    for s, p in zip(samples, found, strict=True):
         starts = np.full((len(s.visible), 2), np.nan)
         uv = p[:, :2].reshape(-1, 2)
         if len(s.visible) and len(uv):
@@ -290,8 +306,8 @@ def mine_starts(
     return out
 
 
-def _found(
-    detector, samples: list[Sample], cfg: RefineConfig, *, images: list[np.ndarray], progress: bool
+def first_stage_detections(
+    detector, samples: list[Sample], cfg: RefineConfig, *, images: list[np.ndarray], progress: bool = False
 ) -> list[np.ndarray]:
     """``detector``'s detections scoring at least ``cfg.negative_score`` on each sample's image; a file
     listed more than once (a repeated supplement) is run once and its answer shared."""

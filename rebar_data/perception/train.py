@@ -79,8 +79,9 @@ from rebar_data.perception.model import KeypointNet, count_parameters
 from rebar_data.perception.refine_train import (
     PatchNet,
     calibration_patches,
-    mine_negatives,
-    mine_starts,
+    first_stage_detections,
+    negatives_in,
+    starts_in,
     train_refiner,
     with_lower_mat,
 )
@@ -409,21 +410,25 @@ def _run(
     if cfg.refine.lower_mat_negatives:
         negatives_from.append(f"lower-mat negatives: {cfg.refine.lower_mat_negatives}")
 
+    found: dict[int, list[np.ndarray]] = {}  # the trained first stage's detections, run once a sample list
+
+    def found_on(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
+        if id(samples) not in found:
+            first, _, _ = load_checkpoint(first_path)
+            found[id(samples)] = first_stage_detections(
+                Detector.from_network(first), samples, cfg.refine, images=images, progress=progress
+            )
+        return found[id(samples)]
+
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
-        first, _, _ = load_checkpoint(first_path)  # the trained first stage's misses
-        mined = mine_negatives(
-            Detector.from_network(first), samples, cfg.refine, images=images, progress=progress
-        )
+        mined = negatives_in(found_on(samples, images), samples, cfg.refine)  # the first stage's misses
         r = cfg.refine  # and the lower mat's crossings
         return with_lower_mat(
             samples, mined, r.lower_mat_negatives, gate_px=r.negative_gate_px, seed=cfg.seed
         )
 
     def starts_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
-        first, _, _ = load_checkpoint(first_path)  # where the trained first stage puts the crossings
-        return mine_starts(
-            Detector.from_network(first), samples, cfg.refine, images=images, progress=progress
-        )
+        return starts_in(found_on(samples, images), samples, cfg.refine)  # where it put the crossings
 
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = train_samples + refine_extra * cfg.refine.supplement_repeats
