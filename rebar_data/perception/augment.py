@@ -51,6 +51,38 @@ class Source:
     ignore: np.ndarray
     camera: tuple[float, float, float, float]
     hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    distractors: np.ndarray | None = None  # (H, W) bool: the distractors' pixels, when known
+
+
+def draw_gain(rng: np.random.Generator, cfg: AugmentConfig, distractors: np.ndarray | None) -> float | None:
+    """The factor :func:`distractor_gain` scales the distractors' pixels by this time (log-uniform in
+    ``cfg.distractor_gain``), or None for a ``1 - cfg.distractor_gain_probability`` share of calls. Draws
+    nothing when the share is 0 or the pixels are unknown, so runs without it get the random draws they
+    got before it existed."""
+    if distractors is None or cfg.distractor_gain_probability <= 0:
+        return None
+    if rng.uniform() >= cfg.distractor_gain_probability:
+        return None
+    lo, hi = np.log(cfg.distractor_gain)
+    return float(np.exp(rng.uniform(lo, hi)))
+
+
+def scaled_where(image: np.ndarray, where: np.ndarray, gain: float | None) -> np.ndarray:
+    """``image`` (H, W, C >= 3) with its colour at the ``where`` pixels times ``gain`` (a new array), or
+    ``image`` itself when ``gain`` is None."""
+    if gain is None:
+        return image
+    out = image.copy()
+    rgb = out[..., :3]
+    rgb[where] = np.clip(rgb[where] * np.float32(gain), 0, 255).astype(np.uint8)
+    return out
+
+
+def distractor_gain(
+    image: np.ndarray, distractors: np.ndarray | None, rng: np.random.Generator, cfg: AugmentConfig
+) -> np.ndarray:
+    """``image`` with the ``distractors`` pixels (H, W bool) scaled by :func:`draw_gain`'s factor."""
+    return scaled_where(image, distractors, draw_gain(rng, cfg, distractors))
 
 
 def index_matrix(crop_from_image: np.ndarray) -> np.ndarray:
@@ -136,7 +168,7 @@ def single_crop(src: Source, rng: np.random.Generator, *, size: int, cfg: Augmen
     centre = np.array([rng.uniform(0, w), rng.uniform(0, h)])
     crop_from_image = random_affine(rng, centre=centre, target=np.array([size / 2, size / 2]), cfg=cfg)
     fill = float(rng.uniform(0, 255))
-    out = warp(src.image, crop_from_image, size, fill=fill)
+    out = warp(distractor_gain(src.image, src.distractors, rng, cfg), crop_from_image, size, fill=fill)
     pos = apply_affine(src.positives, crop_from_image)
     ign = apply_affine(src.ignore, crop_from_image)
     keep = _inside(pos, 0, 0, size, size)
@@ -175,7 +207,7 @@ def mosaic_crop(
         crop_from_image = random_affine(
             rng, centre=centre, target=np.array([(x0 + x1) / 2, (y0 + y1) / 2]), cfg=cfg
         )
-        full = warp(src.image, crop_from_image, size, fill=fill)
+        full = warp(distractor_gain(src.image, src.distractors, rng, cfg), crop_from_image, size, fill=fill)
         i0, i1, j0, j1 = round(y0), round(y1), round(x0), round(x1)
         canvas[i0:i1, j0:j1] = full[i0:i1, j0:j1]
         rows = (cell >= i0) & (cell < i1)  # output cells whose centre lies in the pasted region

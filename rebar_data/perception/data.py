@@ -50,6 +50,8 @@ class Sample:
             midpoint, row for row with ``visible``; NaN where the dataset does not record it), None
             when the dataset's tables lack the 3D points.
         dataset: The dataset folder the image belongs to.
+        instance_path: The image's instance map (uint16 id + ``INSTANCE_OFFSET``), None when the
+            dataset has none.
     """
 
     image_id: str
@@ -64,6 +66,7 @@ class Sample:
     depth_path: Path | None = None
     crossings: np.ndarray | None = None
     dataset: Path | None = None
+    instance_path: Path | None = None
 
 
 def read_image(path: str | Path) -> np.ndarray:
@@ -72,6 +75,20 @@ def read_image(path: str | Path) -> np.ndarray:
     if bgr is None:
         raise ConfigError(f"{path}: cannot be read as an image; accepted: a PNG or JPEG file")
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def read_distractors(sample: Sample) -> np.ndarray | None:
+    """(H, W) bool: where the sample's instance map shows a distractor (the lower mat, spacers, loose tie
+    wire, formwork: one id, ``DISTRACTOR_ID``); None when the dataset has no instance map."""
+    if sample.instance_path is None:
+        return None
+    from rebar_data.dataset.worker import INSTANCE_OFFSET  # the dataset builder's: imported when needed
+    from rebar_data.scene.surroundings import DISTRACTOR_ID
+
+    ids = cv2.imread(str(sample.instance_path), cv2.IMREAD_UNCHANGED)
+    if ids is None or ids.ndim != 2:
+        raise ConfigError(f"{sample.instance_path}: cannot be read as a 16-bit instance PNG")
+    return ids == DISTRACTOR_ID + INSTANCE_OFFSET
 
 
 def read_images(samples: list[Sample]) -> list[np.ndarray]:
@@ -148,6 +165,7 @@ def load_split(root: str | Path, split: str, *, truth: str = "sight") -> list[Sa
         rows = order[lo:hi]
         v = vis[rows]
         depth = root / layout.depth_path(split, iid)
+        instances = root / layout.instance_path(split, iid)
         out.append(
             Sample(
                 image_id=iid,
@@ -162,6 +180,7 @@ def load_split(root: str | Path, split: str, *, truth: str = "sight") -> list[Sa
                 depth_path=depth if depth.exists() else None,
                 crossings=points[rows][v == 2] if points is not None else None,
                 dataset=root,
+                instance_path=instances if instances.exists() else None,
             )
         )
     return out

@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
-from rebar_data.perception.data import Sample, read_image
+from rebar_data.perception.data import Sample, read_distractors, read_image
 from rebar_data.perception.loss import detection_loss
 from rebar_data.perception.lower_mat import lower_mat_of
 from rebar_data.perception.model import STRIDE, KeypointNet
@@ -49,10 +49,18 @@ class WeightAverage:
 
 
 class TrainingImages:
-    """The training split's images (decoded once when caching) and their crossings."""
+    """The training split's images (decoded once when caching) and their crossings; with ``distractors``,
+    where each image's instance map shows the distractors (for ``AugmentConfig.distractor_gain``)."""
 
     def __init__(
-        self, samples: list[Sample], *, cache: bool, occluded: str, progress: bool, lower_mat: bool = False
+        self,
+        samples: list[Sample],
+        *,
+        cache: bool,
+        occluded: str,
+        progress: bool,
+        lower_mat: bool = False,
+        distractors: bool = False,
     ):
         self.samples = samples
         self.ignore_occluded = occluded == "ignore"
@@ -66,14 +74,25 @@ class TrainingImages:
             if cache
             else None
         )
+        self.distractors = distractors
+        self.masks = None
+        if distractors and cache:
+            by_file: dict[str, np.ndarray | None] = {}  # a repeated supplement's images share one mask
+            for s in samples:
+                if str(s.path) not in by_file:
+                    by_file[str(s.path)] = read_distractors(s)
+            self.masks = [by_file[str(s.path)] for s in samples]
 
     def pick(self, rng: np.random.Generator) -> Source:
         k = int(rng.integers(len(self.samples)))
         s = self.samples[k]
         image = self.images[k] if self.images is not None else read_image(s.path)
         hard = self.hard[k] if self.hard is not None else np.zeros((0, 2))
+        mask = None
+        if self.distractors:
+            mask = self.masks[k] if self.masks is not None else read_distractors(s)
         return Source(
-            image, s.visible, s.occluded if self.ignore_occluded else np.zeros((0, 2)), s.camera, hard
+            image, s.visible, s.occluded if self.ignore_occluded else np.zeros((0, 2)), s.camera, hard, mask
         )
 
 
@@ -144,6 +163,7 @@ class BatchStream(torch.utils.data.IterableDataset):
             occluded=self.cfg.occluded,
             progress=False,
             lower_mat=self.lower_mat_weight != 1.0,
+            distractors=self.cfg.augment.distractor_gain_probability > 0,
         )
         for epoch in range(self.first, self.last + 1):
             rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, epoch]))

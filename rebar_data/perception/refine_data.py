@@ -17,9 +17,16 @@ import cv2
 import numpy as np
 import torch
 
-from rebar_data.perception.augment import apply_affine, photometric_batch, random_affine, warp
+from rebar_data.perception.augment import (
+    apply_affine,
+    draw_gain,
+    photometric_batch,
+    random_affine,
+    scaled_where,
+    warp,
+)
 from rebar_data.perception.config import AugmentConfig, RefineConfig
-from rebar_data.perception.data import Sample, read_image
+from rebar_data.perception.data import Sample, read_distractors, read_image
 
 # uint8 patches, offsets, has an offset (a labelled crossing), is a crossing in the frame (verification)
 Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
@@ -42,16 +49,19 @@ def training_patch(
     *,
     uniform: bool = True,
     error: np.ndarray | None = None,
+    distractors: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """One patch around a labelled crossing, before colour changes, the crossing's offset from its
     centre, and how many patch pixels an image pixel became (the patch's scale); ``geometry`` is
     :func:`patch_geometry`'s. ``uniform = False`` draws the centre's error from the
     Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing); an
-    ``error`` given is the centre's error instead of a drawn one.
+    ``error`` given is the centre's error instead of a drawn one. ``distractors`` (H, W bool, the image's
+    distractor pixels) get ``AugmentConfig.distractor_gain``'s factor in the patch (and its context view).
 
     With ``cfg.border = "mask"`` the patch has a fourth channel, 255 where it shows the image (0 and 0 in
     colour beyond the image's border, as :func:`~rebar_data.perception.refine.patches` cuts them), and a
     ``cfg.border_fraction`` of patches get a border of their own (:func:`_own_edge`)."""
+    gain = draw_gain(rng, geometry, distractors)  # first: the patch's other draws stay those without it
     if error is not None:
         error = np.asarray(error, float)
     elif uniform and rng.uniform() < cfg.jitter_uniform_fraction:
@@ -67,6 +77,10 @@ def training_patch(
     )
     offset = apply_affine(crossing, patch_from_image)[0] - size / 2
     scale = float(np.sqrt(abs(np.linalg.det(patch_from_image[:, :2]))))
+    if gain is not None:  # what the context view reads too: its wider square, its centre moved
+        pad = (size * max(1, cfg.context_scale) - size) / 2 + cfg.context_scale
+        span = (-pad, size + pad)
+        image, patch_from_image = _gained_around(image, distractors, patch_from_image, span, gain)
     if cfg.border == "mirror":
         x = warp(image, patch_from_image, size, fill=None)
         if cfg.context_scale:
@@ -80,6 +94,29 @@ def training_patch(
     if cfg.context_scale:
         x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=edge)], axis=2)
     return x, offset, scale
+
+
+def _gained_around(
+    image: np.ndarray,
+    distractors: np.ndarray,
+    patch_from_image: np.ndarray,
+    span: tuple[float, float],
+    gain: float,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The part of ``image`` that the square ``span`` (from, to, in patch pixels) of ``patch_from_image``
+    reads (its bounding box, a margin wider, within the image), its distractor pixels scaled by ``gain``, and the map from that part
+    to the patch: only the pixels a patch reads are scaled, as the whole frame's would cost more than the
+    patch. The part's edges lie on the image's wherever the patch reaches beyond it."""
+    a, b = span
+    corners = np.array([[a, a], [b, a], [a, b], [b, b]], float)
+    pts = apply_affine(corners, cv2.invertAffineTransform(patch_from_image))
+    h, w = image.shape[:2]
+    x0, y0 = np.clip(np.floor(pts.min(0)).astype(int) - 2, 0, [w - 1, h - 1])
+    x1, y1 = np.clip(np.ceil(pts.max(0)).astype(int) + 2, [x0 + 1, y0 + 1], [w, h])
+    part = scaled_where(image[y0:y1, x0:x1], distractors[y0:y1, x0:x1], gain)
+    patch_from_part = patch_from_image.copy()
+    patch_from_part[:, 2] += patch_from_image[:, :2] @ [x0, y0]
+    return part, patch_from_part
 
 
 def _context(
@@ -179,6 +216,7 @@ def patch_batch(
     cfg: RefineConfig,
     aug: AugmentConfig,
     starts: list[np.ndarray] | None = None,
+    distractors_of: Callable[[int], np.ndarray | None] | None = None,
 ) -> Batch:
     """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, C) uint8, their (B, 2)
     offsets of the crossing from the centre (meaningless for negatives; with ``cfg.size`` a third column,
@@ -188,7 +226,8 @@ def patch_batch(
 
     With ``cfg.first_stage_starts`` and ``starts`` (per sample, where the first stage put each visible
     crossing: (N, 2), NaN where it found none), that share of the crossings it found are cut centred
-    where it put them, within :data:`START_JITTER_PX` (Gaussian), instead of at a drawn error."""
+    where it put them, within :data:`START_JITTER_PX` (Gaussian), instead of at a drawn error.
+    ``distractors_of`` (per sample, its distractor pixels or None) lets ``aug.distractor_gain`` act."""
     geometry = patch_geometry(cfg, aug)
     xs, ys = [], []
     for i, k, positive in rows:
@@ -199,7 +238,14 @@ def patch_batch(
             if rng.uniform() < cfg.first_stage_starts and np.isfinite(start).all():
                 error = start - centre + rng.normal(0.0, START_JITTER_PX, 2)
         x, y, scale = training_patch(
-            image_of(i), centre, rng, cfg, geometry, uniform=bool(positive), error=error
+            image_of(i),
+            centre,
+            rng,
+            cfg,
+            geometry,
+            uniform=bool(positive),
+            error=error,
+            distractors=distractors_of(i) if distractors_of is not None else None,
         )
         xs.append(x)
         if cfg.size:
@@ -261,6 +307,7 @@ def patch_batches(
     then wait for the core the loader takes.
     """
     cache: dict[str, np.ndarray] = {}  # by file: an image listed more than once is read once
+    masks: dict[str, np.ndarray | None] = {}
 
     def image_of(i: int) -> np.ndarray:
         if images is not None:
@@ -270,6 +317,14 @@ def patch_batches(
             cache[key] = read_image(samples[i].path)
         return cache[key]
 
+    def distractors_of(i: int) -> np.ndarray | None:
+        key = str(samples[i].path)
+        if key not in masks:
+            masks[key] = read_distractors(samples[i])
+        return masks[key]
+
+    gains = aug.distractor_gain_probability > 0
+
     keys = patch_keys(samples, negatives)
     size = cfg.batch_size
     steps = steps_per_epoch(samples, negatives, cfg)
@@ -278,4 +333,6 @@ def patch_batches(
         order = rng.permutation(len(keys))
         for b in range(steps):
             rows = keys[order[b * size : (b + 1) * size]]
-            yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug, starts)
+            yield patch_batch(
+                rows, image_of, samples, negatives, rng, cfg, aug, starts, distractors_of if gains else None
+            )

@@ -8,6 +8,7 @@ from rebar_data.perception.augment import (
     Source,
     apply_affine,
     crop_rays,
+    distractor_gain,
     mosaic_crop,
     photometric_batch,
     random_affine,
@@ -158,3 +159,26 @@ def test_white_balance_and_full_hue_turns_change_colour_alone():
     assert np.ptp(hue) > 180  # hues spread around the wheel (256 steps)
     greenish = ((turned[:, 0, 0, 1] > turned[:, 0, 0, 0]) & (turned[:, 0, 0, 1] > turned[:, 0, 0, 2])).sum()
     assert greenish > 5  # epoxy-like greens among them
+
+
+def test_the_distractor_gain_scales_the_distractors_pixels_alone_within_its_range():
+    image = np.random.default_rng(0).integers(20, 120, (30, 40, 3), dtype=np.uint8)
+    mask = np.zeros((30, 40), bool)
+    mask[5:15, 10:30] = True
+    cfg = AugmentConfig(distractor_gain=(0.8, 1.5), distractor_gain_probability=1.0)
+    rng = np.random.default_rng(1)
+    ratios = []
+    for _ in range(40):
+        out = distractor_gain(image, mask, rng, cfg)
+        np.testing.assert_array_equal(out[~mask], image[~mask])
+        ratio = out[mask].astype(float).sum() / image[mask].astype(float).sum()
+        assert 0.79 <= ratio <= 1.51
+        ratios.append(ratio)
+    assert min(ratios) < 0.95 and max(ratios) > 1.3  # darker and brighter both drawn
+    # at a share of 0, or without the pixels, the image itself comes back and nothing is drawn
+    for cfg_off, m in ((AugmentConfig(distractor_gain=(0.8, 1.5)), mask), (cfg, None)):
+        rng = np.random.default_rng(2)
+        assert distractor_gain(image, m, rng, cfg_off) is image
+        assert rng.uniform() == np.random.default_rng(2).uniform()
+    with pytest.raises(ValueError, match="low <= high"):
+        AugmentConfig(distractor_gain=(1.5, 0.8))

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import replace
+
 import cv2
 import numpy as np
 import pytest
@@ -11,7 +13,7 @@ from rebar_data.dataset.worker import INSTANCE_OFFSET
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.perception.adapt_train import adapt_settings
 from rebar_data.perception.config import AdaptConfig, TrainConfig
-from rebar_data.perception.data import load_split
+from rebar_data.perception.data import load_split, read_distractors
 from rebar_data.perception.epochs import TrainingImages, make_batch
 from rebar_data.perception.lower_mat import lower_mat_crossings, lower_mat_of
 from rebar_data.perception.refine_train import with_lower_mat
@@ -123,3 +125,23 @@ def test_training_batches_weigh_the_lower_mat_crossings_only_when_asked(lower_da
 def test_a_lower_mat_weight_of_one_keeps_the_adapt_epochs_checkpoints_from_before_it():
     assert "lower_mat_weight" not in adapt_settings(AdaptConfig())
     assert adapt_settings(AdaptConfig(lower_mat_weight=3.0))["lower_mat_weight"] == 3.0
+
+
+def test_training_images_know_their_distractors_pixels_only_when_the_gain_is_on(lower_dataset):
+    samples = load_split(lower_dataset, "train")
+    cfg = TrainConfig(
+        batch_size=4,
+        crop_px=128,
+        augment={"mosaic_epochs": 0, "distractor_gain": [1.3, 1.3], "distractor_gain_probability": 1.0},
+    )
+    data = TrainingImages(samples, cache=True, occluded="ignore", progress=False, distractors=True)
+    plain = TrainingImages(samples, cache=True, occluded="ignore", progress=False)
+    src = data.pick(np.random.default_rng(0))
+    s = next(x for x in samples if np.array_equal(x.visible, src.positives))
+    instance = cv2.imread(str(s.instance_path), cv2.IMREAD_UNCHANGED).astype(np.int32) - INSTANCE_OFFSET
+    np.testing.assert_array_equal(src.distractors, instance == DISTRACTOR_ID)
+    assert src.distractors.mean() > 0.02  # the lower mat shows
+    assert plain.pick(np.random.default_rng(0)).distractors is None
+    batch = make_batch(data, np.random.default_rng(1), cfg, mosaic=False)
+    assert batch[0].shape == (4, 3, 128, 128)
+    assert read_distractors(replace(s, instance_path=None)) is None

@@ -249,6 +249,33 @@ def test_a_training_patch_moves_its_offset_with_the_pixels():
     assert np.std(offsets) > 0.5  # the centre really was off the crossing
 
 
+@pytest.mark.parametrize("context_scale", [0, 3])
+@pytest.mark.parametrize("at", [(40.0, 30.0), (3.0, 30.0), (77.5, 62.0)])
+def test_a_training_patch_scales_the_distractors_as_the_whole_frame_scaled(context_scale, at):
+    """Only the pixels a patch (and its context view) reads are scaled: the patch is the one cut from the
+    whole frame with its distractor pixels scaled, inside the frame and across its border."""
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 200, (64, 80, 3), dtype=np.uint8)
+    mask = rng.uniform(size=(64, 80)) < 0.4
+    gain = 1.3
+    geometry = STILL.model_copy(
+        update={"distractor_gain": (gain, gain), "distractor_gain_probability": 1.0, "scale": (0.8, 1.25)}
+    )
+    cfg = RefineConfig(patch_px=16, border_fraction=0.0, context_scale=context_scale)
+    whole = image.copy()
+    whole[mask] = np.clip(whole[mask] * np.float32(gain), 0, 255).astype(np.uint8)
+    for seed in range(6):  # random errors, turns, flips and scales
+        x, y, s = training_patch(
+            image, np.array(at), np.random.default_rng(seed), cfg, geometry, distractors=mask
+        )
+        plain = np.random.default_rng(seed)
+        plain.uniform(size=2)  # the two draws the gain took
+        ref, y_ref, s_ref = training_patch(whole, np.array(at), plain, cfg, geometry)
+        np.testing.assert_allclose(y, y_ref)
+        assert s == s_ref
+        assert np.abs(x.astype(int) - ref.astype(int)).max() <= 1
+
+
 def test_a_masked_patch_shows_where_the_frame_ends():
     image = np.random.default_rng(0).integers(0, 256, (40, 50, 3), dtype=np.uint8)
     points = np.array([[20.0, 20.0], [1.2, 10.0], [49.6, 39.7]])
