@@ -85,6 +85,20 @@ def _renderer_line(ds: dict) -> str:
     )
 
 
+def _distractor_gain_lines(augment: dict) -> list[str]:
+    """The distractor gain's line, when the run used it (``AugmentConfig.distractor_gain``)."""
+    share = augment.get("distractor_gain_probability", 0.0)
+    if not share:
+        return []
+    lo, hi = augment["distractor_gain"]
+    return [
+        f"- For {share:.0%} of the crops and second-stage patches, the pixels the instance map gives to the"
+        f" distractors (the lower mat above all) scaled by one factor in [{lo:g}, {hi:g}]: the renderer lights"
+        " the lower mat darker than Cycles does, and without it the detector took a brighter lower mat's"
+        " crossings for the top mat's."
+    ]
+
+
 def _adapt_lines(res: dict, tc: dict, ds: dict) -> list[str]:
     """The card's words on the first stage's adapt epochs, if it had any."""
     if not res.get("adapt_epochs"):
@@ -339,6 +353,7 @@ def write_card(
             if tc["augment"].get("hue_full_probability") or tc["augment"].get("white_balance")
             else "."
         ),
+        *_distractor_gain_lines(tc["augment"]),
         *_adapt_lines(res, tc, ds),
         *(
             [

@@ -176,7 +176,8 @@ def test_the_distractor_gain_scales_the_distractors_pixels_alone_within_its_rang
         ratios.append(ratio)
     assert min(ratios) < 0.95 and max(ratios) > 1.3  # darker and brighter both drawn
     # at a share of 0, or without the pixels, the image itself comes back and nothing is drawn
-    for cfg_off, m in ((AugmentConfig(distractor_gain=(0.8, 1.5)), mask), (cfg, None)):
+    off = AugmentConfig(distractor_gain=(0.8, 1.5), distractor_gain_probability=0.0)
+    for cfg_off, m in ((off, mask), (cfg, None)):
         rng = np.random.default_rng(2)
         assert distractor_gain(image, m, rng, cfg_off) is image
         assert rng.uniform() == np.random.default_rng(2).uniform()
