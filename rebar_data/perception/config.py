@@ -285,6 +285,15 @@ class RefineConfig(Strict):
     crossings better everywhere, Cycles' included, and costs 1.16x the detector's time a frame (16.5
     against 14.2 ms in the same process; ``first_pass_views`` buys most of it back), so it ships.
 
+    With the training under the 90 minutes again (``AugmentConfig.distractor_gain``'s run, 70.9), 14
+    epochs instead of 11 beside the same first stage (26.6 minutes against 22.5; the depth check trained
+    again beside it), against 11 (PCK@2px / recall@P0.99, with depth unless marked): paper-tunnel val
+    0.970 / 0.995 (0.969 / 0.995); test 0.958 / 0.990, AP@0.5:0.95 0.934 (0.954 / 0.990, 0.930), RGB
+    0.952 / 0.957 (0.953 / 0.957); planar-slab 0.842 / 0.839 (0.857 / 0.842); from RGB alone
+    crossval-planar 0.963 / 0.775, AP@0.5 0.970 (0.961 / 0.793, 0.959) and crossval-tunnel 0.924 /
+    0.740, PCK@5px 0.959 (0.931 / 0.755, 0.978). Better placed on its own renderer's scenes, worse on the
+    curved Cycles set and the slab never trained on: 11 stays.
+
     Second-stage supplements (``rebar train --refine-supplement``; `make train` passes the Cycles-rendered
     ``pipelines/cycles-train-*.yaml``) join this stage's training images alone, each image listed
     ``supplement_repeats`` times (each time with its own jitter and colour changes), so that a few dozen
