@@ -59,7 +59,7 @@ def draw_gain(rng: np.random.Generator, cfg: AugmentConfig, distractors: np.ndar
     ``cfg.distractor_gain``), or None for a ``1 - cfg.distractor_gain_probability`` share of calls. Draws
     nothing when the share is 0 or the pixels are unknown, so runs without it get the random draws they
     got before it existed."""
-    if distractors is None or cfg.distractor_gain_probability <= 0:
+    if distractors is None or not cfg.scales_distractors:
         return None
     if rng.uniform() >= cfg.distractor_gain_probability:
         return None

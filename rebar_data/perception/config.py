@@ -99,6 +99,11 @@ class AugmentConfig(Strict):
             raise ValueError(f"{list(v)} is not accepted; accepted: [low, high] with low <= high")
         return v
 
+    @property
+    def scales_distractors(self) -> bool:
+        """Whether ``distractor_gain`` acts at all (its share above 0)."""
+        return self.distractor_gain_probability > 0
+
 
 class RefineConfig(Strict):
     """The second stage (``rebar_data.perception.refine``): a small network that moves each detection to

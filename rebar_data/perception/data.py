@@ -9,16 +9,21 @@ ones (visibility 1) are kept apart so training can leave them out of the loss.
 from __future__ import annotations
 
 import json
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TypeVar
 
 import cv2
 import numpy as np
 import pyarrow.parquet as pq
+from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.config import DEFAULT_OKS_SIGMA
+
+T = TypeVar("T")
 
 SPLITS = ("train", "val", "test")
 _SAMPLE_COLUMNS = ("image_id", "split", "file_name", "width", "height", "fx", "fy", "cx", "cy")
@@ -77,6 +82,14 @@ def read_image(path: str | Path) -> np.ndarray:
     return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
 
 
+def read_uint16(path: str | Path, what: str) -> np.ndarray:
+    """A 16-bit PNG (a depth image, an instance map) as it is stored; ``what`` names what was expected."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ConfigError(f"{path}: cannot be read; accepted: {what}")
+    return image
+
+
 def read_distractors(sample: Sample) -> np.ndarray | None:
     """(H, W) bool: where the sample's instance map shows a distractor (the lower mat, spacers, loose tie
     wire, formwork: one id, ``DISTRACTOR_ID``); None when the dataset has no instance map."""
@@ -85,20 +98,24 @@ def read_distractors(sample: Sample) -> np.ndarray | None:
     from rebar_data.dataset.worker import INSTANCE_OFFSET  # the dataset builder's: imported when needed
     from rebar_data.scene.surroundings import DISTRACTOR_ID
 
-    ids = cv2.imread(str(sample.instance_path), cv2.IMREAD_UNCHANGED)
-    if ids is None or ids.ndim != 2:
-        raise ConfigError(f"{sample.instance_path}: cannot be read as a 16-bit instance PNG")
-    return ids == DISTRACTOR_ID + INSTANCE_OFFSET
+    return read_uint16(sample.instance_path, "a 16-bit instance PNG") == DISTRACTOR_ID + INSTANCE_OFFSET
+
+
+def per_file(samples: list[Sample], read: Callable[[Sample], T], *, progress: str | None = None) -> list[T]:
+    """``read`` of each sample, called once per file: a sample listed more than once (a repeated
+    supplement) shares the first one's result. ``progress`` names a progress bar over the files."""
+    first: dict[str, Sample] = {}
+    for s in samples:
+        first.setdefault(str(s.path), s)
+    files = tqdm(first.items(), desc=progress, unit="img", disable=progress is None, leave=False)
+    done = {key: read(s) for key, s in files}
+    return [done[str(s.path)] for s in samples]
 
 
 def read_images(samples: list[Sample]) -> list[np.ndarray]:
     """Each sample's image, decoded once per file: a sample listed more than once (a repeated supplement)
     shares one array."""
-    decoded: dict[str, np.ndarray] = {}
-    for s in samples:
-        if str(s.path) not in decoded:
-            decoded[str(s.path)] = read_image(s.path)
-    return [decoded[str(s.path)] for s in samples]
+    return per_file(samples, lambda s: read_image(s.path))
 
 
 def read_info(root: str | Path) -> dict:

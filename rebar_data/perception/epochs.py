@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
-from rebar_data.perception.data import Sample, read_distractors, read_image
+from rebar_data.perception.data import Sample, per_file, read_distractors, read_image
 from rebar_data.perception.loss import detection_loss
 from rebar_data.perception.lower_mat import lower_mat_of
 from rebar_data.perception.model import STRIDE, KeypointNet
@@ -66,22 +66,11 @@ class TrainingImages:
         self.ignore_occluded = occluded == "ignore"
         # with ``lower_mat``, the crossings each image's lower mat shows (hard negatives), placed once
         self.hard = lower_mat_of(samples) if lower_mat else None
-        self.images = (
-            [
-                read_image(s.path)
-                for s in tqdm(samples, desc="load images", unit="img", disable=not progress, leave=False)
-            ]
-            if cache
-            else None
-        )
+        # decoded once per file: a supplement listed many times (the adapt epochs') shares its arrays
+        load = "load images" if progress else None
+        self.images = per_file(samples, lambda s: read_image(s.path), progress=load) if cache else None
         self.distractors = distractors
-        self.masks = None
-        if distractors and cache:
-            by_file: dict[str, np.ndarray | None] = {}  # a repeated supplement's images share one mask
-            for s in samples:
-                if str(s.path) not in by_file:
-                    by_file[str(s.path)] = read_distractors(s)
-            self.masks = [by_file[str(s.path)] for s in samples]
+        self.masks = per_file(samples, read_distractors) if distractors and cache else None
 
     def pick(self, rng: np.random.Generator) -> Source:
         k = int(rng.integers(len(self.samples)))
@@ -163,7 +152,7 @@ class BatchStream(torch.utils.data.IterableDataset):
             occluded=self.cfg.occluded,
             progress=False,
             lower_mat=self.lower_mat_weight != 1.0,
-            distractors=self.cfg.augment.distractor_gain_probability > 0,
+            distractors=self.cfg.augment.scales_distractors,
         )
         for epoch in range(self.first, self.last + 1):
             rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, epoch]))

@@ -20,19 +20,16 @@ from __future__ import annotations
 from dataclasses import dataclass
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError, MeshConfig, validate
-from rebar_data.dataset.worker import INSTANCE_OFFSET
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.specs import build_layout
 from rebar_data.labels.projection import Projection, project
-from rebar_data.perception.data import Sample, read_info
+from rebar_data.perception.data import Sample, read_distractors, read_info, read_uint16
 from rebar_data.scene.mat_surface import MatSurface
-from rebar_data.scene.surroundings import DISTRACTOR_ID
 
 # a crossing shows where the depth image is this close to the nearer bar's centerline there (its surface
 # lies up to 10 mm in front of it); anything else lies 100 mm or more in front of a lower bar
@@ -75,8 +72,7 @@ def lower_mat_crossings(root: str | Path, samples: list[Sample]) -> list[np.ndar
     if not all(c in table.column_names for c in _COLUMNS) or not samples:
         return empty
     names = ["image_id", "world_from_camera", *_COLUMNS]
-    cols = table.select(names + [c for c in ("instance_file",) if c in table.column_names]).to_pydict()
-    cols.setdefault("instance_file", [None] * table.num_rows)
+    cols = table.select(names).to_pydict()
     row = {iid: i for i, iid in enumerate(cols["image_id"])}
     if not any(cols["surr_lower_layer"][row[s.image_id]] for s in samples if s.image_id in row):
         return empty
@@ -97,7 +93,7 @@ def lower_mat_crossings(root: str | Path, samples: list[Sample]) -> list[np.ndar
         uv = np.concatenate([f[0] for f in found])
         z = np.concatenate([f[1] for f in found])
         if len(uv):
-            uv = uv[_seen(s, root, cols["instance_file"][i], uv, z)]
+            uv = uv[_seen(s, uv, z)]
         out.append(uv)
     return out
 
@@ -193,20 +189,18 @@ def _chords(root: Path) -> _Chords:
     )
 
 
-def _seen(s: Sample, root: Path, instance_file: str | None, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
+def _seen(s: Sample, uv: np.ndarray, z: np.ndarray) -> np.ndarray:
     """Which of the crossings at pixels ``uv`` (the nearer bar at camera depth ``z``) the image shows: the
-    depth image (uint16 millimetres, 0 = none) sees about ``z`` there, and the instance map (uint16 id +
-    ``INSTANCE_OFFSET``) shows the lower mat (``DISTRACTOR_ID``) nearby."""
+    depth image (uint16 millimetres, 0 = none) sees about ``z`` there, and the instance map shows the lower
+    mat (a distractor: :func:`~rebar_data.perception.data.read_distractors`) nearby."""
     keep = np.ones(len(uv), bool)
     j, i = np.floor(uv[:, 0]).astype(int), np.floor(uv[:, 1]).astype(int)
     if s.depth_path is not None:
-        depth = _read16(s.depth_path, "a 16-bit depth PNG in millimetres")
+        depth = read_uint16(s.depth_path, "a 16-bit depth PNG in millimetres")
         d = depth[np.clip(i, 0, depth.shape[0] - 1), np.clip(j, 0, depth.shape[1] - 1)].astype(float) / 1000.0
         keep &= (d > 0) & (np.abs(d - z) <= DEPTH_TOLERANCE_M)
-    if instance_file and (root / instance_file).exists():
-        lower = (
-            _read16(root / instance_file, "a 16-bit instance PNG").astype(np.int32) - INSTANCE_OFFSET
-        ) == (DISTRACTOR_ID)
+    lower = read_distractors(s)
+    if lower is not None:
         h, w = lower.shape
         fx = s.camera[0] if s.camera else 0.0
         for k in np.nonzero(keep)[0]:
@@ -215,10 +209,3 @@ def _seen(s: Sample, root: Path, instance_file: str | None, uv: np.ndarray, z: n
                 max(i[k] - r, 0) : min(i[k] + r + 1, h), max(j[k] - r, 0) : min(j[k] + r + 1, w)
             ].any()
     return keep
-
-
-def _read16(path: Path, what: str) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise ConfigError(f"{path}: cannot be read; accepted: {what}")
-    return image

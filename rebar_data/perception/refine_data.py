@@ -12,6 +12,7 @@ batches it would have got.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
+from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -30,6 +31,7 @@ from rebar_data.perception.data import Sample, read_distractors, read_image
 
 # uint8 patches, offsets, has an offset (a labelled crossing), is a crossing in the frame (verification)
 Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
+T = TypeVar("T")
 # how far from where the first stage put a crossing a patch cut there is centred (``first_stage_starts``)
 START_JITTER_PX = 0.5
 
@@ -104,9 +106,10 @@ def _gained_around(
     gain: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The part of ``image`` that the square ``span`` (from, to, in patch pixels) of ``patch_from_image``
-    reads (its bounding box, a margin wider, within the image), its distractor pixels scaled by ``gain``, and the map from that part
-    to the patch: only the pixels a patch reads are scaled, as the whole frame's would cost more than the
-    patch. The part's edges lie on the image's wherever the patch reaches beyond it."""
+    reads (its bounding box, a margin wider, within the image), its distractor pixels scaled by ``gain``,
+    and the map from that part to the patch: only the pixels a patch reads are scaled, as the whole
+    frame's would cost more than the patch. The part's edges lie on the image's wherever the patch
+    reaches beyond it."""
     a, b = span
     corners = np.array([[a, a], [b, a], [a, b], [b, b]], float)
     pts = apply_affine(corners, cv2.invertAffineTransform(patch_from_image))
@@ -306,24 +309,9 @@ def patch_batches(
     training slower here (181 against 133 ms a batch of 256 on two cores), as the network's two threads
     then wait for the core the loader takes.
     """
-    cache: dict[str, np.ndarray] = {}  # by file: an image listed more than once is read once
-    masks: dict[str, np.ndarray | None] = {}
-
-    def image_of(i: int) -> np.ndarray:
-        if images is not None:
-            return images[i]
-        key = str(samples[i].path)
-        if key not in cache:
-            cache[key] = read_image(samples[i].path)
-        return cache[key]
-
-    def distractors_of(i: int) -> np.ndarray | None:
-        key = str(samples[i].path)
-        if key not in masks:
-            masks[key] = read_distractors(samples[i])
-        return masks[key]
-
-    gains = aug.distractor_gain_probability > 0
+    # by file: an image listed more than once is read once
+    image_of = (lambda i: images[i]) if images is not None else _per_file_lazily(samples, _read_image)
+    distractors_of = _per_file_lazily(samples, read_distractors) if aug.scales_distractors else None
 
     keys = patch_keys(samples, negatives)
     size = cfg.batch_size
@@ -333,6 +321,22 @@ def patch_batches(
         order = rng.permutation(len(keys))
         for b in range(steps):
             rows = keys[order[b * size : (b + 1) * size]]
-            yield patch_batch(
-                rows, image_of, samples, negatives, rng, cfg, aug, starts, distractors_of if gains else None
-            )
+            yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug, starts, distractors_of)
+
+
+def _read_image(sample: Sample) -> np.ndarray:
+    return read_image(sample.path)
+
+
+def _per_file_lazily(samples: list[Sample], read: Callable[[Sample], T]) -> Callable[[int], T]:
+    """``read`` of sample ``i``, called when first asked for and once per file (a sample listed more than
+    once shares the first one's result)."""
+    done: dict[str, T] = {}
+
+    def of(i: int) -> T:
+        key = str(samples[i].path)
+        if key not in done:
+            done[key] = read(samples[i])
+        return done[key]
+
+    return of
