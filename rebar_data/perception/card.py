@@ -48,16 +48,24 @@ def _supplement_lines(supplements: list[dict]) -> list[str]:
     ]
 
 
-def _refine_supplement_lines(supplements: list[dict], refine: dict, adapted: bool) -> list[str]:
-    """The card's words on the datasets the second stage (and the first stage's adapt epochs) trained on,
-    if any."""
+def _refine_supplement_lines(
+    supplements: list[dict], refine: dict, adapted: bool, first_epochs_repeats: int = 0
+) -> list[str]:
+    """The card's words on the datasets the second stage (and the first stage's adapt epochs, and with
+    ``TrainConfig.other_renderer_repeats`` its first epochs) trained on, if any."""
     if not supplements:
         return []
+    if first_epochs_repeats:
+        seen = f" saw them listed {first_epochs_repeats} times in its first epochs" + (
+            ", and in its adapt epochs." if adapted else "."
+        )
+    else:
+        seen = " saw them only in its adapt epochs." if adapted else " never saw them."
     return [
         f"  It also trained on every image of {_named(supplements)}, each listed "
         f"{refine.get('supplement_repeats', 1)} times",
         "  (`pipelines/<name>.yaml`; scenes of their own, rendered as the pipeline file says); the first stage"
-        + (" saw them only in its adapt epochs." if adapted else " never saw them."),
+        + seen,
     ]
 
 
@@ -393,7 +401,10 @@ def write_card(
                     else []
                 ),
                 *_refine_supplement_lines(
-                    ds.get("refine_supplements") or [], refine, bool(res.get("adapt_epochs"))
+                    ds.get("refine_supplements") or [],
+                    refine,
+                    bool(res.get("adapt_epochs")),
+                    tc.get("other_renderer_repeats", 0),
                 ),
             ]
             if refine

@@ -182,7 +182,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="DATASET",
         help="another dataset (another renderer's frames) whose every image trains the first stage's adapt "
         "epochs (adapt.supplement_repeats times) and the second stage (refine.supplement_repeats times), "
-        "never the first epochs (repeatable); may change when a run resumes: those stages then train again",
+        "and the first epochs only with other_renderer_repeats (repeatable); without it they may change "
+        "when a run resumes: those stages then train again",
     )
     t.add_argument("--fresh", action="store_true", help="start afresh instead of resuming the run in --out")
     t.add_argument(

@@ -92,6 +92,8 @@ from rebar_data.perception.refine_train import save as save_refiner
 
 EARLY_STOP_METRIC = "val_oks_ap"
 # settings a resumed run may change
+# settings newer than some run folders, at the value that trains as those runs did
+NEWER_FIELDS = {"other_renderer_repeats": 0}
 RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "refine", "depth_check", "crossing_point"}
 
 
@@ -156,9 +158,9 @@ def train(
         supplements: Further datasets whose every image (all splits) joins the training images; the
             epoch is still chosen on ``dataset_path``'s val split and scored on its test split.
         refine_supplements: Further datasets (another renderer's frames) whose every image joins the
-            first stage's adapt epochs (``config.adapt``) and the second stage's training, never the first
-            epochs; they may change when a run resumes, and those stages then train afresh from the first
-            stage's best epoch kept.
+            first stage's adapt epochs (``config.adapt``) and the second stage's training, and the first
+            epochs only with ``config.other_renderer_repeats``; without it they may change when a run
+            resumes, and those stages then train afresh from the first stage's best epoch kept.
         resume: Continue from ``out_dir/last.pt`` if it exists (the settings must match, but for
             epochs, patience and val_every); False starts afresh and overwrites the run.
         progress: Show a progress bar per epoch and a summary line after it (on stderr).
@@ -249,9 +251,10 @@ def _val_subset(samples: list[Sample], n: int) -> list[Sample]:
 def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> None:
     now = cfg.model_dump(mode="json")
     for k in sorted(set(saved) | set(now)):
-        if k not in RESUMABLE_CHANGES and saved.get(k) != now.get(k):
+        was = saved.get(k, NEWER_FIELDS.get(k))
+        if k not in RESUMABLE_CHANGES and was != now.get(k):
             raise ConfigError(
-                f"{path}: holds a run with {k} = {saved.get(k)!r}, not {now.get(k)!r}; accepted: the same "
+                f"{path}: holds a run with {k} = {was!r}, not {now.get(k)!r}; accepted: the same "
                 "settings to resume, or a fresh start (--fresh) or another run folder"
             )
 
@@ -303,6 +306,10 @@ def _run(
         _, _, payload = load_checkpoint(last)
         _check_resumable(payload["train_config"], cfg, last)
         _check_same_supplements(payload["meta"]["dataset"].get("supplements", []), supplements, last)
+        if cfg.other_renderer_repeats:  # they trained the first epochs too
+            _check_same_supplements(
+                payload["meta"]["dataset"].get("refine_supplements", []), refine_supplements, last
+            )
         net.load_state_dict(payload["state_dict"])
         avg.net.load_state_dict(payload["average_state_dict"])
         avg.updates = payload["average_updates"]
@@ -340,11 +347,14 @@ def _run(
         "focal_per_width": float(np.median([s.camera[0] / s.width for s in train_samples])),
         "train_config": cfg.model_dump(mode="json"),
     }
-    steps_per_epoch = max(1, math.ceil(len(train_samples) * cfg.crops_per_image / cfg.batch_size))
+    # the first epochs' images: the training images and, ``other_renderer_repeats`` times, the second-stage
+    # supplements' (another renderer's frames; the adapt epochs and later stages mix them as before)
+    first_samples = train_samples + refine_extra * cfg.other_renderer_repeats
+    steps_per_epoch = max(1, math.ceil(len(first_samples) * cfg.crops_per_image / cfg.batch_size))
     started = time.perf_counter()
     if not state["stopped"] and state["epoch"] < cfg.epochs:
         batches = batch_stream(
-            train_samples, cfg, first=state["epoch"] + 1, last=cfg.epochs, steps=steps_per_epoch
+            first_samples, cfg, first=state["epoch"] + 1, last=cfg.epochs, steps=steps_per_epoch
         )
     for epoch in range(state["epoch"] + 1, cfg.epochs + 1):
         if state["stopped"]:

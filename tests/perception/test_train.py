@@ -267,6 +267,42 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     assert load_refiner(run / "refine_last.pt")[2]["data"][-1].startswith("first stage: epoch")
 
 
+def test_other_renderer_repeats_put_the_second_stage_supplements_in_the_first_epochs(drawn_dataset, tmp_path):
+    """With ``other_renderer_repeats`` the second-stage supplements' images join the first epochs that many
+    times (their steps count them), the card says so, and a resumed run must keep those supplements."""
+    from rebar_data.perception.card import CARD_NAME, ship
+    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+
+    spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
+    extra = write_synthetic_dataset(tmp_path / "data", spec, seed=8, name="drawn-early")
+    other = write_synthetic_dataset(tmp_path / "data", spec, seed=9, name="drawn-late")
+    cfg = {
+        **TINY_TRAIN,
+        "epochs": 1,
+        "other_renderer_repeats": 2,
+        "adapt": {"epochs": 0},
+        "depth_check": {**TINY_TRAIN["depth_check"], "enabled": False},
+        "crossing_point": {**TINY_TRAIN["crossing_point"], "enabled": False},
+    }
+    run = tmp_path / "run"
+    result = train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
+    n_train = len(load_split(drawn_dataset, "train"))
+    assert [h["steps"] for h in result.history] == [math.ceil((n_train + 2 * 6) / cfg["batch_size"])]
+    ship(run, models_dir=tmp_path / "models")
+    card = (tmp_path / "models" / CARD_NAME).read_text()
+    assert "the first stage saw them listed 2 times in its first epochs." in card
+    with pytest.raises(ConfigError, match="drawn-late"):  # they trained the first epochs: kept to resume
+        train(drawn_dataset, run, config=cfg, refine_supplements=[other], progress=False)
+    plain = train(
+        drawn_dataset,
+        tmp_path / "plain",
+        config={**cfg, "other_renderer_repeats": 0},
+        refine_supplements=[extra],
+        progress=False,
+    )
+    assert [h["steps"] for h in plain.history] == [math.ceil(n_train / cfg["batch_size"])]
+
+
 def test_interrupted_adapt_epochs_resume_after_their_last_epoch(
     trained_run, drawn_dataset, tmp_path, monkeypatch
 ):
@@ -340,3 +376,13 @@ def test_a_run_with_first_stage_starts_mines_negatives_and_starts_from_one_run_o
     assert cfg.first_stage_starts == 0.5
     assert len(payload["starts"]) == len(payload["negatives"])
     assert any(np.isfinite(s).any() for s in payload["starts"])
+
+
+def test_a_run_from_before_other_renderer_repeats_resumes_only_without_them(tmp_path):
+    from rebar_data.perception.train import _check_resumable
+
+    saved = TrainConfig().model_dump(mode="json")
+    del saved["other_renderer_repeats"]  # a run folder written before the setting existed
+    _check_resumable(saved, TrainConfig(), tmp_path / "last.pt")
+    with pytest.raises(ConfigError, match="other_renderer_repeats = 0, not 2"):
+        _check_resumable(saved, TrainConfig(other_renderer_repeats=2), tmp_path / "last.pt")
