@@ -793,7 +793,7 @@ class TrainConfig(Strict):
     loader_workers: Literal[0, 1] = 1
     model: ModelConfig = ModelConfig()
     augment: AugmentConfig = AugmentConfig()
-    other_renderer_repeats: NonNegativeInt = 0
+    other_renderer_repeats: NonNegativeInt = 2
     adapt: AdaptConfig = AdaptConfig()
     refine: RefineConfig = RefineConfig()
     depth_check: DepthCheckConfig = DepthCheckConfig()
