@@ -52,7 +52,7 @@ smoke: setup | $(DATA)
 
 # Train the detector on the default dataset (built first when missing) and its supplements (built when
 # missing: the lower-mat one, 720 images, about 5 minutes; the four wide-randomization ones, 180 images each,
-# about 3 minutes each) and, for the first stage's adapt epochs and the second stage, the Cycles-rendered
+# about 3 minutes each) and, for the first stage (its epochs and adapt epochs) and the second stage, the Cycles-rendered
 # supplements (REFINE_SUPPLEMENTS, built when missing with one worker, as Cycles takes both cores: 36 or 48
 # images each, 7-11 minutes each), and
 # ship it with its model card, scored also on the planar-slab set (another config, built when missing: 90

@@ -70,6 +70,9 @@ class AugmentConfig(Strict):
     the top one; it has found no other cue that tells the mats apart from colour alone (precision at
     the operating point on paper-tunnel's lower-mat images 0.923 against 0.941, on Cycles' 0.693 and
     0.815 against 0.676 and 0.818), and the depth check, which sees the mats apart, does better beside it.
+    The model after it (``TrainConfig.other_renderer_repeats`` 2, the shipped one), same probe:
+    paper-tunnel 0.956 / 0.941 / 0.918 / 0.903 / 0.884, crossval-tunnel 0.690 / 0.563 / 0.456 / 0.514 /
+    0.578 (RGB only, recall@P0.99 on the same images).
     """
 
     mosaic_epochs: NonNegativeInt = 3
@@ -764,9 +767,28 @@ class TrainConfig(Strict):
     stages' times now. Then the first stage's adapt epochs (``AdaptConfig``) trained on the six Cycles
     supplements from that best epoch, and the second stage and the depth check again beside the adapted
     first stage (`make train` resuming the same run folder). That was the model before
-    ``AugmentConfig.distractor_gain``; the shipped one is a whole `make train` run from scratch with these
-    settings (70.9 minutes on this 2-core machine, the first stage's 16 epochs 32 of them, 116 s an epoch,
-    where the run above measured 55 minutes for them on a busier machine).
+    ``AugmentConfig.distractor_gain``; the one after it is a whole `make train` run from scratch with
+    those settings (70.9 minutes on this 2-core machine, the first stage's 16 epochs 32 of them, 116 s an
+    epoch, where the run above measured 55 minutes for them on a busier machine).
+
+    ``other_renderer_repeats``: the second-stage supplements' images (another renderer's frames: the 264
+    Cycles frames of ``pipelines/cycles-train-*.yaml``) also join the first epochs' training images, each
+    listed this many times (0: they wait for the adapt epochs, as before the setting existed). At 2 they
+    are 18% of the images (528 of 2,928; 732 steps an epoch against 600), and the adapt epochs and later
+    stages mix them as before. The shipped model is that whole `make train` run from scratch (76.8 minutes,
+    the first stage's 16 epochs 38 of them, 137-146 s an epoch), against the one before (the same settings
+    at 0), both scored in one session on the same builds (`rebar detect DATASET --split all|test
+    [--no-depth]`; before / now). The Cycles sets, RGB only: crossval-planar AP@0.5 0.959 / 0.973, PCK@2px
+    0.961 / 0.960, recall@P0.99 0.793 / 0.876; crossval-tunnel 0.947 / 0.956, 0.931 / 0.937, 0.755 /
+    0.765; their images with a lower mat AP@0.5 0.829 / 0.878 and 0.892 / 0.911, recall@P0.99 0.137 /
+    0.188 and 0.222 / 0.456. With depth, recall@P0.99 0.980 / 0.991 and 0.966 / 0.958. Paper-tunnel's
+    test split with depth: AP@0.5 0.979 / 0.979, PCK@2px 0.954 / 0.954, recall@P0.99 0.990 / 0.990; RGB
+    only recall@P0.99 0.957 / 0.964; the first stage alone 0.917 / 0.935. Planar-slab (all splits, with
+    depth) AP@0.5 0.975 / 0.966, PCK@2px 0.857 / 0.858, recall@P0.99 0.842 / 0.871. The first stage alone
+    after its best epoch, before the adapt epochs (RGB only on the Cycles sets): AP@0.5 0.880 / 0.913 and
+    0.876 / 0.901, PCK@2px 0.847 / 0.843 and 0.733 / 0.797; on the images with a lower mat AP@0.5 0.547 /
+    0.652 and 0.765 / 0.820. On paper-tunnel's val split the first epochs scored as before (OKS AP@0.5:0.95
+    0.822 / 0.819 at epoch 16).
 
     Earlier, with the first 1,680 images alone and the second stage's verification at full weight
     (``RefineConfig.verify_power`` 1): 22 epochs (best on val at 18) gave OKS AP@0.5 0.977, AP@0.5:0.95
