@@ -45,14 +45,18 @@ def test_training_supplements_train_only_and_share_no_seed_with_held_out_sets():
         assert cfg.render.engine == "cycles" or cfg.name in ("planar-slab", "smoke")
     seeds = [c.seed for c in training + second_stage + held_out]
     assert len(set(seeds)) == len(seeds), "two pipelines with one seed draw the same scenes"
-    for (
-        cfg
-    ) in training:  # the first stage's epochs see the project's own renderer alone (Cycles: adapt epochs)
+    for cfg in training:  # the Open3D supplements; the Cycles frames come in as REFINE_SUPPLEMENTS
         assert cfg.render.engine == "open3d"
 
 
+def test_no_two_shipped_pipelines_share_a_seed():
+    """Also those not (yet) in the Makefile's lists: two pipelines with one seed draw the same scenes."""
+    seeds = {p.stem: load_pipeline(p).seed for p in PIPELINES}
+    assert len(set(seeds.values())) == len(seeds), seeds
+
+
 def test_cycles_frames_train_the_late_stages_on_meshes_the_cross_renderer_sets_do_not_have():
-    """The Cycles supplements (the first stage's adapt epochs and the second stage) are of the
+    """The Cycles supplements (the first stage's epochs and adapt epochs, and the second stage) are of the
     cross-renderer sets' kinds of mesh (curved and planar) but with other spacings, each its own, so the
     sets' grids stay unseen as well as their scenes."""
     second_stage = [load_pipeline(ROOT / f"pipelines/{p}.yaml") for p in _make_list("REFINE_SUPPLEMENTS")]
