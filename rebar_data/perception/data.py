@@ -112,10 +112,29 @@ def per_file(samples: list[Sample], read: Callable[[Sample], T], *, progress: st
     return [done[str(s.path)] for s in samples]
 
 
-def read_images(samples: list[Sample]) -> list[np.ndarray]:
+def per_file_lazily(samples: list[Sample], read: Callable[[Sample], T]) -> Callable[[int], T]:
+    """``read`` of sample ``i``, called when first asked for and once per file (a sample listed more than
+    once shares the first one's result): :func:`per_file` for a reader that may never need some."""
+    done: dict[str, T] = {}
+
+    def of(i: int) -> T:
+        key = str(samples[i].path)
+        if key not in done:
+            done[key] = read(samples[i])
+        return done[key]
+
+    return of
+
+
+def read_sample_image(sample: Sample) -> np.ndarray:
+    """The sample's RGB image (:func:`read_image` of its path)."""
+    return read_image(sample.path)
+
+
+def read_images(samples: list[Sample], *, progress: str | None = None) -> list[np.ndarray]:
     """Each sample's image, decoded once per file: a sample listed more than once (a repeated supplement)
-    shares one array."""
-    return per_file(samples, lambda s: read_image(s.path))
+    shares one array. ``progress`` names a progress bar over the files."""
+    return per_file(samples, read_sample_image, progress=progress)
 
 
 def read_info(root: str | Path) -> dict:

@@ -19,7 +19,7 @@ from tqdm import tqdm
 
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
-from rebar_data.perception.data import Sample, per_file, read_distractors, read_image
+from rebar_data.perception.data import Sample, per_file, read_distractors, read_image, read_images
 from rebar_data.perception.loss import detection_loss
 from rebar_data.perception.lower_mat import lower_mat_of
 from rebar_data.perception.model import STRIDE, KeypointNet
@@ -68,7 +68,7 @@ class TrainingImages:
         self.hard = lower_mat_of(samples) if lower_mat else None
         # decoded once per file: a supplement listed many times (the adapt epochs') shares its arrays
         load = "load images" if progress else None
-        self.images = per_file(samples, lambda s: read_image(s.path), progress=load) if cache else None
+        self.images = read_images(samples, progress=load) if cache else None
         self.distractors = distractors
         self.masks = per_file(samples, read_distractors) if distractors and cache else None
 

@@ -12,7 +12,6 @@ batches it would have got.
 from __future__ import annotations
 
 from collections.abc import Callable, Iterator
-from typing import TypeVar
 
 import cv2
 import numpy as np
@@ -27,11 +26,10 @@ from rebar_data.perception.augment import (
     warp,
 )
 from rebar_data.perception.config import AugmentConfig, RefineConfig
-from rebar_data.perception.data import Sample, read_distractors, read_image
+from rebar_data.perception.data import Sample, per_file_lazily, read_distractors, read_sample_image
 
 # uint8 patches, offsets, has an offset (a labelled crossing), is a crossing in the frame (verification)
 Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
-T = TypeVar("T")
 # how far from where the first stage put a crossing a patch cut there is centred (``first_stage_starts``)
 START_JITTER_PX = 0.5
 
@@ -310,8 +308,8 @@ def patch_batches(
     then wait for the core the loader takes.
     """
     # by file: an image listed more than once is read once
-    image_of = (lambda i: images[i]) if images is not None else _per_file_lazily(samples, _read_image)
-    distractors_of = _per_file_lazily(samples, read_distractors) if aug.scales_distractors else None
+    image_of = (lambda i: images[i]) if images is not None else per_file_lazily(samples, read_sample_image)
+    distractors_of = per_file_lazily(samples, read_distractors) if aug.scales_distractors else None
 
     keys = patch_keys(samples, negatives)
     size = cfg.batch_size
@@ -322,21 +320,3 @@ def patch_batches(
         for b in range(steps):
             rows = keys[order[b * size : (b + 1) * size]]
             yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug, starts, distractors_of)
-
-
-def _read_image(sample: Sample) -> np.ndarray:
-    return read_image(sample.path)
-
-
-def _per_file_lazily(samples: list[Sample], read: Callable[[Sample], T]) -> Callable[[int], T]:
-    """``read`` of sample ``i``, called when first asked for and once per file (a sample listed more than
-    once shares the first one's result)."""
-    done: dict[str, T] = {}
-
-    def of(i: int) -> T:
-        key = str(samples[i].path)
-        if key not in done:
-            done[key] = read(samples[i])
-        return done[key]
-
-    return of

@@ -91,9 +91,9 @@ from rebar_data.perception.refine_train import quantize_onnx as quantize_int8
 from rebar_data.perception.refine_train import save as save_refiner
 
 EARLY_STOP_METRIC = "val_oks_ap"
-# settings a resumed run may change
 # settings newer than some run folders, at the value that trains as those runs did
 NEWER_FIELDS = {"other_renderer_repeats": 0}
+# settings a resumed run may change
 RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "refine", "depth_check", "crossing_point"}
 
 
