@@ -61,7 +61,7 @@ smoke: setup | $(DATA)
 # An interrupted run resumes from runs/train/paper-tunnel/last.pt; a finished one is re-scored and re-shipped.
 SUPPLEMENTS := paper-tunnel-lower-mat wide-tunnel-a wide-tunnel-b wide-planar-a wide-planar-b
 REFINE_SUPPLEMENTS := cycles-train-tunnel cycles-train-planar cycles-train-tunnel-b cycles-train-planar-b \
-	cycles-train-tunnel-c cycles-train-planar-c
+	cycles-train-tunnel-c cycles-train-planar-c cycles-train-tunnel-d cycles-train-planar-d
 train: setup
 	@ver=$$(sed -n 's/^version: *//p' pipelines/paper-tunnel.yaml | head -1); ds=$(DATA)/paper-tunnel/v$$ver; \
 	if [ ! -d "$$ds" ]; then $(MAKE) --no-print-directory dataset || exit 1; fi; \
