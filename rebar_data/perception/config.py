@@ -796,6 +796,21 @@ class TrainConfig(Strict):
     0.652 and 0.765 / 0.820. On paper-tunnel's val split the first epochs scored as before (OKS AP@0.5:0.95
     0.822 / 0.819 at epoch 16).
 
+    Then 96 more Cycles frames, every scene with a lower mat (``cycles-train-tunnel-d`` and ``-planar-d``),
+    joined the Makefile's second-stage supplements: 360 frames, 23% of the first epochs' images (720 of
+    3,120; 780 steps an epoch). The shipped model is that whole `make train` run from scratch (85.0
+    minutes: the first stage's 16 epochs 42 of them, 150-160 s an epoch, the adapt epochs 14.2, the second
+    stage 23.5), against the one above (before / now, scored in one session on the same builds). The
+    Cycles sets, RGB only: crossval-planar AP@0.5 0.973 / 0.971, PCK@2px 0.960 / 0.960, recall@P0.99
+    0.876 / 0.863; crossval-tunnel 0.956 / 0.961, 0.937 / 0.940, 0.765 / 0.868; with depth, recall@P0.99
+    0.991 / 0.989 and 0.958 / 0.969. Paper-tunnel's test split with depth: AP@0.5 0.979 / 0.979, PCK@2px
+    0.954 / 0.953, recall@P0.99 0.990 / 0.990; RGB only recall@P0.99 0.964 / 0.953. Planar-slab (with
+    depth): AP@0.5 0.966 / 0.967, PCK@2px 0.858 / 0.852, recall@P0.99 0.871 / 0.879. The adapted first
+    stage alone on the Cycles sets, RGB only: recall@P0.99 0.435 / 0.634 and 0.643 / 0.752, AP@0.5 0.927 /
+    0.929 and 0.907 / 0.931; before its adapt epochs AP@0.5 0.913 / 0.892 and 0.901 / 0.905. Confident
+    false detections (above the score where recall reaches 0.97): 45 / 33 on the slab, 67 / 64 on the
+    curved set, 42 / 27 and 62 / 59 of them at the lower mat's crossings.
+
     Earlier, with the first 1,680 images alone and the second stage's verification at full weight
     (``RefineConfig.verify_power`` 1): 22 epochs (best on val at 18) gave OKS AP@0.5 0.977, AP@0.5:0.95
     0.906, PCK@2px 0.927, recall@P0.99 0.958 (first stage alone 0.937); 11 epochs 0.965, 0.895, 0.913 and
