@@ -91,6 +91,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError
     from rebar_data.perception.data import SPLITS, stated_oks_sigma
     from rebar_data.perception.evaluate import LOW_THRESHOLD, load_splits, predict, score, write_predictions
+    from rebar_data.perception.false_detections import false_detection_census, format_census
     from rebar_data.perception.metrics import format_summary
 
     out = Path(args.out)
@@ -116,8 +117,11 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
     against = "" if args.truth == "sight" else " (against the projected 3D crossing points)"
     found = "" if point == args.truth else f", the detector's {point} points"
     print(f"{args.split}{against}{found}: {format_summary(metrics)}", file=sys.stderr)
+    census = false_detection_census(root, samples, preds)
+    print(format_census(census), file=sys.stderr)
     if args.metrics:
         record = {"split": args.split, "dataset": str(root), "truth": args.truth, "point": point, **metrics}
+        record["false_detections"] = census
         Path(args.metrics).write_text(json.dumps(record, indent=2) + "\n")
     print(out)
 

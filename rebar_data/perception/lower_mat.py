@@ -36,6 +36,9 @@ from rebar_data.scene.mat_surface import MatSurface
 DEPTH_TOLERANCE_M = 0.02
 # the lower mat shows within this many pixels, beyond the widest top bar's half-width (10 mm), of one
 REACH_PX = 2.0
+# the two kinds of place, in the order lower_mat_crossings lists them: a top bar in front of a lower bar of the
+# other direction, and the lower mat's own crossings
+KINDS = ("top_over_lower", "own")
 CHORD_M = 0.05  # the bars are cut into chords this long (a bowed or curved bar's chord errs by under 1 mm)
 _COLUMNS = (
     "surr_lower_layer",
@@ -66,9 +69,15 @@ def lower_mat_crossings(root: str | Path, samples: list[Sample]) -> list[np.ndar
     """(M, 2) u, v (COCO corner origin) of the crossings that each sample's lower mat shows (its own, and
     those of top bars with lower bars); empty for a scene without a lower mat, and for every sample of a
     dataset whose samples table records no lower mat (one built before it could draw one)."""
+    return [np.concatenate([k[name] for name in KINDS]) for k in lower_mat_places(root, samples)]
+
+
+def lower_mat_places(root: str | Path, samples: list[Sample]) -> list[dict[str, np.ndarray]]:
+    """:func:`lower_mat_crossings` by kind: for each sample, ``KINDS`` -> (M, 2) u, v, where a top bar
+    passes in front of a lower bar (``top_over_lower``) and the lower mat's own crossings (``own``)."""
     root = Path(root)
     table = pq.read_table(root / "tables/samples.parquet")
-    empty = [np.zeros((0, 2)) for _ in samples]
+    empty = [{name: np.zeros((0, 2)) for name in KINDS} for _ in samples]
     if not all(c in table.column_names for c in _COLUMNS) or not samples:
         return empty
     names = ["image_id", "world_from_camera", *_COLUMNS]
@@ -78,10 +87,10 @@ def lower_mat_crossings(root: str | Path, samples: list[Sample]) -> list[np.ndar
         return empty
     top = _chords(root)
     out = []
-    for s in samples:
+    for s, none in zip(samples, empty, strict=True):
         i = row.get(s.image_id)
         if i is None or not cols["surr_lower_layer"][i] or s.camera is None:
-            out.append(np.zeros((0, 2)))
+            out.append(none)
             continue
         shift = np.array([cols["surr_lower_layer_shift_a_m"][i], cols["surr_lower_layer_shift_b_m"][i]])
         low = top.lowered(shift, cols["surr_lower_layer_depth_m"][i])
@@ -89,12 +98,14 @@ def lower_mat_crossings(root: str | Path, samples: list[Sample]) -> list[np.ndar
         cam = _Camera(world_from_camera, s)
         t0, t1 = cam.visible(top.ends[top.direction == 0]), cam.visible(top.ends[top.direction == 1])
         l0, l1 = cam.visible(low[top.direction == 0]), cam.visible(low[top.direction == 1])
-        found = [cam.cross(a, b) for a, b in ((t0, l1), (l0, t1), (l0, l1))]
-        uv = np.concatenate([f[0] for f in found])
-        z = np.concatenate([f[1] for f in found])
-        if len(uv):
-            uv = uv[_seen(s, uv, z)]
-        out.append(uv)
+        pairs = {"top_over_lower": ((t0, l1), (l0, t1)), "own": ((l0, l1),)}
+        found = [(name, *cam.cross(a, b)) for name in KINDS for a, b in pairs[name]]
+        kind = np.concatenate([[name] * len(uv) for name, uv, _ in found]).astype(str)
+        uv = np.concatenate([uv for _, uv, _ in found])
+        if len(uv):  # the depth and instance images read once for both kinds
+            seen = _seen(s, uv, np.concatenate([z for _, _, z in found]))
+            uv, kind = uv[seen], kind[seen]
+        out.append({name: uv[kind == name] for name in KINDS})
     return out
 
 

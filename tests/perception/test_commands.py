@@ -8,6 +8,7 @@ import yaml
 
 from rebar_data.cli import main
 from rebar_data.perception.data import load_split, stated_oks_sigma
+from rebar_data.perception.false_detections import PLACES
 
 from .conftest import TINY_TRAIN
 
@@ -33,11 +34,16 @@ def test_detect_on_a_dataset_split_writes_one_row_per_prediction(
         ]
     )
     assert rc == 0
-    assert capsys.readouterr().out.strip().splitlines()[-1] == str(out)
+    printed = capsys.readouterr()
+    assert printed.out.strip().splitlines()[-1] == str(out)
     t = pq.read_table(out).to_pandas()
     assert list(t.columns) == ["image_id", "u", "v", "score"]
     assert set(t.image_id) <= {s.image_id for s in load_split(drawn_dataset, "test")}
     assert (t.score >= 0.05).all() and metrics.exists()
+    # where the confident false detections lie, printed and in the metrics file
+    census = json.loads(metrics.read_text())["false_detections"]
+    assert census["recall"] == 0.97 and census["false"] == sum(census[p] for p in PLACES)
+    assert f"{census['false']} false detections above" in printed.err
 
 
 def test_detect_on_images_draws_overlays(trained_run, drawn_dataset, tmp_path):

@@ -15,7 +15,7 @@ from rebar_data.perception.adapt_train import adapt_settings
 from rebar_data.perception.config import AdaptConfig, TrainConfig
 from rebar_data.perception.data import load_split, read_distractors
 from rebar_data.perception.epochs import TrainingImages, make_batch
-from rebar_data.perception.lower_mat import lower_mat_crossings, lower_mat_of
+from rebar_data.perception.lower_mat import lower_mat_crossings, lower_mat_of, lower_mat_places
 from rebar_data.perception.refine_train import with_lower_mat
 from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.scene.surroundings import DISTRACTOR_ID
@@ -145,3 +145,54 @@ def test_training_images_know_their_distractors_pixels_only_when_the_gain_is_on(
     batch = make_batch(data, np.random.default_rng(1), cfg, mosaic=False)
     assert batch[0].shape == (4, 3, 128, 128)
     assert read_distractors(replace(s, instance_path=None)) is None
+
+
+def test_the_census_puts_each_false_detection_at_the_place_it_lies(lower_dataset):
+    from rebar_data.perception.false_detections import false_detection_census, format_census
+
+    samples = load_split(lower_dataset, "train")
+    places = lower_mat_places(lower_dataset, samples)
+    assert sum(len(p["top_over_lower"]) for p in places) > 0 and sum(len(p["own"]) for p in places) > 0
+    for p, together in zip(places, lower_mat_crossings(lower_dataset, samples), strict=True):
+        np.testing.assert_array_equal(np.concatenate([p["top_over_lower"], p["own"]]), together)
+    preds = []
+    for k, (s, p) in enumerate(zip(samples, places, strict=True)):
+        rows = [np.c_[s.visible, np.full(len(s.visible), 0.9)]]  # every crossing found
+        rows += [np.c_[p[name], np.full(len(p[name]), 0.95)] for name in ("top_over_lower", "own")]
+        if k == 0:
+            rows.append([[2.0, 2.0, 0.95]])  # in the frame's corner
+            # a second detection beside a crossing, 8 px from it and clear of the lower mat's places
+            inner = s.visible[np.argmax(np.minimum(s.visible, [s.width, s.height] - s.visible).min(axis=1))]
+            placed = np.concatenate([p["top_over_lower"], p["own"], [[2.0, 2.0]]])
+            beside = [inner + 8.0 * np.array([np.cos(a), np.sin(a)]) for a in np.linspace(0, 2 * np.pi, 16)]
+            clear = [b for b in beside if np.linalg.norm(placed - b, axis=1).min() > 7.0]
+            rows.append([[*clear[0], 0.95]])
+        rows.append([[s.width / 2, s.height / 2, 0.5]])  # below the cut: not counted
+        preds.append(np.concatenate([np.asarray(r, float).reshape(-1, 3) for r in rows]))
+    c = false_detection_census(lower_dataset, samples, preds, recall=1.0)
+    assert c["reached"] and c["score"] == pytest.approx(0.9)
+    assert c["true"] == sum(len(s.visible) for s in samples)
+    assert c["top_over_lower"] == sum(len(p["top_over_lower"]) for p in places)
+    assert c["lower_mat"] == sum(len(p["own"]) for p in places)
+    assert (c["border"], c["beside_crossing"], c["elsewhere"]) == (1, 1, 0)
+    assert c["false"] == c["top_over_lower"] + c["lower_mat"] + 2
+    assert f"{c['false']} false detections above the score where recall reaches 1" in format_census(c)
+    # half the crossings found: recall 0.97 is never reached, and every prediction counts
+    half = [np.c_[s.visible[::2], np.full(len(s.visible[::2]), 0.9)] for s in samples]
+    c = false_detection_census(lower_dataset, samples, half)
+    assert not c["reached"] and c["false"] == 0 and "never reaches 0.97" in format_census(c)
+    with pytest.raises(ValueError, match="accepted: a number in"):
+        false_detection_census(lower_dataset, samples, half, recall=0.0)
+
+
+def test_a_dataset_without_a_lower_mat_counts_no_false_detection_there(drawn_dataset):
+    from rebar_data.perception.false_detections import false_detection_census
+
+    samples = load_split(drawn_dataset, "train")
+    preds = [
+        np.r_[np.c_[s.visible, np.ones(len(s.visible))], [[s.width / 2 + 0.5, s.height / 2 + 0.5, 1.0]]]
+        for s in samples
+    ]
+    c = false_detection_census(drawn_dataset, samples, preds)
+    assert c["top_over_lower"] == c["lower_mat"] == 0
+    assert c["false"] == len(samples)
