@@ -57,7 +57,7 @@ smoke: setup | $(DATA)
 # images each, 7-11 minutes each), and
 # ship it with its model card, scored also on the planar-slab set (another config, built when missing: 90
 # images, a minute) and, from RGB alone, on the Cycles-rendered cross-renderer sets (built when missing: about
-# 12 minutes). See the model card for the training time on 2 cores.
+# 20 minutes). See the model card for the training time on 2 cores.
 # An interrupted run resumes from runs/train/paper-tunnel/last.pt; a finished one is re-scored and re-shipped.
 SUPPLEMENTS := paper-tunnel-lower-mat wide-tunnel-a wide-tunnel-b wide-planar-a wide-planar-b
 REFINE_SUPPLEMENTS := cycles-train-tunnel cycles-train-planar cycles-train-tunnel-b cycles-train-planar-b \
@@ -109,7 +109,7 @@ clean:
 
 # Cross-renderer validation sets (pipelines/crossval-*.yaml): the same meshes, cameras and labels as a training
 # set, the RGB images rendered by Blender Cycles (installed by setup), every image in the test split. Builds each
-# set when missing (24 images, about 6 minutes on 2 cores), validates and audits it, then scores the shipped
+# set when missing (24 images, 5-15 minutes on 2 cores), validates and audits it, then scores the shipped
 # detector on it from RGB alone: its sight points against the labels and against the projected 3D crossing
 # points, and its crossing-point stage's points against the 3D points (predictions and metrics in $(CROSSVAL_OUT)).
 CROSSVAL := crossval-planar crossval-tunnel
