@@ -479,6 +479,7 @@ def write_card(
             if dc
             else []
         ),
+        *_census_lines(extra_results or {}),
         "",
         "## Limits",
         _renderer_line(ds),
@@ -513,6 +514,20 @@ def write_card(
     return path
 
 
+def _census_lines(rows: dict[str, dict]) -> list[str]:
+    """The card's words on where the confident false detections of the rows that counted them lie."""
+    counted = [(name, m["false_detections"]) for name, m in rows.items() if m.get("false_detections")]
+    if not counted:
+        return []
+    from rebar_data.perception.false_detections import format_census
+
+    return [
+        f"- Where the confident false detections lie (above the score where recall reaches "
+        f"{counted[0][1]['recall']:g}; `rebar detect` on a dataset counts them so):",
+        *(f"  - `{name}`: {format_census(c)}." for name, c in counted),
+    ]
+
+
 def evaluation_rows(
     detector: Detector,
     run_dir: Path,
@@ -537,6 +552,7 @@ def evaluation_rows(
         score,
         score_dataset,
     )
+    from rebar_data.perception.false_detections import false_detection_census
 
     res = json.loads((run_dir / "results.json").read_text())
     rows: dict[str, dict] = {}
@@ -567,7 +583,10 @@ def evaluation_rows(
         sigma = stated_oks_sigma(path)
         samples = load_splits(path)
         preds = predict(detector, samples, depth=False, progress=progress)
-        rows[f"{label}, {engine} renderer, RGB only"] = score(samples, preds, sigma=sigma)
+        rows[f"{label}, {engine} renderer, RGB only"] = {
+            **score(samples, preds, sigma=sigma),
+            "false_detections": false_detection_census(path, samples, preds),
+        }
         for name, m in breakdown(path, samples, preds, sigma=sigma).items():
             if name.startswith("scenes"):  # where its misses and false detections lie
                 rows[f"{label}, {engine} renderer, RGB only, {name}"] = m

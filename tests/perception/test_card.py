@@ -59,6 +59,21 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     split = {k: m for k, m in rows.items() if k.startswith("other v0.0.1, cycles renderer, RGB only, scenes")}
     assert sum(m["n_gt"] for m in split.values()) == rgb["n_gt"] and split
     assert not any(k.startswith("own v0.0.1") and "scenes" in k for k in rows)
+    # and where its confident false detections lie, which the card lists under its table
+    from rebar_data.perception.card import _census_lines
+    from rebar_data.perception.false_detections import PLACES, format_census
+
+    census = rgb["false_detections"]
+    assert census["recall"] == 0.97 and census["false"] == sum(census[k] for k in PLACES)
+    assert not any(
+        "false_detections" in m for k, m in rows.items() if k != "other v0.0.1, cycles renderer, RGB only"
+    )
+    lines = _census_lines(rows)
+    assert lines[0].startswith(
+        "- Where the confident false detections lie (above the score where recall reaches 0.97"
+    )
+    assert lines[1:] == [f"  - `other v0.0.1, cycles renderer, RGB only`: {format_census(census)}."]
+    assert _census_lines({"own": rows["own v0.0.1 (all splits)"]}) == []
 
 
 def test_the_card_names_every_renderer_that_drew_training_images():
