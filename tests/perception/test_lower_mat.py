@@ -15,6 +15,7 @@ from rebar_data.perception.adapt_train import adapt_settings
 from rebar_data.perception.config import AdaptConfig, TrainConfig
 from rebar_data.perception.data import load_split, read_distractors
 from rebar_data.perception.epochs import TrainingImages, make_batch
+from rebar_data.perception.evaluate import score
 from rebar_data.perception.lower_mat import lower_mat_crossings, lower_mat_of, lower_mat_places
 from rebar_data.perception.refine_train import with_lower_mat
 from rebar_data.scene.mat_surface import MatSurface
@@ -177,6 +178,23 @@ def test_the_census_puts_each_false_detection_at_the_place_it_lies(lower_dataset
     assert (c["border"], c["beside_crossing"], c["elsewhere"]) == (1, 1, 0)
     assert c["false"] == c["top_over_lower"] + c["lower_mat"] + 2
     assert f"{c['false']} false detections above the score where recall reaches 1" in format_census(c)
+    # removing false detections never lowers recall at precision 0.99
+    assert all(v >= c["recall_at_p99"] for v in c["recall_at_p99_without"].values())
+    # the top bars in front of lower bars the only false detections, scored above every crossing: recall at
+    # precision 0.99 is what the metrics say, and all of it without them
+    over = [
+        np.r_[
+            np.c_[s.visible, np.full(len(s.visible), 0.9)],
+            np.c_[p["top_over_lower"], np.ones(len(p["top_over_lower"]))],
+        ]
+        for s, p in zip(samples, places, strict=True)
+    ]
+    c = false_detection_census(lower_dataset, samples, over)
+    assert c["recall_at_p99"] == pytest.approx(score(samples, over, sigma=0.04)["recall_at_p99"])
+    assert c["recall_at_p99"] < 1.0
+    assert c["recall_at_p99_without"]["top_over_lower"] == 1.0
+    assert c["recall_at_p99_without"]["lower_mat"] == c["recall_at_p99"]
+    assert "1.000 without the top over lower ones" in format_census(c)
     # half the crossings found: recall 0.97 is never reached, and every prediction counts
     half = [np.c_[s.visible[::2], np.full(len(s.visible[::2]), 0.9)] for s in samples]
     c = false_detection_census(lower_dataset, samples, half)
