@@ -60,6 +60,10 @@ def test_detect_scores_against_the_chosen_truth(rendered, tmp_path, capsys):
     sight, against, found = figures["sight-sight"], figures["crossing-sight"], figures["crossing-None"]
     assert sight["n_gt"] == against["n_gt"] == found["n_gt"] > 0
     assert sight["mean_px"] != against["mean_px"]
+    # the false-detection census is taken against the labels alone
+    assert (
+        "false_detections" in sight and "false_detections" not in against and "false_detections" not in found
+    )
     preds = [
         pq.read_table(tmp_path / f"{n}.parquet").to_pandas()
         for n in ("sight-sight", "crossing-sight", "crossing-None")
