@@ -26,7 +26,7 @@ import numpy as np
 
 from rebar_data.perception.data import Sample
 from rebar_data.perception.lower_mat import lower_mat_places
-from rebar_data.perception.metrics import GATE_PX, _hungarian
+from rebar_data.perception.metrics import GATE_PX, match, recall_at_precision, score_curve
 
 PLACES = ("top_over_lower", "lower_mat", "border", "beside_crossing", "elsewhere")
 NEAR_PX = 6.0  # a false detection this close to a lower-mat place is counted there
@@ -54,14 +54,6 @@ def _place_of(s: Sample, uv: np.ndarray, placed: dict[str, np.ndarray], near_px:
         np.ones(len(uv), bool),
     )
     return np.argmax(np.stack(where), axis=0) if len(uv) else np.zeros(0, int)
-
-
-def _recall_at_p99(scores: np.ndarray, hits: np.ndarray, n_gt: int) -> float:
-    """The highest recall at precision 0.99 or more along the score-sorted detections (as the metrics')."""
-    h = hits[np.argsort(-scores, kind="mergesort")]
-    tps = np.cumsum(h)
-    ok = tps / np.arange(1, len(h) + 1) >= 0.99
-    return float((tps[ok] / max(n_gt, 1)).max()) if ok.any() else 0.0
 
 
 def false_detection_census(
@@ -98,7 +90,7 @@ def false_detection_census(
         p = np.asarray(p, float).reshape(-1, 3)
         n_gt += len(s.visible)
         hit = np.zeros(len(p), bool)
-        hit[_hungarian(np.asarray(s.visible, float).reshape(-1, 2), p[:, :2], GATE_PX)[0]] = True
+        hit[match(np.asarray(s.visible, float).reshape(-1, 2), p[:, :2], GATE_PX)[0]] = True
         at = np.full(len(p), -1)  # -1: a true detection
         at[~hit] = _place_of(s, p[~hit, :2], placed, near_px)
         hits.append(hit)
@@ -107,14 +99,15 @@ def false_detection_census(
     s_all = np.concatenate(scores) if scores else np.zeros(0)
     h_all = np.concatenate(hits) if hits else np.zeros(0, bool)
     at_all = np.concatenate(place) if place else np.zeros(0, int)
-    order = np.argsort(-s_all, kind="mergesort")
-    reached_at = np.nonzero(np.cumsum(h_all[order]) >= recall * max(n_gt, 1))[0] if n_gt else np.zeros(0, int)
+    s_sorted, h_sorted, precision, recall_curve = score_curve(s_all, h_all, n_gt)
+    reached_at = np.nonzero(np.cumsum(h_sorted) >= recall * n_gt)[0] if n_gt else np.zeros(0, int)
     reached = bool(len(reached_at))
-    cut = float(s_all[order][reached_at[0]]) if reached else (float(s_all.min()) if len(s_all) else 0.0)
+    cut = float(s_sorted[reached_at[0]]) if reached else (float(s_all.min()) if len(s_all) else 0.0)
     above = s_all >= cut
     counts = {name: int((above & (at_all == k)).sum()) for k, name in enumerate(PLACES)}
     without = {
-        name: _recall_at_p99(s_all[at_all != k], h_all[at_all != k], n_gt) for k, name in enumerate(PLACES)
+        name: recall_at_precision(*score_curve(s_all[at_all != k], h_all[at_all != k], n_gt)[2:])
+        for k, name in enumerate(PLACES)
     }
     return {
         "recall": recall,
@@ -123,7 +116,7 @@ def false_detection_census(
         "false": int(sum(counts.values())),
         "true": int(h_all[above].sum()),
         **counts,
-        "recall_at_p99": _recall_at_p99(s_all, h_all, n_gt),
+        "recall_at_p99": recall_at_precision(precision, recall_curve),
         "recall_at_p99_without": without,
     }
 

@@ -98,14 +98,11 @@ def lower_mat_places(root: str | Path, samples: list[Sample]) -> list[dict[str, 
         cam = _Camera(world_from_camera, s)
         t0, t1 = cam.visible(top.ends[top.direction == 0]), cam.visible(top.ends[top.direction == 1])
         l0, l1 = cam.visible(low[top.direction == 0]), cam.visible(low[top.direction == 1])
-        pairs = {"top_over_lower": ((t0, l1), (l0, t1)), "own": ((l0, l1),)}
-        found = [(name, *cam.cross(a, b)) for name in KINDS for a, b in pairs[name]]
-        kind = np.concatenate([[name] * len(uv) for name, uv, _ in found]).astype(str)
-        uv = np.concatenate([uv for _, uv, _ in found])
-        if len(uv):  # the depth and instance images read once for both kinds
-            seen = _seen(s, uv, np.concatenate([z for _, _, z in found]))
-            uv, kind = uv[seen], kind[seen]
-        out.append({name: uv[kind == name] for name in KINDS})
+        found = [cam.cross(a, b) for a, b in ((t0, l1), (l0, t1), (l0, l1))]  # KINDS' order
+        uv = np.concatenate([f[0] for f in found])
+        seen = _seen(s, uv, np.concatenate([f[1] for f in found])) if len(uv) else np.zeros(0, bool)
+        n = len(found[0][0]) + len(found[1][0])  # the top bars in front of lower bars come first
+        out.append({"top_over_lower": uv[:n][seen[:n]], "own": uv[n:][seen[n:]]})
     return out
 
 

@@ -230,7 +230,24 @@ class PixelResult:
     errors_px: np.ndarray
 
 
-def _hungarian(gt: np.ndarray, pred: np.ndarray, gate_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def score_curve(
+    scores: np.ndarray, hits: np.ndarray, n_gt: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Detections sorted by score, best first (stable): their scores, hits, and the precision and recall
+    after each of them, given ``n_gt`` crossings."""
+    order = np.argsort(-scores, kind="mergesort")
+    s, h = scores[order], hits[order]
+    tps = np.cumsum(h)
+    return s, h, tps / np.arange(1, len(s) + 1), tps / max(n_gt, 1)
+
+
+def recall_at_precision(precision: np.ndarray, recall: np.ndarray, at_least: float = 0.99) -> float:
+    """The best recall along a :func:`score_curve` while precision stays at least ``at_least``; 0 if never."""
+    ok = precision >= at_least
+    return float(recall[ok].max()) if ok.any() else 0.0
+
+
+def match(gt: np.ndarray, pred: np.ndarray, gate_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One-to-one matches within the gate: (pred index, gt index, distance)."""
     if len(gt) == 0 or len(pred) == 0:
         return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
@@ -269,7 +286,7 @@ def pixel_metrics(
         n_gt += len(gt)
         ign = np.asarray(truth.ignore_uv, float).reshape(-1, 2)
         both = np.r_[gt, ign]
-        p_idx, g_idx, dist = _hungarian(both, pred[:, :2], gate_px)
+        p_idx, g_idx, dist = match(both, pred[:, :2], gate_px)
         hit = np.zeros(len(pred), bool)
         drop = np.zeros(len(pred), bool)
         real = g_idx < len(gt)
@@ -282,12 +299,7 @@ def pixel_metrics(
     s = np.concatenate(scores) if scores else np.zeros(0)
     h = np.concatenate(hits) if hits else np.zeros(0, bool)
     e = np.concatenate(errors) if errors else np.zeros(0)
-    order = np.argsort(-s, kind="mergesort")
-    s, h = s[order], h[order]
-    tps = np.cumsum(h)
-    prec = tps / np.arange(1, len(s) + 1)
-    rec = tps / max(n_gt, 1)
-    ok = prec >= 0.99
+    s, h, prec, rec = score_curve(s, h, n_gt)
     above = s >= threshold
     n_above = int(above.sum())
     tp_above = int(h[above].sum())
@@ -298,7 +310,7 @@ def pixel_metrics(
         median_px=float(np.median(e)) if len(e) else float("nan"),
         precision=tp_above / n_above if n_above else float("nan"),
         recall=tp_above / max(n_gt, 1),
-        recall_at_p99=float(rec[ok].max()) if ok.any() else 0.0,
+        recall_at_p99=recall_at_precision(prec, rec),
         threshold=threshold,
         curve_precision=prec,
         curve_recall=rec,
