@@ -706,6 +706,15 @@ class AdaptConfig(Strict):
     the first stage a little of the difference, and the whole detector nothing beyond one training's
     spread, so the default stays 1 (no extra weight; the adapt epochs then train as
     before it existed, and their checkpoints from then still count).
+
+    More frames with a lower mat: three more adapt epochs from the shipped first stage (from its ONNX
+    file, :func:`~rebar_data.perception.export.network_from_onnx`) on paper-tunnel's 960 training images
+    and Cycles frames listed 10 times, the shipped later stages kept, RGB only, recall@P0.99 slab /
+    curved set / paper-tunnel test: shipped 0.863 / 0.869 / 0.953; the 96 ``-d`` frames it had seen
+    0.849 / 0.855 / 0.954; 48 new ones (``cycles-train-tunnel-e``) beside them 0.807 / 0.876 / 0.950;
+    96 new ones (both ``-e`` sets; 11.9 minutes for the three epochs) 0.843 / 0.884 / 0.950, the false
+    detections where a top bar passes in front of a lower bar 26 / 56 (shipped 26 / 55): within one
+    training's spread, so the ``-e`` sets stay out of `make train`.
     """
 
     epochs: NonNegativeInt = 3

@@ -132,3 +132,73 @@ def onnx_meta(path: str | Path) -> dict[str, Any]:
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     raw = sess.get_modelmeta().custom_metadata_map.get(META_KEY)
     return json.loads(raw) if raw else {}
+
+
+def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
+    """The network of an ONNX file from :func:`export_onnx` turned back into PyTorch, and its ``meta``:
+    what lets training go on from a shipped first stage (a run folder's ``best.pt``, the adapt epochs)
+    when its checkpoint is gone.
+
+    The export folds each batch norm into the convolution before it, so the weights come back folded:
+    each such convolution holds the folded kernel and its batch norm the folded bias, with unit scale
+    and the statistics that make it the identity in eval mode (mean 0, variance 1 - eps). The outputs
+    equal the file's within float rounding; batch norms trained again in train mode start from other
+    statistics, so go on with them frozen, as the adapt epochs do.
+
+    Raises:
+        ConfigError: the file is not a detector's ONNX file, or its layers do not match its model config.
+    """
+    import onnx
+    from onnx import numpy_helper
+
+    path = Path(path)
+    try:
+        model = onnx.load(str(path))
+    except Exception as e:
+        raise ConfigError(f"{path}: cannot be read as an ONNX file ({type(e).__name__})") from None
+    entries = [e for e in model.metadata_props if e.key == META_KEY]
+    if not entries:
+        raise ConfigError(f"{path}: carries no detector metadata; accepted: a model file written by `rebar train`")
+    full = json.loads(entries[0].value)
+    net = KeypointNet(ModelConfig.model_validate(full["model_config"])).eval()
+    weights = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in model.graph.initializer}
+    nodes = {op: [n for n in model.graph.node if n.op_type == op] for op in ("Conv", "Gemm")}
+    convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    linears = [m for m in net.modules() if isinstance(m, torch.nn.Linear)]
+    norm_after = {  # each convolution's batch norm, where one follows it
+        id(a): b
+        for seq in net.modules()
+        if isinstance(seq, torch.nn.Sequential)
+        for a, b in zip(list(seq.children()), list(seq.children())[1:])
+        if isinstance(a, torch.nn.Conv2d) and isinstance(b, torch.nn.BatchNorm2d)
+    }
+    if len(nodes["Conv"]) != len(convs) or len(nodes["Gemm"]) != len(linears):
+        raise ConfigError(
+            f"{path}: holds {len(nodes['Conv'])} convolutions and {len(nodes['Gemm'])} linear layers where its "
+            f"model config has {len(convs)} and {len(linears)}; accepted: a file exported by `rebar train`"
+        )
+    with torch.no_grad():
+        # the export traces the layers in the order the modules were made (the context's linear layers
+        # aside, matched on their own)
+        for node, conv in zip(nodes["Conv"], convs):
+            w = weights[node.input[1]]
+            b = weights[node.input[2]] if len(node.input) > 2 else torch.zeros(w.shape[0])
+            if w.shape != conv.weight.shape:
+                raise ConfigError(
+                    f"{path}: a convolution of shape {tuple(w.shape)} where its model config has "
+                    f"{tuple(conv.weight.shape)}; accepted: a file exported by `rebar train`"
+                )
+            conv.weight.copy_(w)
+            norm = norm_after.get(id(conv))
+            if norm is None:
+                conv.bias.copy_(b)
+            else:
+                norm.weight.fill_(1.0)
+                norm.bias.copy_(b)
+                norm.running_mean.zero_()
+                norm.running_var.fill_(1.0 - norm.eps)
+        for node, lin in zip(nodes["Gemm"], linears):
+            lin.weight.copy_(weights[node.input[1]])
+            lin.bias.copy_(weights[node.input[2]])
+    meta = {k: v for k, v in full.items() if k not in ("format", "format_version", "model_config")}
+    return net, meta

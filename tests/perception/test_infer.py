@@ -191,3 +191,32 @@ def test_the_later_passes_skip_only_detections_that_cannot_reach_the_threshold(m
             )
             np.testing.assert_array_equal(got, det.detect(rgb, depth=d, threshold=threshold))
     assert spared[0] > 0  # at the operating point some really were spared
+
+
+def test_an_onnx_file_turns_back_into_the_network_it_was_exported_from(tiny_net, tmp_path):
+    from rebar_data.perception.export import network_from_onnx
+
+    rgb = np.random.default_rng(2).integers(0, 256, (96, 128, 3), dtype=np.uint8)
+    path = export_onnx(tiny_net, tmp_path / "m.onnx", {"note": "back"})
+    net, meta = network_from_onnx(path)
+    assert meta == {"note": "back"} and net.cfg == tiny_net.cfg
+    camera = (100.0, 100.0, 64.0, 48.0)
+    want = Detector.from_network(tiny_net).raw(rgb, camera=camera)
+    np.testing.assert_allclose(Detector.from_network(net).raw(rgb, camera=camera), want, atol=1e-4)
+    # and it exports again to the same outputs: the round trip loses nothing
+    again = Detector.load(export_onnx(net, tmp_path / "again.onnx", meta), threads=1)
+    np.testing.assert_allclose(again.raw(rgb, camera=camera), want, atol=1e-4)
+
+
+def test_a_file_without_detector_metadata_is_refused(tmp_path):
+    import onnx
+
+    from rebar_data.perception.export import network_from_onnx
+
+    bare = tmp_path / "bare.onnx"
+    onnx.save(onnx.helper.make_model(onnx.helper.make_graph([], "g", [], [])), str(bare))
+    with pytest.raises(ConfigError, match="carries no detector metadata"):
+        network_from_onnx(bare)
+    (tmp_path / "junk.onnx").write_bytes(b"not onnx")
+    with pytest.raises(ConfigError, match="cannot be read as an ONNX file"):
+        network_from_onnx(tmp_path / "junk.onnx")
