@@ -134,3 +134,58 @@ def _save(path: Path, **payload: Any) -> None:
     tmp = path.with_name(path.name + ".tmp")
     torch.save(payload, tmp)
     tmp.replace(path)
+
+
+def adapt_model(
+    model: Path,
+    samples: list[Sample],
+    extra: list[Sample],
+    out: Path,
+    cfg: TrainConfig,
+    *,
+    data: list[str],
+    log=None,
+    progress: bool = False,
+) -> Path:
+    """The adapt epochs from a model file rather than a run: ``model``'s first stage (its ONNX file turned
+    back into a network, :func:`~rebar_data.perception.export.network_from_onnx`) trains ``cfg.adapt``'s
+    epochs on ``samples`` and ``extra`` (listed ``supplement_repeats`` times) in ``out``, and
+    ``out/rebar_keypoint.onnx`` is written with it and a copy of the model's later stages beside it. What
+    lets a shipped detector learn a few dozen labelled frames of another camera or renderer; an
+    interrupted call resumes in ``out``. The later stages and the score biases stay the model's (they
+    place the operating point, not the ranking that AP and recall at precision 0.99 score).
+
+    Raises:
+        ConfigError: the model is not an ONNX file from `rebar train`, or there are no ``extra`` frames.
+    """
+    import shutil
+
+    from rebar_data.config import ConfigError
+    from rebar_data.perception.export import export_onnx, network_from_onnx
+    from rebar_data.perception.infer import crossing_point_path, depth_check_path, refiner_path
+
+    if model.suffix != ".onnx":
+        raise ConfigError(
+            f"{model}: is not an ONNX file; accepted: a model's .onnx file (the shipped one by default)"
+        )
+    if not extra:
+        raise ConfigError(
+            "no frames to adapt to; accepted: one or more datasets of the other camera's frames"
+        )
+    if cfg.adapt.epochs == 0:
+        raise ConfigError("adapt.epochs = 0 trains nothing; accepted: 1 or more adapt epochs")
+    net, meta = network_from_onnx(model)
+    out.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out / "best.pt", net, meta)
+    first, _ = adapt_first_stage(
+        out, cfg, samples, extra, base_epoch=int(meta.get("epoch", 0)), data=data, log=log, progress=progress
+    )
+    adapted, adapted_meta, _ = load_checkpoint(first)
+    target = out / "rebar_keypoint.onnx"
+    for stage in (refiner_path, depth_check_path, crossing_point_path):
+        if stage(model).exists():
+            shutil.copy2(stage(model), stage(target))
+    # the first stage last: a file there means the whole model is there
+    return export_onnx(
+        adapted, target, {**meta, "adapt": adapted_meta.get("adapt", {}), "adapted_from": str(model)}
+    )

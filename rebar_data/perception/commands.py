@@ -71,6 +71,34 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
     print(stage)
 
 
+def run_adapt(args: argparse.Namespace) -> None:
+    from rebar_data.config import read_yaml
+    from rebar_data.perception.adapt_train import adapt_model
+    from rebar_data.perception.data import check_dataset, load_split, read_info
+    from rebar_data.perception.export import onnx_meta
+    from rebar_data.perception.infer import resolve_model_path
+    from rebar_data.perception.train import resolve_config, supplement_images
+
+    root = check_dataset(args.dataset)
+    model = resolve_model_path(args.model)
+    # the settings the model trained with (its adapt epochs' among them), unless a file gives others
+    settings = read_yaml(args.config) if args.config else onnx_meta(model).get("train_config")
+    cfg = resolve_config(settings, {}, source=str(args.config or f"{model}'s train settings"))
+    extra, frames = supplement_images(args.frames, trained_on=read_info(root).get("name"))
+    out = adapt_model(
+        model,
+        load_split(root, "train"),
+        extra,
+        Path(args.out),
+        cfg,
+        data=[str(f["path"]) for f in frames],
+        log=None if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
+        progress=not args.quiet,
+    )
+    print(f"adapted {model} on {len(extra)} frames: {out}", file=sys.stderr)
+    print(out)
+
+
 def run_detect(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError
     from rebar_data.perception.infer import Detector
@@ -221,6 +249,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     a.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
     a.set_defaults(func=run_add_crossing_point)
+
+    p = sub.add_parser(
+        "adapt",
+        help="train a model's first stage a few more epochs on another camera's or renderer's labelled frames",
+    )
+    p.add_argument("dataset", help="the dataset the model trained on (its train split stays in the mix)")
+    p.add_argument(
+        "--frames",
+        action="append",
+        required=True,
+        metavar="DATASET",
+        help="a dataset of the other camera's frames, every image used (repeatable)",
+    )
+    p.add_argument("--model", help="the model's .onnx file (default: the shipped model)")
+    p.add_argument(
+        "--out", required=True, help="folder for the adapted model, rebar_keypoint.onnx (resumes there)"
+    )
+    p.add_argument(
+        "--config", help="YAML of training settings (default: the model's own; its adapt and seed)"
+    )
+    p.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
+    p.set_defaults(func=run_adapt)
 
     d = sub.add_parser(
         "detect", help="detect crossings in a dataset split (to Parquet) or in images (overlays)"

@@ -158,7 +158,9 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
         raise ConfigError(f"{path}: cannot be read as an ONNX file ({type(e).__name__})") from None
     entries = [e for e in model.metadata_props if e.key == META_KEY]
     if not entries:
-        raise ConfigError(f"{path}: carries no detector metadata; accepted: a model file written by `rebar train`")
+        raise ConfigError(
+            f"{path}: carries no detector metadata; accepted: a model file written by `rebar train`"
+        )
     full = json.loads(entries[0].value)
     net = KeypointNet(ModelConfig.model_validate(full["model_config"])).eval()
     weights = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in model.graph.initializer}
@@ -169,7 +171,7 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
         id(a): b
         for seq in net.modules()
         if isinstance(seq, torch.nn.Sequential)
-        for a, b in zip(list(seq.children()), list(seq.children())[1:])
+        for a, b in zip(list(seq.children()), list(seq.children())[1:], strict=False)
         if isinstance(a, torch.nn.Conv2d) and isinstance(b, torch.nn.BatchNorm2d)
     }
     if len(nodes["Conv"]) != len(convs) or len(nodes["Gemm"]) != len(linears):
@@ -180,7 +182,7 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
     with torch.no_grad():
         # the export traces the layers in the order the modules were made (the context's linear layers
         # aside, matched on their own)
-        for node, conv in zip(nodes["Conv"], convs):
+        for node, conv in zip(nodes["Conv"], convs, strict=True):
             w = weights[node.input[1]]
             b = weights[node.input[2]] if len(node.input) > 2 else torch.zeros(w.shape[0])
             if w.shape != conv.weight.shape:
@@ -197,7 +199,7 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
                 norm.bias.copy_(b)
                 norm.running_mean.zero_()
                 norm.running_var.fill_(1.0 - norm.eps)
-        for node, lin in zip(nodes["Gemm"], linears):
+        for node, lin in zip(nodes["Gemm"], linears, strict=True):
             lin.weight.copy_(weights[node.input[1]])
             lin.bias.copy_(weights[node.input[2]])
     meta = {k: v for k, v in full.items() if k not in ("format", "format_version", "model_config")}
