@@ -141,7 +141,7 @@ def adapt_model(
     samples: list[Sample],
     extra: list[Sample],
     out: Path,
-    cfg: TrainConfig,
+    cfg: TrainConfig | None = None,
     *,
     data: list[str],
     log=None,
@@ -153,7 +153,8 @@ def adapt_model(
     ``out/rebar_keypoint.onnx`` is written with it and a copy of the model's later stages beside it. What
     lets a shipped detector learn a few dozen labelled frames of another camera or renderer; an
     interrupted call resumes in ``out``. The later stages and the score biases stay the model's (they
-    place the operating point, not the ranking that AP and recall at precision 0.99 score).
+    place the operating point, not the ranking that AP and recall at precision 0.99 score). ``cfg`` None
+    trains with the settings the model trained with (its ``train_config``, the adapt epochs' among them).
 
     Raises:
         ConfigError: the model is not an ONNX file from `rebar train`, or there are no ``extra`` frames.
@@ -172,9 +173,13 @@ def adapt_model(
         raise ConfigError(
             "no frames to adapt to; accepted: one or more datasets of the other camera's frames"
         )
+    net, meta = network_from_onnx(model)
+    if cfg is None:
+        from rebar_data.perception.train import resolve_config
+
+        cfg = resolve_config(meta.get("train_config"), {}, source=f"{model}'s train settings")
     if cfg.adapt.epochs == 0:
         raise ConfigError("adapt.epochs = 0 trains nothing; accepted: 1 or more adapt epochs")
-    net, meta = network_from_onnx(model)
     out.mkdir(parents=True, exist_ok=True)
     save_checkpoint(out / "best.pt", net, meta)
     first, _ = adapt_first_stage(

@@ -75,15 +75,13 @@ def run_adapt(args: argparse.Namespace) -> None:
     from rebar_data.config import read_yaml
     from rebar_data.perception.adapt_train import adapt_model
     from rebar_data.perception.data import check_dataset, load_split, read_info
-    from rebar_data.perception.export import onnx_meta
     from rebar_data.perception.infer import resolve_model_path
     from rebar_data.perception.train import resolve_config, supplement_images
 
     root = check_dataset(args.dataset)
     model = resolve_model_path(args.model)
-    # the settings the model trained with (its adapt epochs' among them), unless a file gives others
-    settings = read_yaml(args.config) if args.config else onnx_meta(model).get("train_config")
-    cfg = resolve_config(settings, {}, source=str(args.config or f"{model}'s train settings"))
+    # None: the settings the model trained with (adapt_model reads them from the file it loads)
+    cfg = resolve_config(read_yaml(args.config), {}, source=str(args.config)) if args.config else None
     extra, frames = supplement_images(args.frames, trained_on=read_info(root).get("name"))
     out = adapt_model(
         model,

@@ -113,16 +113,22 @@ def update_onnx_meta(path: str | Path, changes: dict[str, Any]) -> Path:
 
     path = Path(path)
     model = onnx.load(str(path))
-    entries = [e for e in model.metadata_props if e.key == META_KEY]
-    if not entries:
-        raise ConfigError(
-            f"{path}: carries no detector metadata; accepted: a model file written by `rebar train`"
-        )
-    entries[0].value = json.dumps({**json.loads(entries[0].value), **changes}, sort_keys=True)
+    entry = _meta_entry(model, path)
+    entry.value = json.dumps({**json.loads(entry.value), **changes}, sort_keys=True)
     tmp = path.with_name(path.name + ".tmp")
     onnx.save(model, str(tmp))
     tmp.replace(path)
     return path
+
+
+def _meta_entry(model, path: Path):
+    """The metadata entry of a loaded ONNX ``model`` (read from ``path``) that holds the detector's meta."""
+    for entry in model.metadata_props:
+        if entry.key == META_KEY:
+            return entry
+    raise ConfigError(
+        f"{path}: carries no detector metadata; accepted: a model file written by `rebar train`"
+    )
 
 
 def onnx_meta(path: str | Path) -> dict[str, Any]:
@@ -156,12 +162,7 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
         model = onnx.load(str(path))
     except Exception as e:
         raise ConfigError(f"{path}: cannot be read as an ONNX file ({type(e).__name__})") from None
-    entries = [e for e in model.metadata_props if e.key == META_KEY]
-    if not entries:
-        raise ConfigError(
-            f"{path}: carries no detector metadata; accepted: a model file written by `rebar train`"
-        )
-    full = json.loads(entries[0].value)
+    full = json.loads(_meta_entry(model, path).value)
     net = KeypointNet(ModelConfig.model_validate(full["model_config"])).eval()
     weights = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in model.graph.initializer}
     nodes = {op: [n for n in model.graph.node if n.op_type == op] for op in ("Conv", "Gemm")}

@@ -30,14 +30,12 @@ def test_the_adapted_model_keeps_the_later_stages_and_detects(
 ):
     model = trained_run.out_dir / "best.onnx"
     cfg = resolve_config(TINY_TRAIN, {})
-    out = adapt_model(
-        model,
-        load_split(drawn_dataset, "train"),
-        load_splits(other_frames),
-        tmp_path / "a",
-        cfg,
-        data=["other"],
-    )
+    samples, frames = load_split(drawn_dataset, "train"), load_splits(other_frames)
+
+    def adapt():
+        return adapt_model(model, samples, frames, tmp_path / "a", cfg, data=["other"])
+
+    out = adapt()
     assert out == tmp_path / "a" / "rebar_keypoint.onnx"
     # the later stages the model had came along, byte for byte
     for later in sorted(trained_run.out_dir.glob("best.*.onnx")):
@@ -45,36 +43,27 @@ def test_the_adapted_model_keeps_the_later_stages_and_detects(
         assert copied.read_bytes() == later.read_bytes()
     meta = onnx_meta(out)
     assert meta["adapted_from"] == str(model) and meta["adapt"]["epochs_run"] == cfg.adapt.epochs
-    rgb = read_sample_image(load_splits(other_frames)[0])
+    rgb = read_sample_image(frames[0])
     before = Detector.load(model, threads=1).raw(rgb)
     after = Detector.load(out, threads=1)
     assert after.refiner is not None and not np.allclose(after.raw(rgb), before, atol=1e-3)  # it trained
     assert after.detect(rgb, threshold=0.05).shape[1] == 3
     # run again, it resumes: the same file, no epoch trained again
-    again = adapt_model(
-        model,
-        load_split(drawn_dataset, "train"),
-        load_splits(other_frames),
-        tmp_path / "a",
-        cfg,
-        data=["other"],
-    )
+    again = adapt()
     np.testing.assert_allclose(Detector.load(again, threads=1).raw(rgb), after.raw(rgb), atol=1e-6)
 
 
 def test_bad_inputs_are_refused_before_any_training(trained_run, drawn_dataset, other_frames, tmp_path):
     model = trained_run.out_dir / "best.onnx"
     cfg = resolve_config(TINY_TRAIN, {})
-    samples = load_split(drawn_dataset, "train")
+    samples, frames = load_split(drawn_dataset, "train"), load_splits(other_frames)
     with pytest.raises(ConfigError, match="no frames to adapt to"):
         adapt_model(model, samples, [], tmp_path / "b", cfg, data=[])
     with pytest.raises(ConfigError, match="is not an ONNX file"):
-        adapt_model(
-            trained_run.out_dir / "best.pt", samples, load_splits(other_frames), tmp_path / "b", cfg, data=[]
-        )
+        adapt_model(trained_run.out_dir / "best.pt", samples, frames, tmp_path / "b", cfg, data=[])
     none = resolve_config({**TINY_TRAIN, "adapt": {"epochs": 0}}, {})
     with pytest.raises(ConfigError, match="adapt.epochs = 0"):
-        adapt_model(model, samples, load_splits(other_frames), tmp_path / "b", none, data=[])
+        adapt_model(model, samples, frames, tmp_path / "b", none, data=[])
     assert not (tmp_path / "b").exists()  # nothing half-written
 
 
