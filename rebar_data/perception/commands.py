@@ -71,6 +71,36 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
     print(stage)
 
 
+def run_add_line_check(args: argparse.Namespace) -> None:
+    from rebar_data.config import ConfigError, read_yaml
+    from rebar_data.perception.data import check_dataset, load_split, read_info
+    from rebar_data.perception.infer import resolve_model_path
+    from rebar_data.perception.line_check_train import attach
+    from rebar_data.perception.train import resolve_config, supplement_images
+
+    root = check_dataset(args.dataset)
+    model = resolve_model_path(args.model)
+    settings = read_yaml(args.config) if args.config else None
+    cfg = resolve_config(settings, {}, source=str(args.config or "train settings"))
+    extra, meta = supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
+    val = load_split(root, "val")
+    if not val:
+        raise ConfigError(f"{root}: the val split has no images; accepted: the dataset the model trained on")
+    entry = attach(
+        model,
+        val + extra,
+        val,
+        cfg.line_check,
+        data=[f"{read_info(root).get('name')} val"] + [f"{m['name']} v{m['version']}" for m in meta],
+        progress=not args.quiet,
+    )
+    print(
+        f"line check in {model}: fitted on {entry['candidates']} candidates of {entry['images']} images",
+        file=sys.stderr,
+    )
+    print(model)
+
+
 def run_adapt(args: argparse.Namespace) -> None:
     from rebar_data.config import read_yaml
     from rebar_data.perception.adapt_train import adapt_model
@@ -247,6 +277,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     a.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
     a.set_defaults(func=run_add_crossing_point)
+
+    c = sub.add_parser(
+        "add-line-check",
+        help="fit the line check (scores read along each detection's bars) into a model file",
+    )
+    c.add_argument("dataset", help="the dataset the model trained on (its val split fits and calibrates it)")
+    c.add_argument("--model", help="the model's .onnx file, changed in place (default: the shipped model)")
+    c.add_argument(
+        "--supplement",
+        action="append",
+        metavar="DATASET",
+        help="a dataset whose every image the check also fits on (repeatable; make train: LINE_SUPPLEMENTS)",
+    )
+    c.add_argument("--config", help="YAML of training settings, as for `rebar train` (its line_check)")
+    c.add_argument("--quiet", action="store_true", help="no progress lines")
+    c.set_defaults(func=run_add_line_check)
 
     p = sub.add_parser(
         "adapt",

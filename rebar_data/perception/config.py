@@ -654,6 +654,25 @@ class CrossingPointConfig(Strict):
     threads: PositiveInt = 2
 
 
+class LineCheckConfig(Strict):
+    """The line check (:mod:`rebar_data.perception.line_check`): each detection's score read again, without
+    depth, beside the scores of the detections along its two bars, by a logistic regression fitted
+    (:mod:`~rebar_data.perception.line_check_train`) on the trained detector's candidates in the
+    validation split and the line supplements (``rebar train --line-supplement``; `make train`'s
+    ``LINE_SUPPLEMENTS``, the two Cycles sets with a lower mat in every scene), with L2 penalty
+    ``1 / regularization`` (scikit-learn's ``C``).
+
+    Why: the confident false detections that hold the RGB stages' recall at precision 0.99 on the Cycles
+    sets are nearly all places where a top bar passes in front of a lower mat's bar; a patch of any size
+    the second stage was tried with shows them as crossings, and more Cycles frames with a lower mat did
+    not teach the first stage the difference (the README's cross-renderer section). Along the lower bar
+    the detector finds only more such places, scored lower on the whole; along a top bar, crossings.
+    """
+
+    enabled: bool = True
+    regularization: Positive = 1.0
+
+
 class AdaptConfig(Strict):
     """The first stage's adapt epochs (:mod:`~rebar_data.perception.adapt_train`): after its best epoch,
     ``epochs`` more on its training images and the run's second-stage supplements (``rebar train
@@ -850,3 +869,4 @@ class TrainConfig(Strict):
     refine: RefineConfig = RefineConfig()
     depth_check: DepthCheckConfig = DepthCheckConfig()
     crossing_point: CrossingPointConfig = CrossingPointConfig()
+    line_check: LineCheckConfig = LineCheckConfig()

@@ -18,6 +18,8 @@ import numpy as np
 from rebar_data.config import ConfigError
 from rebar_data.perception.crossing_point import CrossingPoint, check_point
 from rebar_data.perception.depth_check import DepthCheck, as_depth_m
+from rebar_data.perception.line_check import FLOOR as LINE_FLOOR
+from rebar_data.perception.line_check import LineCheck
 from rebar_data.perception.metrics import OPERATING_THRESHOLD
 from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
 from rebar_data.perception.refine import Refiner
@@ -79,6 +81,9 @@ class Detector:
         crossing_point: The stage that gives where each detection's 3D crossing point projects
             (:mod:`rebar_data.perception.crossing_point`); used when ``detect`` is asked for
             ``point="crossing"``.
+        line_check: Weighs each detection's score with the scores along its two bars
+            (:mod:`rebar_data.perception.line_check`; ``meta["line_check"]``); used when ``detect`` gets
+            no depth image. Set it to None to get the RGB stages' scores alone.
     """
 
     def __init__(
@@ -107,6 +112,8 @@ class Detector:
         self.depth_check: DepthCheck | None = None
         self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
         self.crossing_point: CrossingPoint | None = None
+        entry = meta.get("line_check")
+        self.line_check = LineCheck.from_meta(entry, str(path or "model")) if entry else None
 
     @classmethod
     def load(cls, path: str | Path | None = None, *, threads: int = 2) -> Detector:
@@ -171,10 +178,11 @@ class Detector:
         later stages add or cost); they are back afterwards."""
         refiner, self.refiner = self.refiner, None
         depth_check, self.depth_check = self.depth_check, None
+        line_check, self.line_check = self.line_check, None
         try:
             yield self
         finally:
-            self.refiner, self.depth_check = refiner, depth_check
+            self.refiner, self.depth_check, self.line_check = refiner, depth_check, line_check
 
     def default_camera(self, height: int, width: int) -> tuple[float, float, float, float]:
         """Intrinsics assumed when the caller gives none: principal point at the image centre and the
@@ -242,26 +250,44 @@ class Detector:
         checked = depth_m is not None and self.depth_check is not None
         out = self.raw(image, camera=camera)
         bias = self.score_bias if checked else self.score_bias_without_depth
-        det = decode(out[0] + bias, out[1:], threshold=threshold, max_detections=max_detections)
+        # without depth the line check reads every candidate the RGB stages score LINE_FLOOR or more
+        lines = self.line_check is not None and not checked
+        floor = min(threshold, LINE_FLOOR) if lines else threshold
+        det = decode(out[0] + bias, out[1:], threshold=floor, max_detections=max_detections)
+        decoded = det[:, :2].copy()  # where the line check follows the bars from: the same at any threshold
+        rescored: list[np.ndarray] = []  # the line check's scores, once read
+
+        def line_checked(verify_logit: np.ndarray | None) -> np.ndarray:
+            s = det[:, 2]
+            if verify_logit is not None:
+                s = shifted_score(s, self.verify_power * log_probability(verify_logit))
+            rescored.append(self._line_checked(image, decoded, s, threshold))
+            return rescored[-1]
+
+        def may_reach(logit: np.ndarray) -> np.ndarray:
+            if lines:  # the later passes move exactly the detections returned
+                return line_checked(logit) >= threshold
+            return self._may_reach(det[:, 2], logit, threshold, checked=checked, bias=bias)
+
         log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing (0: no verification)
+        verify = None
         if self.refiner is not None and len(det):
-            det[:, :2], verify = self.refiner.refine_and_verify(
-                image,
-                det[:, :2],
-                keep=lambda logit: self._may_reach(det[:, 2], logit, threshold, checked=checked, bias=bias),
-            )
+            det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2], keep=may_reach)
             if verify is not None:
                 log_p = log_probability(verify)
-        power = np.full(len(det), self.verify_power)  # the verification's weight, per detection
-        if checked and len(det):
-            logit = self.depth_check.logits(depth_m, det[:, :2])
-            measured = np.isfinite(logit)
-            power[measured] = self.verify_power_with_depth
-            det[measured, 2] = verified_score(det[measured, 2], logit[measured], power=self.depth_power)
-            # no measurement to check (too near or far for the sensor): scored as without depth, with the
-            # RGB stages' operating point and weight of the verification
-            det[~measured, 2] = shifted_score(det[~measured, 2], self.score_bias_without_depth - bias)
-        det[:, 2] = shifted_score(det[:, 2], power * log_p)
+        if lines:  # the verification counts in the line check's input
+            det[:, 2] = rescored[-1] if rescored else line_checked(verify)
+        else:
+            power = np.full(len(det), self.verify_power)  # the verification's weight, per detection
+            if checked and len(det):
+                logit = self.depth_check.logits(depth_m, det[:, :2])
+                measured = np.isfinite(logit)
+                power[measured] = self.verify_power_with_depth
+                det[measured, 2] = verified_score(det[measured, 2], logit[measured], power=self.depth_power)
+                # no measurement to check (too near or far for the sensor): scored as without depth, with the
+                # RGB stages' operating point and weight of the verification
+                det[~measured, 2] = shifted_score(det[~measured, 2], self.score_bias_without_depth - bias)
+            det[:, 2] = shifted_score(det[:, 2], power * log_p)
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
@@ -270,6 +296,20 @@ class Detector:
         if point == "crossing" and len(det):
             det[:, :2] = self.crossing_point.points(image, det[:, :2], camera)
         return det
+
+    def _line_checked(
+        self, image: np.ndarray, uv: np.ndarray, score: np.ndarray, threshold: float
+    ) -> np.ndarray:
+        """The line check's score of each candidate ``uv`` scored ``score`` by the RGB stages; 0 for those
+        under :data:`LINE_FLOOR` or outside the frame (no evidence, never returned), and for those it could
+        not lift to ``threshold`` whatever their bars show (not worth reading)."""
+        h, w = image.shape[:2]
+        out = np.zeros(len(score))
+        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        cand = np.flatnonzero((score >= LINE_FLOOR) & inside)
+        if len(cand):
+            out[cand] = self.line_check.scores(image, uv[cand], score[cand], threshold=threshold)
+        return out
 
     def _may_reach(
         self, score: np.ndarray, verify_logit: np.ndarray, threshold: float, *, checked: bool, bias: float
