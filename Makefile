@@ -62,11 +62,15 @@ smoke: setup | $(DATA)
 SUPPLEMENTS := paper-tunnel-lower-mat wide-tunnel-a wide-tunnel-b wide-planar-a wide-planar-b
 REFINE_SUPPLEMENTS := cycles-train-tunnel cycles-train-planar cycles-train-tunnel-b cycles-train-planar-b \
 	cycles-train-tunnel-c cycles-train-planar-c cycles-train-tunnel-d cycles-train-planar-d
+# the line check (scores read along each detection's bars, without depth) is fitted on the val split and
+# these: the Cycles sets with a lower mat in every scene, whose top-over-lower places it is for
+LINE_SUPPLEMENTS := cycles-train-tunnel-d cycles-train-planar-d
 train: setup
 	@ver=$$(sed -n 's/^version: *//p' pipelines/paper-tunnel.yaml | head -1); ds=$(DATA)/paper-tunnel/v$$ver; \
 	if [ ! -d "$$ds" ]; then $(MAKE) --no-print-directory dataset || exit 1; fi; \
 	sup=""; for p in $(SUPPLEMENTS); do sup="$$sup --supplement $$($(MAKE) --no-print-directory -s built PIPELINE=$$p)" || exit 1; done; \
 	for p in $(REFINE_SUPPLEMENTS); do sup="$$sup --refine-supplement $$($(MAKE) --no-print-directory -s built PIPELINE=$$p WORKERS=1)" || exit 1; done; \
+	for p in $(LINE_SUPPLEMENTS); do sup="$$sup --line-supplement $$($(MAKE) --no-print-directory -s built PIPELINE=$$p WORKERS=1)" || exit 1; done; \
 	gen=$$($(MAKE) --no-print-directory -s built PIPELINE=planar-slab) || exit 1; \
 	cv=""; for p in $(CROSSVAL); do cv="$$cv --eval $$($(MAKE) --no-print-directory -s built PIPELINE=$$p WORKERS=1)" || exit 1; done; \
 	$(REBAR) train "$$ds" $$sup --out runs/train/paper-tunnel --ship --eval "$$gen" $$cv

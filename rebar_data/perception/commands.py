@@ -34,6 +34,7 @@ def run_train(args: argparse.Namespace) -> None:
         epochs=args.epochs,
         supplements=args.supplement or (),
         refine_supplements=args.refine_supplement or (),
+        line_supplements=args.line_supplement or (),
         resume=not args.fresh,
         progress=not args.quiet,
     )
@@ -248,6 +249,13 @@ def register(sub: argparse._SubParsersAction) -> None:
         "epochs (adapt.supplement_repeats times) and the second stage (refine.supplement_repeats times), "
         "and the first epochs only with other_renderer_repeats (repeatable); without it they may change "
         "when a run resumes: those stages then train again",
+    )
+    t.add_argument(
+        "--line-supplement",
+        action="append",
+        metavar="DATASET",
+        help="a dataset whose every image the line check is fitted on beside the val split (repeatable; "
+        "make train: LINE_SUPPLEMENTS)",
     )
     t.add_argument("--fresh", action="store_true", help="start afresh instead of resuming the run in --out")
     t.add_argument(

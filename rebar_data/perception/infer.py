@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 from collections.abc import Callable, Iterator
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -18,7 +19,6 @@ import numpy as np
 from rebar_data.config import ConfigError
 from rebar_data.perception.crossing_point import CrossingPoint, check_point
 from rebar_data.perception.depth_check import DepthCheck, as_depth_m
-from rebar_data.perception.line_check import FLOOR as LINE_FLOOR
 from rebar_data.perception.line_check import LineCheck
 from rebar_data.perception.metrics import OPERATING_THRESHOLD
 from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
@@ -249,45 +249,14 @@ class Detector:
         depth_m = as_depth_m(depth, (h, w)) if depth is not None else None
         checked = depth_m is not None and self.depth_check is not None
         out = self.raw(image, camera=camera)
-        bias = self.score_bias if checked else self.score_bias_without_depth
-        # without depth the line check reads every candidate the RGB stages score LINE_FLOOR or more
-        lines = self.line_check is not None and not checked
-        floor = min(threshold, LINE_FLOOR) if lines else threshold
-        det = decode(out[0] + bias, out[1:], threshold=floor, max_detections=max_detections)
-        decoded = det[:, :2].copy()  # where the line check follows the bars from: the same at any threshold
-        rescored: list[np.ndarray] = []  # the line check's scores, once read
-
-        def line_checked(verify_logit: np.ndarray | None) -> np.ndarray:
-            s = det[:, 2]
-            if verify_logit is not None:
-                s = shifted_score(s, self.verify_power * log_probability(verify_logit))
-            rescored.append(self._line_checked(image, decoded, s, threshold))
-            return rescored[-1]
-
-        def may_reach(logit: np.ndarray) -> np.ndarray:
-            if lines:  # the later passes move exactly the detections returned
-                return line_checked(logit) >= threshold
-            return self._may_reach(det[:, 2], logit, threshold, checked=checked, bias=bias)
-
-        log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing (0: no verification)
-        verify = None
-        if self.refiner is not None and len(det):
-            det[:, :2], verify = self.refiner.refine_and_verify(image, det[:, :2], keep=may_reach)
-            if verify is not None:
-                log_p = log_probability(verify)
-        if lines:  # the verification counts in the line check's input
-            det[:, 2] = rescored[-1] if rescored else line_checked(verify)
+        if self.line_check is not None and not checked:
+            lc = self.line_check
+            inputs = self._line_pass(
+                image, out, lc.floor, lc.checked_from, threshold=threshold, max_detections=max_detections
+            )
+            det = np.c_[inputs.placed, inputs.scores]
         else:
-            power = np.full(len(det), self.verify_power)  # the verification's weight, per detection
-            if checked and len(det):
-                logit = self.depth_check.logits(depth_m, det[:, :2])
-                measured = np.isfinite(logit)
-                power[measured] = self.verify_power_with_depth
-                det[measured, 2] = verified_score(det[measured, 2], logit[measured], power=self.depth_power)
-                # no measurement to check (too near or far for the sensor): scored as without depth, with the
-                # RGB stages' operating point and weight of the verification
-                det[~measured, 2] = shifted_score(det[~measured, 2], self.score_bias_without_depth - bias)
-            det[:, 2] = shifted_score(det[:, 2], power * log_p)
+            det = self._rgb_and_depth(image, out, depth_m, threshold=threshold, max_detections=max_detections)
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
@@ -297,19 +266,107 @@ class Detector:
             det[:, :2] = self.crossing_point.points(image, det[:, :2], camera)
         return det
 
-    def _line_checked(
-        self, image: np.ndarray, uv: np.ndarray, score: np.ndarray, threshold: float
+    def _rgb_and_depth(
+        self,
+        image: np.ndarray,
+        out: np.ndarray,
+        depth_m: np.ndarray | None,
+        *,
+        threshold: float,
+        max_detections: int,
     ) -> np.ndarray:
-        """The line check's score of each candidate ``uv`` scored ``score`` by the RGB stages; 0 for those
-        under :data:`LINE_FLOOR` or outside the frame (no evidence, never returned), and for those it could
-        not lift to ``threshold`` whatever their bars show (not worth reading)."""
+        """(N, 3) u, v, score of the first stage's output ``out`` read on: the second stage, then the depth
+        check when ``depth_m`` is given and the model has one; unsorted, some under ``threshold``."""
+        checked = depth_m is not None and self.depth_check is not None
+        bias = self.score_bias if checked else self.score_bias_without_depth
+        det = decode(out[0] + bias, out[1:], threshold=threshold, max_detections=max_detections)
+        log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing (0: no verification)
+        if self.refiner is not None and len(det):
+            det[:, :2], verify = self.refiner.refine_and_verify(
+                image,
+                det[:, :2],
+                keep=lambda logit: self._may_reach(det[:, 2], logit, threshold, checked=checked, bias=bias),
+            )
+            if verify is not None:
+                log_p = log_probability(verify)
+        power = np.full(len(det), self.verify_power)  # the verification's weight, per detection
+        if checked and len(det):
+            logit = self.depth_check.logits(depth_m, det[:, :2])
+            measured = np.isfinite(logit)
+            power[measured] = self.verify_power_with_depth
+            det[measured, 2] = verified_score(det[measured, 2], logit[measured], power=self.depth_power)
+            # no measurement to check (too near or far for the sensor): scored as without depth, with the
+            # RGB stages' operating point and weight of the verification
+            det[~measured, 2] = shifted_score(det[~measured, 2], self.score_bias_without_depth - bias)
+        det[:, 2] = shifted_score(det[:, 2], power * log_p)
+        return det
+
+    def line_inputs(
+        self,
+        rgb: np.ndarray,
+        floor: float,
+        checked_from: float,
+        *,
+        camera: tuple[float, float, float, float] | None = None,
+    ) -> LineInputs:
+        """What a line check with these first-stage scores (``LineCheckConfig``) reads in an image without
+        depth (:class:`LineInputs`; the second stage's later passes move every checked candidate); its
+        ``scores`` are the RGB stages'. For fitting the check."""
+        image = _check_image(rgb)
         h, w = image.shape[:2]
-        out = np.zeros(len(score))
-        inside = (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-        cand = np.flatnonzero((score >= LINE_FLOOR) & inside)
-        if len(cand):
-            out[cand] = self.line_check.scores(image, uv[cand], score[cand], threshold=threshold)
-        return out
+        camera = tuple(float(c) for c in camera) if camera is not None else self.default_camera(h, w)
+        line_check, self.line_check = self.line_check, None
+        try:
+            out = self.raw(image, camera=camera)
+            return self._line_pass(image, out, floor, checked_from, threshold=floor, max_detections=1000)
+        finally:
+            self.line_check = line_check
+
+    def _line_pass(
+        self,
+        image: np.ndarray,
+        out: np.ndarray,
+        floor: float,
+        checked_from: float,
+        *,
+        threshold: float,
+        max_detections: int,
+    ) -> LineInputs:
+        """The RGB stages and the line check (when the model has one) on the first stage's output ``out``:
+        every candidate it scores ``floor`` or more inside the frame is evidence, those it scores
+        ``checked_from`` or more are verified by the second stage and checked; the later passes move those
+        the check scores ``threshold`` or more (all of them without a check)."""
+        det = decode(
+            out[0] + self.score_bias_without_depth, out[1:], threshold=floor, max_detections=max_detections
+        )
+        h, w = image.shape[:2]
+        det = det[(det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)]
+        evidence = det[:, 2].copy()
+        checked = np.flatnonzero(evidence >= checked_from)
+        scores: list[np.ndarray] = []
+
+        def read(verify_logit: np.ndarray | None) -> np.ndarray:
+            if verify_logit is not None:
+                evidence[checked] = shifted_score(
+                    det[checked, 2], self.verify_power * log_probability(verify_logit)
+                )
+            if self.line_check is None:
+                scores.append(evidence[checked])
+            else:
+                scores.append(
+                    self.line_check.scores(image, det[:, :2], evidence, checked, threshold=threshold)
+                )
+            return scores[-1]
+
+        placed = det[checked, :2]
+        if self.refiner is not None and len(checked):
+            keep = None if self.line_check is None else (lambda logit: read(logit) >= threshold)
+            placed, verify = self.refiner.refine_and_verify(image, placed, keep=keep)
+            if not scores:
+                read(verify)
+        elif not scores:
+            read(None)
+        return LineInputs(det[:, :2], evidence, checked, placed, scores[-1])
 
     def _may_reach(
         self, score: np.ndarray, verify_logit: np.ndarray, threshold: float, *, checked: bool, bias: float
@@ -328,6 +385,27 @@ class Detector:
             )
         # a hair above the best: rounding never spares a detection that reaches the threshold
         return shifted_score(score, best + 1e-6) >= threshold
+
+
+@dataclass(frozen=True)
+class LineInputs:
+    """One image's candidates as the line check reads them (``Detector.line_inputs``).
+
+    Attributes:
+        uv: (N, 2) every candidate the first stage scores the check's floor or more inside the frame, where it
+            puts them.
+        evidence: (N,) each one's score as evidence for the others: the RGB stages' score for the checked
+            ones, the first stage's for the rest.
+        checked: (K,) the indices of those the first stage scores the check's ``checked_from`` or more.
+        placed: (K, 2) where the second stage places the checked ones.
+        scores: (K,) their scores: the line check's, or the RGB stages' when there is none.
+    """
+
+    uv: np.ndarray
+    evidence: np.ndarray
+    checked: np.ndarray
+    placed: np.ndarray
+    scores: np.ndarray
 
 
 def drop_duplicates(det: np.ndarray, radius_px: float) -> np.ndarray:

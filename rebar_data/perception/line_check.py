@@ -8,7 +8,10 @@ lies on that lower bar, and along it there are only more such places and the low
 scored lower on the whole. So each detection is weighed with the scores of the detections along its
 two bars.
 
-For each candidate (every detection the RGB stages score at least :data:`FLOOR`):
+The candidates are every place the first stage scores :data:`FLOOR` or more inside the frame; each is
+evidence for the others with its score (the RGB stages' score, the second stage's verification counted,
+for those the first stage scores :data:`CHECKED_FROM` or more; its first-stage score for the rest, sparing
+the second stage's patches where no score could reach an operating point). For each of the former:
 
 - its two bar directions are read from the image: the two strongest edge orientations (the gradient's,
   turned a quarter) within :data:`RADIUS_PX`, at least :data:`MIN_APART_DEG` apart;
@@ -37,9 +40,10 @@ import numpy as np
 
 from rebar_data.config import ConfigError
 
-FLOOR = 0.05  # candidates scored below this by the RGB stages are not followed, nor checked
+# defaults of LineCheckConfig.floor and .checked_from (a fitted check carries its own in the model file)
+FLOOR = 0.05  # candidates the first stage scores below this are not followed, nor checked
+CHECKED_FROM = 0.2  # ... those it scores this or more are verified by the second stage and checked
 RADIUS_PX = 40  # the bar directions are read within this many pixels of a candidate
-CELL_PX = 8  # ... in square cells this wide
 BINS = 60  # edge orientations, 3 degrees a bin over 180
 MIN_APART_DEG = 25.0  # the second bar direction is this far from the first at least
 CONE_DEG = 4.0
@@ -52,6 +56,7 @@ _SUMMARY = ("count", "mean", "upper_quartile", "best", "share_high", "share_abov
 FEATURES = ("own_logit", *(f"{bar}_{s}" for bar in ("better_bar", "other_bar") for s in _SUMMARY))
 _LOGIT_CLIP = 1e-3
 _TAN = float(np.tan(np.deg2rad(CONE_DEG)))
+_MODULO = (np.arange(256) % BINS).astype(np.uint8)  # orientation bins past 180 degrees folded back
 
 
 def logit(p: np.ndarray) -> np.ndarray:
@@ -62,36 +67,38 @@ def logit(p: np.ndarray) -> np.ndarray:
 def bar_directions(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """(N, 2) angles in radians (image axes, v down) of the two bars crossing at each of ``uv`` (N, 2), the
     stronger first: the peaks of the gradient's orientation histogram (magnitude-weighted, smoothed over
-    five bins) in the square of :data:`CELL_PX` cells reaching :data:`RADIUS_PX` around each point."""
+    five bins) in the square reaching :data:`RADIUS_PX` around each point, read at half resolution."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if not len(uv):
         return np.zeros((0, 2))
     gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
     # at half resolution (the thinnest bars are 5 px wide at full): a quarter of the pixels to read
-    gray = cv2.resize(gray.astype(np.float32), None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+    gray = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA).astype(np.float32)
     h, w = gray.shape
     mag, ang = cv2.cartToPolar(
-        cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3), cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3)
+        cv2.Sobel(gray, cv2.CV_32F, 1, 0, ksize=3),
+        cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3),
+        angleInDegrees=True,
     )
-    bins = (ang * np.float32(BINS / np.pi)).astype(np.int32)
-    bins[bins >= BINS] -= BINS  # orientation, modulo 180 degrees
-    cell_px = CELL_PX // 2
-    ch, cw = -(-h // cell_px), -(-w // cell_px)
-    cell = (np.arange(h) // cell_px)[:, None] * (cw * BINS) + (np.arange(w) // cell_px)[None, :] * BINS
-    hist = np.bincount((cell + bins).ravel(), mag.ravel(), ch * cw * BINS).reshape(ch, cw, BINS)
-    table = np.zeros((ch + 1, cw + 1, BINS))  # summed-area table of the cells' histograms
-    np.cumsum(np.cumsum(hist, 0), 1, out=table[1:, 1:])
-    r = RADIUS_PX // CELL_PX
-    cu = np.floor(uv[:, 0] / CELL_PX).astype(int)
-    cv_ = np.floor(uv[:, 1] / CELL_PX).astype(int)
-    r0, r1 = np.clip(cv_ - r, 0, ch), np.clip(cv_ + r + 1, 0, ch)
-    c0, c1 = np.clip(cu - r, 0, cw), np.clip(cu + r + 1, 0, cw)
-    hist = table[r1, c1] - table[r0, c1] - table[r1, c0] + table[r0, c0]
+    # the nearest of BINS orientations (modulo 180 degrees); bin k is k * 180 / BINS degrees
+    bins = cv2.LUT(cv2.convertScaleAbs(ang, alpha=BINS / 180.0), _MODULO)
+    r = RADIUS_PX // 2
+    bins = cv2.copyMakeBorder(bins, r, r, r, r, cv2.BORDER_CONSTANT, value=0)
+    mag = cv2.copyMakeBorder(mag, r, r, r, r, cv2.BORDER_CONSTANT, value=0.0)  # beyond the image: no edges
+    centre = np.floor(uv / 2).astype(np.int64)
+    top = np.clip(centre[:, 1], -r, h + r - 1)  # each window's corner in the bordered images
+    left = np.clip(centre[:, 0], -r, w + r - 1)
+    # every other pixel of each window: as good a histogram, a quarter of the sums
+    b = np.lib.stride_tricks.sliding_window_view(bins, (2 * r, 2 * r))[top, left][:, ::2, ::2]
+    m = np.lib.stride_tricks.sliding_window_view(mag, (2 * r, 2 * r))[top, left][:, ::2, ::2]
+    b = b.astype(np.int64) + BINS * np.arange(len(uv))[:, None, None]
+    hist = np.bincount(b.ravel(), m.ravel(), len(uv) * BINS)
+    hist = hist.reshape(len(uv), BINS)
     hist = sum(k * np.roll(hist, s, axis=1) for s, k in ((-2, 1), (-1, 2), (0, 3), (1, 2), (2, 1)))
     first = np.argmax(hist, axis=1)
     apart = np.abs((np.arange(BINS)[None, :] - first[:, None] + BINS / 2) % BINS - BINS / 2)
     second = np.argmax(np.where(apart >= BINS * MIN_APART_DEG / 180.0, hist, -1.0), axis=1)
-    normals = (np.stack([first, second], axis=1) + 0.5) * (np.pi / BINS)
+    normals = np.stack([first, second], axis=1) * (np.pi / BINS)
     return normals + np.pi / 2  # a bar runs across its edges' gradient
 
 
@@ -177,25 +184,36 @@ def features(score: np.ndarray, members: np.ndarray, which: np.ndarray | None = 
 
 @dataclass(frozen=True)
 class LineCheck:
-    """A fitted line check: ``weights`` (one per :data:`FEATURES`) and ``bias`` of its logistic regression."""
+    """A fitted line check: ``weights`` (one per :data:`FEATURES`) and ``bias`` of its logistic regression,
+    and the first-stage scores it was fitted with: ``floor`` (candidates) and ``checked_from`` (verified and
+    checked)."""
 
     weights: np.ndarray
     bias: float
+    floor: float = FLOOR
+    checked_from: float = CHECKED_FROM
 
     def scores(
-        self, image: np.ndarray, uv: np.ndarray, score: np.ndarray, *, threshold: float = FLOOR
+        self,
+        image: np.ndarray,
+        uv: np.ndarray,
+        evidence: np.ndarray,
+        checked: np.ndarray,
+        *,
+        threshold: float,
     ) -> np.ndarray:
-        """The new score of each candidate ``uv`` (N, 2) scored ``score`` (N,) by the RGB stages; every
-        candidate of the image scored :data:`FLOOR` or more must be among them (they are each other's
-        evidence). A candidate the check could not lift to ``threshold`` whatever its bars show scores 0
-        (its bars are not followed)."""
+        """(K,) the new scores of the candidates ``checked`` (K indices) names among an image's candidates
+        ``uv`` (N, 2), each scored ``evidence`` (N,) (see ``Detector.line_inputs``). A candidate the check
+        could not lift to ``threshold`` whatever its bars show scores 0 (its bars are not followed)."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
-        score = np.asarray(score, np.float64)
-        out = np.zeros(len(uv))
-        which = np.flatnonzero(self.best_logit(score) >= np.log(threshold / (1 - threshold)))
+        evidence = np.asarray(evidence, np.float64)
+        checked = np.asarray(checked, np.int64)
+        out = np.zeros(len(checked))
+        reach = self.best_logit(evidence[checked]) >= np.log(threshold / (1 - threshold))
+        which = checked[reach]
         if len(which):
-            members = bar_members(uv, bar_directions(image, uv[which]), which)
-            out[which] = 1.0 / (1.0 + np.exp(-(features(score, members, which) @ self.weights + self.bias)))
+            x = features(evidence, bar_members(uv, bar_directions(image, uv[which]), which), which)
+            out[reach] = 1.0 / (1.0 + np.exp(-(x @ self.weights + self.bias)))
         return out
 
     def best_logit(self, score: np.ndarray) -> np.ndarray:
@@ -214,7 +232,8 @@ class LineCheck:
             "features": list(FEATURES),
             "weights": [float(w) for w in self.weights],
             "bias": float(self.bias),
-            "floor": FLOOR,
+            "floor": self.floor,
+            "checked_from": self.checked_from,
         }
 
     @classmethod
@@ -226,4 +245,9 @@ class LineCheck:
                 f"{source}: its line check reads {entry.get('features')}; accepted: one fitted on this "
                 f"version's features ({', '.join(FEATURES)}), as `rebar add-line-check` fits it"
             )
-        return cls(np.asarray(entry["weights"], np.float64), float(entry["bias"]))
+        return cls(
+            np.asarray(entry["weights"], np.float64),
+            float(entry["bias"]),
+            float(entry["floor"]),
+            float(entry["checked_from"]),
+        )

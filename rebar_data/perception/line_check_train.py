@@ -1,8 +1,8 @@
 """Fitting the line check (:mod:`rebar_data.perception.line_check`) to a trained detector.
 
-The detector, without depth and without a line check, finds every candidate of each fitting image down to
-:data:`~rebar_data.perception.line_check.FLOOR`; each candidate within the 5 px gate of a visible crossing
-(one-to-one, as the scorer matches) is a positive, one matched to a crossing the labels ignore is left
+The detector, without depth and without a line check, reads each fitting image as the check would
+(``Detector.line_inputs``); each checked candidate, where the second stage places it, within the 5 px gate
+of a visible crossing (one-to-one, as the scorer matches) is a positive, one matched to a crossing the labels ignore is left
 out, every other a negative. scikit-learn's logistic regression (L2, ``LineCheckConfig.regularization``)
 is fitted on their :data:`~rebar_data.perception.line_check.FEATURES`, and its bias then moved so that
 score 0.5 is the best F1 on the validation images, as the detector's other operating points are.
@@ -11,6 +11,7 @@ score 0.5 is the best F1 on the validation images, as the detector's other opera
 from __future__ import annotations
 
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -22,38 +23,39 @@ from rebar_data.perception.config import LineCheckConfig
 from rebar_data.perception.data import Sample, read_sample_image
 from rebar_data.perception.evaluate import calibrate_score_bias, predict, truth_of
 from rebar_data.perception.infer import Detector
-from rebar_data.perception.line_check import FLOOR, LineCheck, bar_directions, bar_members, features
+from rebar_data.perception.line_check import LineCheck, bar_directions, bar_members, features
 from rebar_data.perception.metrics import GATE_PX, match
 
 
+class UnfitLineCheck(ConfigError):
+    """The fitting images give the line check nothing to learn from: no candidates, or only one kind."""
+
+
 def fitting_rows(
-    detector: Detector, samples: Sequence[Sample], *, progress: bool = False
+    detector: Detector, samples: Sequence[Sample], cfg: LineCheckConfig, *, progress: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The line check's features (M, F) of every candidate the detector finds without it in ``samples``,
-    and whether each is a crossing (M,)."""
+    """The line check's features (M, F) of every candidate the detector checks in ``samples``
+    (``Detector.line_inputs``), and whether each is a crossing (M,)."""
     xs, ys = [], []
-    line_check, detector.line_check = detector.line_check, None
-    try:
-        for k, s in enumerate(samples):
-            rgb = read_sample_image(s)
-            det = detector.detect(rgb, threshold=FLOOR, camera=s.camera)
-            if not len(det):
-                continue
-            truth = truth_of(s)
-            gt = np.asarray(truth.uv, float).reshape(-1, 2)
-            both = np.r_[gt, np.asarray(truth.ignore_uv, float).reshape(-1, 2)]
-            p_idx, g_idx, _ = match(both, det[:, :2], GATE_PX)
-            label = np.zeros(len(det), int)
-            label[p_idx] = np.where(g_idx < len(gt), 1, -1)  # -1: an ignored crossing, left out
-            x = features(det[:, 2], bar_members(det[:, :2], bar_directions(rgb, det[:, :2])))
-            xs.append(x[label >= 0])
-            ys.append(label[label >= 0])
-            if progress and (k + 1) % 50 == 0:
-                print(f"line check: {k + 1}/{len(samples)} images read", file=sys.stderr)
-    finally:
-        detector.line_check = line_check
+    for k, s in enumerate(samples):
+        rgb = read_sample_image(s)
+        seen = detector.line_inputs(rgb, cfg.floor, cfg.checked_from, camera=s.camera)
+        if not len(seen.checked):
+            continue
+        truth = truth_of(s)
+        gt = np.asarray(truth.uv, float).reshape(-1, 2)
+        both = np.r_[gt, np.asarray(truth.ignore_uv, float).reshape(-1, 2)]
+        p_idx, g_idx, _ = match(both, seen.placed, GATE_PX)
+        label = np.zeros(len(seen.checked), int)
+        label[p_idx] = np.where(g_idx < len(gt), 1, -1)  # -1: an ignored crossing, left out
+        members = bar_members(seen.uv, bar_directions(rgb, seen.uv[seen.checked]), seen.checked)
+        x = features(seen.evidence, members, seen.checked)
+        xs.append(x[label >= 0])
+        ys.append(label[label >= 0])
+        if progress and (k + 1) % 50 == 0:
+            print(f"line check: {k + 1}/{len(samples)} images read", file=sys.stderr)
     if not xs:
-        raise ConfigError("the line check found no candidates to fit on; accepted: images with crossings")
+        raise UnfitLineCheck("the line check found no candidates to fit on; accepted: images with crossings")
     return np.concatenate(xs), np.concatenate(ys)
 
 
@@ -63,37 +65,43 @@ def fit_line_check(
     val_samples: Sequence[Sample],
     cfg: LineCheckConfig,
     *,
+    data: Sequence[str] = (),
     progress: bool = False,
-) -> tuple[LineCheck, dict[str, Any]]:
+) -> tuple[dict[str, Any], LineCheck]:
     """The line check fitted on the candidates of ``samples`` (the validation images among them or not),
-    its operating point set on ``val_samples``; and what it was fitted on."""
+    its operating point set on ``val_samples``, and its entry for the model file's metadata (``data``
+    names the fitting datasets)."""
     from sklearn.linear_model import LogisticRegression
 
-    x, y = fitting_rows(detector, samples, progress=progress)
+    t0 = time.perf_counter()
+    x, y = fitting_rows(detector, samples, cfg, progress=progress)
     if len(np.unique(y)) < 2:
-        raise ConfigError(
+        raise UnfitLineCheck(
             "the line check needs both crossings and false detections to fit on; accepted: fitting images "
             "where the detector finds some of each (the validation split and the Cycles supplements)"
         )
     reg = LogisticRegression(C=cfg.regularization, max_iter=5000).fit(x, y)
-    check = LineCheck(reg.coef_[0].astype(np.float64), float(reg.intercept_[0]))
+    check = LineCheck(reg.coef_[0].astype(np.float64), float(reg.intercept_[0]), cfg.floor, cfg.checked_from)
     shift = 0.0
     if val_samples:
         before, detector.line_check = detector.line_check, check
         try:
-            shift = calibrate_score_bias(
-                list(val_samples), predict(detector, val_samples, threshold=FLOOR, depth=False)
-            )
+            preds = predict(detector, val_samples, threshold=cfg.floor, depth=False)
+            shift = calibrate_score_bias(list(val_samples), preds)
         finally:
             detector.line_check = before
-        check = LineCheck(check.weights, check.bias + shift)
-    report = {
+        check = LineCheck(check.weights, check.bias + shift, cfg.floor, cfg.checked_from)
+    entry = {
+        **check.to_meta(),
+        "regularization": cfg.regularization,
+        "fitted_on": list(data),
+        "images": len(samples),
         "candidates": int(len(y)),
         "crossings": int(y.sum()),
-        "images": len(samples),
         "bias_shift": shift,
+        "seconds": time.perf_counter() - t0,
     }
-    return check, report
+    return entry, check
 
 
 def attach(
@@ -108,7 +116,7 @@ def attach(
 ) -> dict[str, Any]:
     """Fit the line check to the detector in ``model`` (an ONNX file written by ``rebar train``) and write
     it into the file's metadata (a line check already there is replaced; the detector's other stages and
-    scores without it are unchanged). ``data`` names the fitting datasets for the metadata.
+    its scores with depth are unchanged). ``data`` names the fitting datasets for the metadata.
 
     Returns:
         The metadata entry written.
@@ -125,8 +133,6 @@ def attach(
             f"{model}: carries no detector metadata; accepted: a model file written by `rebar train`"
         )
     detector = Detector.load(model, threads=threads)
-    detector.line_check = None
-    check, report = fit_line_check(detector, samples, val_samples, cfg, progress=progress)
-    entry = {**check.to_meta(), "regularization": cfg.regularization, "fitted_on": list(data), **report}
+    entry, _ = fit_line_check(detector, samples, val_samples, cfg, data=data, progress=progress)
     update_onnx_meta(model, {"line_check": entry})
     return entry

@@ -68,6 +68,7 @@ from rebar_data.perception.evaluate import (
 )
 from rebar_data.perception.export import export_onnx, load_checkpoint, save_checkpoint
 from rebar_data.perception.infer import Detector
+from rebar_data.perception.line_check_train import UnfitLineCheck, fit_line_check
 from rebar_data.perception.metrics import (
     DEFAULT_OKS_SIGMA,
     OPERATING_THRESHOLD,
@@ -94,7 +95,16 @@ EARLY_STOP_METRIC = "val_oks_ap"
 # settings newer than some run folders, at the value that trains as those runs did
 NEWER_FIELDS = {"other_renderer_repeats": 0}
 # settings a resumed run may change
-RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "refine", "depth_check", "crossing_point"}
+RESUMABLE_CHANGES = {
+    "epochs",
+    "patience",
+    "val_every",
+    "adapt",
+    "refine",
+    "depth_check",
+    "crossing_point",
+    "line_check",
+}
 
 
 @dataclass
@@ -144,6 +154,7 @@ def train(
     batch_size: int | None = None,
     supplements: Sequence[str | Path] = (),
     refine_supplements: Sequence[str | Path] = (),
+    line_supplements: Sequence[str | Path] = (),
     resume: bool = True,
     progress: bool = True,
 ) -> TrainResult:
@@ -161,6 +172,8 @@ def train(
             first stage's adapt epochs (``config.adapt``) and the second stage's training, and the first
             epochs only with ``config.other_renderer_repeats``; without it they may change when a run
             resumes, and those stages then train afresh from the first stage's best epoch kept.
+        line_supplements: Further datasets whose every image the line check is fitted on beside the val
+            split (``config.line_check``; fitted again whenever the run finishes).
         resume: Continue from ``out_dir/last.pt`` if it exists (the settings must match, but for
             epochs, patience and val_every); False starts afresh and overwrites the run.
         progress: Show a progress bar per epoch and a summary line after it (on stderr).
@@ -179,6 +192,7 @@ def train(
     extra, supplement_meta = supplement_images(supplements, trained_on=info.get("name"))
     train_samples = train_samples + extra
     refine_extra, refine_meta = supplement_images(refine_supplements, trained_on=info.get("name"))
+    line_extra, line_meta = supplement_images(line_supplements, trained_on=info.get("name"))
     if cfg.depth_check.enabled:  # fail now, not after the first two stages have trained
         check_depth(train_samples)
     val_samples = load_split(root, "val")
@@ -199,6 +213,8 @@ def train(
             supplements=supplement_meta,
             refine_extra=refine_extra,
             refine_supplements=refine_meta,
+            line_extra=line_extra,
+            line_supplements=line_meta,
             resume=resume,
             progress=progress,
         )
@@ -285,6 +301,8 @@ def _run(
     supplements: list[dict[str, Any]],
     refine_extra: list[Sample],
     refine_supplements: list[dict[str, Any]],
+    line_extra: list[Sample],
+    line_supplements: list[dict[str, Any]],
     resume: bool,
     progress: bool,
 ) -> TrainResult:
@@ -496,6 +514,8 @@ def _run(
         depth_history=depth_history,
         crossing_net=crossing_net,
         crossing_history=crossing_history,
+        line_extra=line_extra,
+        line_supplements=line_supplements,
         train_s=train_s,
         progress=progress,
     )
@@ -559,6 +579,8 @@ def _finish(
     depth_history: list[dict[str, float]],
     crossing_net: CrossingNet | None,
     crossing_history: list[dict[str, float]],
+    line_extra: list[Sample],
+    line_supplements: list[dict[str, Any]],
     train_s: float,
     progress: bool,
 ) -> TrainResult:
@@ -574,6 +596,7 @@ def _finish(
         "refiner",
         "depth_check",
         "crossing_point",
+        "line_check",
     )
     meta = {k: v for k, v in meta.items() if k not in stale_keys}
     # the run as it finished: its later stages may have trained on other settings or second-stage data
@@ -644,6 +667,19 @@ def _finish(
             _log(f"score bias without depth {meta['score_bias_without_depth']:+.3f}", progress)
         meta["score_bias"] = detector.score_bias = calibrate_score_bias(val_samples, raw)
         _log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)", progress)
+    if cfg.line_check.enabled and val_samples:  # on the RGB stages as they now score
+        data = ["val"] + [f"{m['name']} v{m['version']}" for m in line_supplements]
+        try:
+            entry, detector.line_check = fit_line_check(
+                detector, val_samples + line_extra, val_samples, cfg.line_check, data=data, progress=progress
+            )
+        except UnfitLineCheck as e:  # a run too small to have false detections: the model goes without
+            _log(f"no line check: {e}", progress)
+        else:
+            meta["line_check"] = entry
+            _log(
+                f"line check fitted on {entry['candidates']} candidates of {entry['images']} images", progress
+            )
     results: dict[str, dict[str, float]] = {}
     curves = {}
     for split, samples in (("val", val_samples), ("test", test_samples)):
