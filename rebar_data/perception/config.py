@@ -672,7 +672,7 @@ class LineCheckConfig(Strict):
     enabled: bool = True
     regularization: Positive = 1.0
     floor: Fraction = 0.05
-    checked_from: Fraction = 0.2
+    checked_from: Fraction = 0.3
 
 
 class AdaptConfig(Strict):

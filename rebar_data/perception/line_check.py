@@ -42,7 +42,7 @@ from rebar_data.config import ConfigError
 
 # defaults of LineCheckConfig.floor and .checked_from (a fitted check carries its own in the model file)
 FLOOR = 0.05  # candidates the first stage scores below this are not followed, nor checked
-CHECKED_FROM = 0.2  # ... those it scores this or more are verified by the second stage and checked
+CHECKED_FROM = 0.3  # ... those it scores this or more are verified by the second stage and checked
 RADIUS_PX = 40  # the bar directions are read within this many pixels of a candidate
 BINS = 60  # edge orientations, 3 degrees a bin over 180
 MIN_APART_DEG = 25.0  # the second bar direction is this far from the first at least
@@ -50,7 +50,7 @@ CONE_DEG = 4.0
 LATERAL_PX = 2.0
 MAX_STEP_PX = 260.0
 MIN_STEP_PX = 5.0
-STEPS = 10  # along each bar, each way
+STEPS = 6  # along each bar, each way
 HIGH = 0.8
 _SUMMARY = ("count", "mean", "upper_quartile", "best", "share_high", "share_above_own", "best_two")
 FEATURES = ("own_logit", *(f"{bar}_{s}" for bar in ("better_bar", "other_bar") for s in _SUMMARY))
