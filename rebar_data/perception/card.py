@@ -144,6 +144,23 @@ def _crossing_point_lines(model: Path, detector: Detector, res: dict) -> list[st
     ]
 
 
+def _line_check_lines(detector: Detector) -> list[str]:
+    """The card's words on the line check, if the model has one."""
+    if detector.line_check is None:
+        return []
+    e = detector.meta.get("line_check", {})
+    fitted = ", ".join(f"`{d}`" for d in e.get("fitted_on", [])) or "its fitting images"
+    return [
+        "- Line check (no file: a logistic regression's weights in the model's metadata): without a depth",
+        f"  image, every candidate the first stage scores {detector.line_check.floor:g} or more is followed along its two bars",
+        "  (their directions read from the image's edges, then candidate to candidate), and each detection",
+        f"  the first stage scores {detector.line_check.checked_from:g} or more is scored again from its own score and the scores along",
+        "  its bars: a top bar passing in front of a lower mat's bar looks like a crossing, but along the lower",
+        f"  bar there are only more such places. Fitted on {e.get('candidates', '?')} candidates of {fitted}; set",
+        "  `detector.line_check = None` for the RGB stages' scores alone.",
+    ]
+
+
 def _row(name: str, m: dict) -> str:
     return (
         f"| {name} | {int(m['n_gt'])} | {m['oks_ap50']:.4f} | {m['oks_ap']:.4f} | {m['pck1']:.3f} | {m['pck2']:.3f} | "
@@ -318,6 +335,7 @@ def write_card(
             else []
         ),
         *_crossing_point_lines(model, detector, res),
+        *_line_check_lines(detector),
         f"- Latency: {latency.median_ms:.1f} ms a 640x480 frame, batch 1, 2 CPU threads, ONNX Runtime, end to end",
         f"  (median, measured when shipped{load}, over {latency_source}: {latency.candidates:.0f} candidates",
         f"  and {latency.crossings:.0f} crossings found a frame on average"

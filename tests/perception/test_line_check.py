@@ -95,6 +95,12 @@ def test_only_candidates_the_check_could_not_lift_to_the_threshold_are_spared():
         assert (every[at == 0] < 0.5).all()
 
 
+def test_line_check_settings_keep_the_checked_candidates_among_the_evidence():
+    assert LineCheckConfig(floor=0.1, checked_from=0.1).checked_from == 0.1
+    with pytest.raises(ValueError, match="0 < floor <= checked_from < 1"):
+        LineCheckConfig(floor=0.4, checked_from=0.3)
+
+
 def test_a_check_fitted_on_other_features_is_refused():
     entry = _random_check(0).to_meta()
     assert LineCheck.from_meta(entry, "m.onnx").weights.tolist() == entry["weights"]
@@ -118,11 +124,14 @@ def checked_model(drawn_dataset, tmp_path_factory):
 
 
 def test_add_line_check_writes_the_fitted_check_into_the_model_file(checked_model):
+    from rebar_data.perception.card import _line_check_lines
+
     model, entry = checked_model
     assert entry["fitted_on"] == ["drawn"] and entry["candidates"] > entry["crossings"] > 0
     det = Detector.load(model, threads=1)
     assert det.line_check is not None
     np.testing.assert_allclose(det.line_check.weights, entry["weights"])
+    assert f"Fitted on {entry['candidates']} candidates of `drawn`" in " ".join(_line_check_lines(det))
     with pytest.raises(ConfigError, match="no such ONNX model"):
         attach(model.with_suffix(".pt"), [], [], LineCheckConfig())
 
