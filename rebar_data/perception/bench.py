@@ -39,6 +39,24 @@ def _time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 5) -> np.n
     return out
 
 
+def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
+    """Median ms of ``det.detect`` without depth on ``frames`` with its line check and without it, timed
+    in turn call by call (this machine changes speed between runs; the two see it in the same state)."""
+    each = max(3, -(-repeats // len(frames)))
+    check = det.line_check
+    with_ms, without_ms = [], []
+    try:
+        for rgb in frames:
+            for _ in range(each):
+                det.line_check = check
+                with_ms.append(_time_ms(lambda rgb=rgb: det.detect(rgb), repeats=1, warmup=1)[0])
+                det.line_check = None
+                without_ms.append(_time_ms(lambda rgb=rgb: det.detect(rgb), repeats=1, warmup=1)[0])
+    finally:
+        det.line_check = check
+    return float(np.median(with_ms)), float(np.median(without_ms))
+
+
 def drawn_frame() -> Frame:
     """A drawn rebar frame of 640x480 and its depth, dense with bars: the later stages' worst case."""
     from rebar_data.perception.synthetic import SyntheticSpec, random_frame
@@ -213,12 +231,22 @@ def run(repeats: int = 100) -> list[str]:
         )
         lines += _stages(lat)
         if det.depth_check is not None:  # a camera without depth: the RGB stages alone, on the same frames
-            rgb_only = detector_latency(det, [(f[0], None) for f in frames], repeats=repeats)
+            rgb_frames = [(f[0], None) for f in frames]
+            rgb_only = detector_latency(det, rgb_frames, repeats=repeats)
+            stages = (
+                "the RGB stages and the line check" if det.line_check is not None else "the RGB stages alone"
+            )
             lines.append(
-                f"perception:   without the depth image (the RGB stages alone): median {rgb_only.median_ms:.1f} ms, "
+                f"perception:   without the depth image ({stages}): median {rgb_only.median_ms:.1f} ms, "
                 f"p90 {rgb_only.p90_ms:.1f} ms ({rgb_only.median_ms / med:.2f}x the call with depth; budget "
                 f"{BUDGET_MS:g} ms: {'met' if rgb_only.median_ms <= BUDGET_MS else 'MISSED'})"
             )
+            if det.line_check is not None:  # what the line check costs there, on the same frames
+                with_ms, without_ms = line_check_cost(det, [f[0] for f in frames], repeats=repeats)
+                lines.append(
+                    f"perception:   the line check: the RGB path {with_ms:.1f} ms with it, {without_ms:.1f} ms "
+                    f"without (the RGB stages alone), timed in turn frame by frame ({with_ms / without_ms:.2f}x)"
+                )
         if det.crossing_point is not None:  # the 3D crossing points as well, on the same frames
             each = max(3, -(-repeats // len(frames)))
             both = np.concatenate(
