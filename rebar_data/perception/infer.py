@@ -112,28 +112,33 @@ class Detector:
         self.depth_check: DepthCheck | None = None
         self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
         self.crossing_point: CrossingPoint | None = None
-        entry = meta.get("line_check")
-        self.line_check = LineCheck.from_meta(entry, str(path or "model")) if entry else None
+        self.line_check: LineCheck | None = None
 
     @classmethod
-    def load(cls, path: str | Path | None = None, *, threads: int = 2) -> Detector:
+    def load(cls, path: str | Path | None = None, *, threads: int = 2, line_check: bool = True) -> Detector:
         """Load a detector.
 
         Args:
             path: A ``.onnx`` or ``.pt`` file, or a training run folder (its ``best.onnx``); None loads the
                 model shipped with the package.
             threads: CPU threads for inference.
+            line_check: Load the file's line check; False leaves it out (to fit a new one, whatever the
+                file holds).
         """
         p = resolve_model_path(path)
         if p.suffix == ".onnx":
-            return cls._load_onnx(p, threads)
-        from rebar_data.perception.export import load_checkpoint
+            det = cls._load_onnx(p, threads)
+        else:
+            from rebar_data.perception.export import load_checkpoint
 
-        net, meta, _ = load_checkpoint(p)
-        det = cls.from_network(net, meta=meta, path=p)
-        det.refiner = _load_refiner(p, det.meta, threads)
-        det.depth_check = _load_depth_check(p, det.meta, threads)
-        det.crossing_point = _load_crossing_point(p, det.meta, threads)
+            net, meta, _ = load_checkpoint(p)
+            det = cls.from_network(net, meta=meta, path=p)
+            det.refiner = _load_refiner(p, det.meta, threads)
+            det.depth_check = _load_depth_check(p, det.meta, threads)
+            det.crossing_point = _load_crossing_point(p, det.meta, threads)
+        entry = det.meta.get("line_check")
+        if line_check and entry:
+            det.line_check = LineCheck.from_meta(entry, str(p))
         return det
 
     @classmethod

@@ -55,6 +55,18 @@ HIGH = 0.8
 _SUMMARY = ("count", "mean", "upper_quartile", "best", "share_high", "share_above_own", "best_two")
 FEATURES = ("own_logit", *(f"{bar}_{s}" for bar in ("better_bar", "other_bar") for s in _SUMMARY))
 _LOGIT_CLIP = 1e-3
+# what a fitted check's weights depend on beyond its features' names: a file fitted with others is refused
+READING = {
+    "radius_px": RADIUS_PX,
+    "bins": BINS,
+    "min_apart_deg": MIN_APART_DEG,
+    "cone_deg": CONE_DEG,
+    "lateral_px": LATERAL_PX,
+    "max_step_px": MAX_STEP_PX,
+    "min_step_px": MIN_STEP_PX,
+    "steps": STEPS,
+    "high": HIGH,
+}
 _TAN = float(np.tan(np.deg2rad(CONE_DEG)))
 _MODULO = (np.arange(256) % BINS).astype(np.uint8)  # orientation bins past 180 degrees folded back
 
@@ -223,7 +235,7 @@ class LineCheck:
         hi[[FEATURES.index(f"{bar}_count") for bar in ("better_bar", "other_bar")]] = 2 * STEPS
         rest = np.maximum(w[1:] * 0.0, w[1:] * hi[1:]).sum()  # every summary lies between 0 and hi
         own = logit(score)
-        if w[0] < 0:  # a lower own score could do better: no bound tighter than the highest own logit
+        if w[0] < 0:  # a lower own score would do better: bound by the lowest own logit
             own = np.full(len(own), logit(np.array([0.0]))[0])
         return w[0] * own + rest + self.bias
 
@@ -234,6 +246,7 @@ class LineCheck:
             "bias": float(self.bias),
             "floor": self.floor,
             "checked_from": self.checked_from,
+            "reading": dict(READING),
         }
 
     @classmethod
@@ -244,6 +257,11 @@ class LineCheck:
             raise ConfigError(
                 f"{source}: its line check reads {entry.get('features')}; accepted: one fitted on this "
                 f"version's features ({', '.join(FEATURES)}), as `rebar add-line-check` fits it"
+            )
+        if entry.get("reading") != READING:
+            raise ConfigError(
+                f"{source}: its line check was fitted reading the bars with {entry.get('reading')}; accepted: "
+                f"one fitted with this version's {READING}, as `rebar add-line-check` fits it"
             )
         return cls(
             np.asarray(entry["weights"], np.float64),

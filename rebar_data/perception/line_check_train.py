@@ -132,7 +132,7 @@ def attach(
         raise ConfigError(
             f"{model}: carries no detector metadata; accepted: a model file written by `rebar train`"
         )
-    detector = Detector.load(model, threads=threads)
+    detector = Detector.load(model, threads=threads, line_check=False)  # one already there is replaced
     entry, _ = fit_line_check(detector, samples, val_samples, cfg, data=data, progress=progress)
     update_onnx_meta(model, {"line_check": entry})
     return entry

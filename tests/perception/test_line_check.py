@@ -106,6 +106,8 @@ def test_a_check_fitted_on_other_features_is_refused():
     assert LineCheck.from_meta(entry, "m.onnx").weights.tolist() == entry["weights"]
     with pytest.raises(ConfigError, match="line check reads"):
         LineCheck.from_meta({**entry, "features": entry["features"][:-1]}, "m.onnx")
+    with pytest.raises(ConfigError, match="fitted reading the bars with"):
+        LineCheck.from_meta({**entry, "reading": {**entry["reading"], "steps": 10}}, "m.onnx")
 
 
 @pytest.fixture(scope="module")
