@@ -186,12 +186,15 @@ def write_card(
     depth_check = depth_check_path(model) if detector.depth_check is not None else None
     res = json.loads((run_dir / "results.json").read_text())
     cfg = json.loads((run_dir / "config.json").read_text())
+    rgb_path = (
+        "the RGB stages and the line check" if detector.line_check is not None else "the RGB stages alone"
+    )
     tc = cfg["train_config"]
     sigma = res["oks_sigma"]
     ds = res["dataset"]
     rows = [_row(f"{ds.get('name')} {split}", m) for split, m in sorted(res["results"].items(), reverse=True)]
     rows += [
-        _row(f"{ds.get('name')} {split}, without depth (the RGB stages alone)", m)
+        _row(f"{ds.get('name')} {split}, without depth ({rgb_path})", m)
         for split, m in sorted(res.get("results_without_depth", {}).items())
     ]
     rows += [
@@ -491,7 +494,7 @@ def write_card(
         *(
             [
                 "- `without depth`: the same images given to `detect` without their depth images, as a folder of",
-                "  photographs would be: the two RGB stages alone, at their own operating point. The other rows",
+                f"  photographs would be: {rgb_path.replace('the RGB', 'the two RGB')}, at their own operating point. The other rows",
                 "  (but `first stage alone`) give the detector each image's depth image, as the robot's RGB-D camera does.",
             ]
             if dc

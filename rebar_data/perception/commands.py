@@ -347,7 +347,8 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument(
         "--no-depth",
         action="store_true",
-        help="leave the dataset's depth images out (the RGB stages alone, as for photographs); images "
+        help="leave the dataset's depth images out (the RGB stages and the model's line check, as for "
+        "photographs); images "
         "given as files are always detected without depth",
     )
     d.add_argument(
