@@ -51,18 +51,29 @@ def run_train(args: argparse.Namespace) -> None:
     print(out)
 
 
-def run_add_crossing_point(args: argparse.Namespace) -> None:
+def _added_stage_inputs(args: argparse.Namespace):
+    """What `rebar add-crossing-point` and `add-line-check` share: the dataset (checked) and its info, the
+    model file, the training settings (``--config``) and every image of the supplements with their
+    records."""
     from rebar_data.config import read_yaml
-    from rebar_data.perception.crossing_point_train import attach
-    from rebar_data.perception.data import check_dataset, load_split, read_info
+    from rebar_data.perception.data import check_dataset, read_info
     from rebar_data.perception.infer import resolve_model_path
     from rebar_data.perception.train import resolve_config, supplement_images
 
     root = check_dataset(args.dataset)
+    info = read_info(root)
     model = resolve_model_path(args.model)
     settings = read_yaml(args.config) if args.config else None
     cfg = resolve_config(settings, {}, source=str(args.config or "train settings"))
-    extra, _ = supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
+    extra, records = supplement_images(args.supplement or (), trained_on=info.get("name"))
+    return root, info, model, cfg, extra, records
+
+
+def run_add_crossing_point(args: argparse.Namespace) -> None:
+    from rebar_data.perception.crossing_point_train import attach
+    from rebar_data.perception.data import load_split
+
+    root, _, model, cfg, extra, _ = _added_stage_inputs(args)
     samples = load_split(root, "train") + extra
     out = Path(args.out)
     stage = attach(
@@ -73,17 +84,11 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
 
 
 def run_add_line_check(args: argparse.Namespace) -> None:
-    from rebar_data.config import ConfigError, read_yaml
-    from rebar_data.perception.data import check_dataset, load_split, read_info
-    from rebar_data.perception.infer import resolve_model_path
-    from rebar_data.perception.line_check_train import attach
-    from rebar_data.perception.train import resolve_config, supplement_images
+    from rebar_data.config import ConfigError
+    from rebar_data.perception.data import load_split
+    from rebar_data.perception.line_check_train import attach, fitted_on
 
-    root = check_dataset(args.dataset)
-    model = resolve_model_path(args.model)
-    settings = read_yaml(args.config) if args.config else None
-    cfg = resolve_config(settings, {}, source=str(args.config or "train settings"))
-    extra, meta = supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
+    root, info, model, cfg, extra, records = _added_stage_inputs(args)
     val = load_split(root, "val")
     if not val:
         raise ConfigError(f"{root}: the val split has no images; accepted: the dataset the model trained on")
@@ -92,7 +97,7 @@ def run_add_line_check(args: argparse.Namespace) -> None:
         val + extra,
         val,
         cfg.line_check,
-        data=[f"{read_info(root).get('name')} val"] + [f"{m['name']} v{m['version']}" for m in meta],
+        data=fitted_on(info.get("name"), records),
         progress=not args.quiet,
     )
     print(

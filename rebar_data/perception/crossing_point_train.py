@@ -295,18 +295,10 @@ def attach(
         The stage's ONNX file.
     """
     from rebar_data.dataset.writers.manifest import sha256_file
-    from rebar_data.perception.export import onnx_meta, update_onnx_meta
+    from rebar_data.perception.export import check_model_file, update_onnx_meta
     from rebar_data.perception.infer import crossing_point_path
 
-    model = Path(model)
-    if model.suffix != ".onnx" or not model.exists():
-        raise ConfigError(
-            f"{model}: no such ONNX model; accepted: a detector's .onnx file, such as best.onnx"
-        )
-    if not onnx_meta(model):
-        raise ConfigError(
-            f"{model}: carries no detector metadata; accepted: a model file written by `rebar train`"
-        )
+    model = check_model_file(model)
     out.mkdir(parents=True, exist_ok=True)
     net, history = train_crossing_point(samples, out, cfg, aug, seed=seed, progress=progress)
     save(out / "best.crossing.pt", net, cfg, history=history)

@@ -140,6 +140,21 @@ def onnx_meta(path: str | Path) -> dict[str, Any]:
     return json.loads(raw) if raw else {}
 
 
+def check_model_file(model: str | Path) -> Path:
+    """``model`` as a Path, once it is an ONNX file written by ``rebar train`` (a stage is to be added to
+    it); a clear ``ConfigError`` otherwise."""
+    model = Path(model)
+    if model.suffix != ".onnx" or not model.exists():
+        raise ConfigError(
+            f"{model}: no such ONNX model; accepted: a detector's .onnx file, such as best.onnx"
+        )
+    if not onnx_meta(model):
+        raise ConfigError(
+            f"{model}: carries no detector metadata; accepted: a model file written by `rebar train`"
+        )
+    return model
+
+
 def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
     """The network of an ONNX file from :func:`export_onnx` turned back into PyTorch, and its ``meta``:
     what lets training go on from a shipped first stage (a run folder's ``best.pt``, the adapt epochs)

@@ -257,7 +257,7 @@ class Detector:
         if self.line_check is not None and not checked:
             lc = self.line_check
             inputs = self._line_pass(
-                image, out, lc.floor, lc.checked_from, threshold=threshold, max_detections=max_detections
+                image, out, lc.floor, lc.checked_from, lc, threshold=threshold, max_detections=max_detections
             )
             det = np.c_[inputs.placed, inputs.scores]
         else:
@@ -320,12 +320,8 @@ class Detector:
         image = _check_image(rgb)
         h, w = image.shape[:2]
         camera = tuple(float(c) for c in camera) if camera is not None else self.default_camera(h, w)
-        line_check, self.line_check = self.line_check, None
-        try:
-            out = self.raw(image, camera=camera)
-            return self._line_pass(image, out, floor, checked_from, threshold=floor, max_detections=1000)
-        finally:
-            self.line_check = line_check
+        out = self.raw(image, camera=camera)
+        return self._line_pass(image, out, floor, checked_from, None, threshold=floor, max_detections=1000)
 
     def _line_pass(
         self,
@@ -333,11 +329,12 @@ class Detector:
         out: np.ndarray,
         floor: float,
         checked_from: float,
+        check: LineCheck | None,
         *,
         threshold: float,
         max_detections: int,
     ) -> LineInputs:
-        """The RGB stages and the line check (when the model has one) on the first stage's output ``out``:
+        """The RGB stages and the line check ``check`` (None: none) on the first stage's output ``out``:
         every candidate it scores ``floor`` or more inside the frame is evidence, those it scores
         ``checked_from`` or more are verified by the second stage and checked; the later passes move those
         the check scores ``threshold`` or more (all of them without a check)."""
@@ -355,17 +352,15 @@ class Detector:
                 evidence[checked] = shifted_score(
                     det[checked, 2], self.verify_power * log_probability(verify_logit)
                 )
-            if self.line_check is None:
+            if check is None:
                 scores.append(evidence[checked])
             else:
-                scores.append(
-                    self.line_check.scores(image, det[:, :2], evidence, checked, threshold=threshold)
-                )
+                scores.append(check.scores(image, det[:, :2], evidence, checked, threshold=threshold))
             return scores[-1]
 
         placed = det[checked, :2]
         if self.refiner is not None and len(checked):
-            keep = None if self.line_check is None else (lambda logit: read(logit) >= threshold)
+            keep = None if check is None else (lambda logit: read(logit) >= threshold)
             placed, verify = self.refiner.refine_and_verify(image, placed, keep=keep)
             if not scores:
                 read(verify)

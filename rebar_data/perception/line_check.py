@@ -33,6 +33,7 @@ the detector leaves this check out (``Detector.detect``). Measured: see ``LineCh
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Any
 
 import cv2
@@ -194,6 +195,12 @@ def features(score: np.ndarray, members: np.ndarray, which: np.ndarray | None = 
     return np.concatenate([logit(score[which])[:, None], per.reshape(k, -1)], axis=1)
 
 
+def line_features(image: np.ndarray, uv: np.ndarray, evidence: np.ndarray, which: np.ndarray) -> np.ndarray:
+    """(K, len(FEATURES)) what the check reads for the candidates ``which`` (K indices) among an image's
+    candidates ``uv`` (N, 2) scored ``evidence`` (N,): their bars read from ``image`` and followed."""
+    return features(evidence, bar_members(uv, bar_directions(image, uv[which]), which), which)
+
+
 @dataclass(frozen=True)
 class LineCheck:
     """A fitted line check: ``weights`` (one per :data:`FEATURES`) and ``bias`` of its logistic regression,
@@ -224,20 +231,25 @@ class LineCheck:
         reach = self.best_logit(evidence[checked]) >= np.log(threshold / (1 - threshold))
         which = checked[reach]
         if len(which):
-            x = features(evidence, bar_members(uv, bar_directions(image, uv[which]), which), which)
+            x = line_features(image, uv, evidence, which)
             out[reach] = 1.0 / (1.0 + np.exp(-(x @ self.weights + self.bias)))
         return out
 
     def best_logit(self, score: np.ndarray) -> np.ndarray:
         """(N,) the highest logit the check can give a candidate scored ``score``, whatever its bars show."""
-        w = self.weights
-        hi = np.ones(len(FEATURES))
-        hi[[FEATURES.index(f"{bar}_count") for bar in ("better_bar", "other_bar")]] = 2 * STEPS
-        rest = np.maximum(w[1:] * 0.0, w[1:] * hi[1:]).sum()  # every summary lies between 0 and hi
+        w = self.weights[0]
         own = logit(score)
-        if w[0] < 0:  # a lower own score would do better: bound by the lowest own logit
+        if w < 0:  # a lower own score would do better: bound by the lowest own logit
             own = np.full(len(own), logit(np.array([0.0]))[0])
-        return w[0] * own + rest + self.bias
+        return w * own + self._most_from_bars + self.bias
+
+    @cached_property
+    def _most_from_bars(self) -> float:
+        """The most the bar summaries can add to the logit: each lies between 0 and 1, a count between 0
+        and twice :data:`STEPS`."""
+        hi = np.ones(len(FEATURES) - 1)
+        hi[[FEATURES.index(f"{bar}_count") - 1 for bar in ("better_bar", "other_bar")]] = 2 * STEPS
+        return float(np.maximum(0.0, self.weights[1:] * hi).sum())
 
     def to_meta(self) -> dict[str, Any]:
         return {

@@ -23,7 +23,7 @@ from rebar_data.perception.config import LineCheckConfig
 from rebar_data.perception.data import Sample, read_sample_image
 from rebar_data.perception.evaluate import calibrate_score_bias, predict, truth_of
 from rebar_data.perception.infer import Detector
-from rebar_data.perception.line_check import LineCheck, bar_directions, bar_members, features
+from rebar_data.perception.line_check import LineCheck, line_features
 from rebar_data.perception.metrics import GATE_PX, match
 
 
@@ -48,8 +48,7 @@ def fitting_rows(
         p_idx, g_idx, _ = match(both, seen.placed, GATE_PX)
         label = np.zeros(len(seen.checked), int)
         label[p_idx] = np.where(g_idx < len(gt), 1, -1)  # -1: an ignored crossing, left out
-        members = bar_members(seen.uv, bar_directions(rgb, seen.uv[seen.checked]), seen.checked)
-        x = features(seen.evidence, members, seen.checked)
+        x = line_features(rgb, seen.uv, seen.evidence, seen.checked)
         xs.append(x[label >= 0])
         ys.append(label[label >= 0])
         if progress and (k + 1) % 50 == 0:
@@ -57,6 +56,12 @@ def fitting_rows(
     if not xs:
         raise UnfitLineCheck("the line check found no candidates to fit on; accepted: images with crossings")
     return np.concatenate(xs), np.concatenate(ys)
+
+
+def fitted_on(dataset: str | None, supplements: Sequence[dict[str, Any]]) -> list[str]:
+    """What a check's metadata says it was fitted on: ``dataset``'s val split and each supplement
+    (:func:`~rebar_data.perception.train.supplement_images`' records)."""
+    return [f"{dataset} val"] + [f"{m['name']} v{m['version']}" for m in supplements]
 
 
 def fit_line_check(
@@ -121,17 +126,9 @@ def attach(
     Returns:
         The metadata entry written.
     """
-    from rebar_data.perception.export import onnx_meta, update_onnx_meta
+    from rebar_data.perception.export import check_model_file, update_onnx_meta
 
-    model = Path(model)
-    if model.suffix != ".onnx" or not model.exists():
-        raise ConfigError(
-            f"{model}: no such ONNX model; accepted: a detector's .onnx file, such as best.onnx"
-        )
-    if not onnx_meta(model):
-        raise ConfigError(
-            f"{model}: carries no detector metadata; accepted: a model file written by `rebar train`"
-        )
+    model = check_model_file(model)
     detector = Detector.load(model, threads=threads, line_check=False)  # one already there is replaced
     entry, _ = fit_line_check(detector, samples, val_samples, cfg, data=data, progress=progress)
     update_onnx_meta(model, {"line_check": entry})

@@ -68,7 +68,7 @@ from rebar_data.perception.evaluate import (
 )
 from rebar_data.perception.export import export_onnx, load_checkpoint, save_checkpoint
 from rebar_data.perception.infer import Detector
-from rebar_data.perception.line_check_train import UnfitLineCheck, fit_line_check
+from rebar_data.perception.line_check_train import UnfitLineCheck, fit_line_check, fitted_on
 from rebar_data.perception.metrics import (
     DEFAULT_OKS_SIGMA,
     OPERATING_THRESHOLD,
@@ -668,7 +668,7 @@ def _finish(
         meta["score_bias"] = detector.score_bias = calibrate_score_bias(val_samples, raw)
         _log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)", progress)
     if cfg.line_check.enabled and val_samples:  # on the RGB stages as they now score
-        data = ["val"] + [f"{m['name']} v{m['version']}" for m in line_supplements]
+        data = fitted_on(dataset_meta.get("name"), line_supplements)
         try:
             entry, detector.line_check = fit_line_check(
                 detector, val_samples + line_extra, val_samples, cfg.line_check, data=data, progress=progress
