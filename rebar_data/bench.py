@@ -17,8 +17,11 @@ SECTIONS = {
 
 
 def run_bench(args: argparse.Namespace) -> int:
+    from rebar_data.timing import machine_description
+
     names = args.only or list(SECTIONS)
     failed = []
+    print(f"machine: {machine_description()}", flush=True)  # what every figure below was timed on
     for name in names:
         t = time.perf_counter()
         print(f"== {name}", flush=True)

@@ -31,3 +31,43 @@ class StageTimer:
     def totals(self) -> dict[str, tuple[float, int]]:
         """``{stage: (seconds, calls)}``, a plain dict that pickles across processes."""
         return {k: (self.seconds[k], self.calls[k]) for k in self.seconds}
+
+
+# the vector extensions ONNX Runtime's CPU kernels choose by, widest last (int8 convolutions run fast
+# only with VNNI): a latency figure means little without them
+VECTOR_EXTENSIONS = (("avx", "AVX"), ("fma", "FMA"), ("avx2", "AVX2"), ("avx512f", "AVX-512"))
+_VNNI = ("avx512_vnni", "avx_vnni")
+
+
+def machine_description(cpuinfo: str | None = None) -> str:
+    """The CPU a timing ran on, as a bench line states it: its model, cores and vector extensions, e.g.
+    "2 cores, AMD EPYC, AVX and FMA, no AVX2". ``cpuinfo`` is /proc/cpuinfo's text (read when None;
+    where there is none, as off Linux, only the core count)."""
+    import os
+
+    cores = f"{os.cpu_count() or 1} cores"
+    if cpuinfo is None:
+        try:
+            with open("/proc/cpuinfo", encoding="utf-8", errors="replace") as f:
+                cpuinfo = f.read()
+        except OSError:
+            return cores
+    fields: dict[str, str] = {}
+    for line in cpuinfo.splitlines():
+        key, sep, value = line.partition(":")
+        if sep and key.strip() not in fields:  # the first processor's entry speaks for all
+            fields[key.strip()] = value.strip()
+    if "flags" not in fields:
+        return cores + (f", {fields['model name']}" if "model name" in fields else "")
+    flags = set(fields["flags"].split())
+    have = [name for flag, name in VECTOR_EXTENSIONS if flag in flags]
+    if flags & set(_VNNI):
+        have.append("VNNI")
+    lacking = [name for flag, name in VECTOR_EXTENSIONS if flag not in flags]
+    parts = [cores]
+    if "model name" in fields:
+        parts.append(fields["model name"])
+    parts.append(" and ".join([", ".join(have[:-1]), have[-1]] if len(have) > 1 else have) or "no AVX")
+    if lacking and have:
+        parts.append(f"no {lacking[0]}")  # the narrowest missing one says where the machine stops
+    return ", ".join(parts)

@@ -22,6 +22,7 @@ from rebar_data.perception.infer import (
     refiner_path,
 )
 from rebar_data.perception.metrics import oks_radius_px
+from rebar_data.timing import machine_description
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
 CARD_NAME = "MODEL_CARD.md"
@@ -202,7 +203,11 @@ def write_card(
         for split, m in sorted(res.get("results_first_stage", {}).items())
     ]
     rows += [_row(name, m) for name, m in (extra_results or {}).items()]
-    load = f", load average {load_average:.1f} on this 2-core machine" if load_average is not None else ""
+    load = (
+        f", load average {load_average:.1f} on this machine ({machine_description()})"
+        if load_average is not None
+        else ""
+    )
     refine = tc.get("refine") if refiner is not None else None
     verifies = bool(refine and refine.get("verify"))
     dc = tc.get("depth_check") if depth_check is not None else None

@@ -98,9 +98,11 @@ def bar_directions(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     r = RADIUS_PX // 2
     bins = cv2.copyMakeBorder(bins, r, r, r, r, cv2.BORDER_CONSTANT, value=0)
     mag = cv2.copyMakeBorder(mag, r, r, r, r, cv2.BORDER_CONSTANT, value=0.0)  # beyond the image: no edges
+    # each window's corner in the bordered images is its centre's pixel at half resolution; a point off
+    # the image reads the window of the nearest point on it
     centre = np.floor(uv / 2).astype(np.int64)
-    top = np.clip(centre[:, 1], -r, h + r - 1)  # each window's corner in the bordered images
-    left = np.clip(centre[:, 0], -r, w + r - 1)
+    top = np.clip(centre[:, 1], 0, h)
+    left = np.clip(centre[:, 0], 0, w)
     # every other pixel of each window: as good a histogram, a quarter of the sums
     b = np.lib.stride_tricks.sliding_window_view(bins, (2 * r, 2 * r))[top, left][:, ::2, ::2]
     m = np.lib.stride_tricks.sliding_window_view(mag, (2 * r, 2 * r))[top, left][:, ::2, ::2]

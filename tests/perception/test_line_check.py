@@ -34,6 +34,9 @@ def test_the_two_bar_directions_are_read_from_the_image():
             row
         )
     assert lc.bar_directions(img, np.zeros((0, 2))).shape == (0, 2)
+    # a point off the image (the second stage may place one there) reads the nearest window on it
+    off = lc.bar_directions(img, np.array([[-30.0, -40.0], [400.0, 300.0], [0.0, 0.0], [319.0, 239.0]]))
+    np.testing.assert_array_equal(off[:2], off[2:])
 
 
 def test_a_curved_bar_is_followed_and_the_bar_beside_it_is_not():
