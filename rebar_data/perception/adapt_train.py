@@ -163,7 +163,12 @@ def adapt_model(
 
     from rebar_data.config import ConfigError
     from rebar_data.perception.export import export_onnx, network_from_onnx
-    from rebar_data.perception.infer import crossing_point_path, depth_check_path, refiner_path
+    from rebar_data.perception.infer import (
+        crossing_point_path,
+        depth_check_path,
+        int8_passes_path,
+        refiner_path,
+    )
 
     if model.suffix != ".onnx":
         raise ConfigError(
@@ -187,7 +192,7 @@ def adapt_model(
     )
     adapted, adapted_meta, _ = load_checkpoint(first)
     target = out / "rebar_keypoint.onnx"
-    for stage in (refiner_path, depth_check_path, crossing_point_path):
+    for stage in (refiner_path, int8_passes_path, depth_check_path, crossing_point_path):
         if stage(model).exists():
             shutil.copy2(stage(model), stage(target))
     # the first stage last: a file there means the whole model is there

@@ -39,22 +39,38 @@ def _time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 5) -> np.n
     return out
 
 
-def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
-    """Median ms of ``det.detect`` without depth on ``frames`` with its line check and without it, timed
-    in turn call by call (this machine changes speed between runs; the two see it in the same state)."""
+def _in_turn(
+    det, frames: list[np.ndarray], *, repeats: int, switch: Callable[[bool], None]
+) -> tuple[float, float]:
+    """Median ms of ``det.detect`` without depth on ``frames`` with ``switch(True)`` and with
+    ``switch(False)``, timed in turn call by call (this machine changes speed between runs; the two see it
+    in the same state); ``switch(True)`` again at the end."""
     each = max(3, -(-repeats // len(frames)))
-    check = det.line_check
-    with_ms, without_ms = [], []
+    on_ms, off_ms = [], []
     try:
         for rgb in frames:
             for _ in range(each):
-                det.line_check = check
-                with_ms.append(_time_ms(lambda rgb=rgb: det.detect(rgb), repeats=1, warmup=1)[0])
-                det.line_check = None
-                without_ms.append(_time_ms(lambda rgb=rgb: det.detect(rgb), repeats=1, warmup=1)[0])
+                switch(True)
+                on_ms.append(_time_ms(lambda rgb=rgb: det.detect(rgb), repeats=1, warmup=1)[0])
+                switch(False)
+                off_ms.append(_time_ms(lambda rgb=rgb: det.detect(rgb), repeats=1, warmup=1)[0])
     finally:
-        det.line_check = check
-    return float(np.median(with_ms)), float(np.median(without_ms))
+        switch(True)
+    return float(np.median(on_ms)), float(np.median(off_ms))
+
+
+def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
+    """Median ms of the RGB path with the line check and without it (:func:`_in_turn`)."""
+    check = det.line_check
+    return _in_turn(
+        det, frames, repeats=repeats, switch=lambda on: setattr(det, "line_check", check if on else None)
+    )
+
+
+def int8_passes_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
+    """Median ms of the RGB path with the second stage's later passes read by its int8 copy and by the
+    float file (:func:`_in_turn`); the detector must have the copy."""
+    return _in_turn(det, frames, repeats=repeats, switch=lambda on: setattr(det.refiner, "later_int8", on))
 
 
 def drawn_frame() -> Frame:
@@ -247,6 +263,13 @@ def run(repeats: int = 100) -> list[str]:
                     f"perception:   the line check: the RGB path {with_ms:.1f} ms with it, {without_ms:.1f} ms "
                     f"without (the RGB stages alone), timed in turn frame by frame ({with_ms / without_ms:.2f}x)"
                 )
+        if det.refiner is not None and det.refiner.has_int8_passes:  # what the int8 copy saves, same frames
+            int8_ms, float_ms = int8_passes_cost(det, [f[0] for f in frames], repeats=repeats)
+            lines.append(
+                f"perception:   the second stage's later passes in int8: the RGB path {int8_ms:.1f} ms, "
+                f"{float_ms:.1f} ms with them in float, timed in turn frame by frame ({float_ms / int8_ms:.2f}x "
+                "faster)"
+            )
         if det.crossing_point is not None:  # the 3D crossing points as well, on the same frames
             each = max(3, -(-repeats // len(frames)))
             both = np.concatenate(

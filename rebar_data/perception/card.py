@@ -19,6 +19,7 @@ from rebar_data.perception.infer import (
     Detector,
     crossing_point_path,
     depth_check_path,
+    int8_passes_path,
     refiner_path,
 )
 from rebar_data.perception.metrics import oks_radius_px
@@ -142,6 +143,21 @@ def _crossing_point_lines(model: Path, detector: Detector, res: dict) -> list[st
         f"  {detector.crossing_point.patch_px} px patch around each detection with its viewing ray and gives the offset to where",
         "  the 3D crossing point (the centerlines' midpoint, inside the steel) projects; used only when asked",
         '  (`detect(rgb, point="crossing")`, `rebar detect --point crossing`). Trained on the labels alone.',
+    ]
+
+
+def _int8_passes_lines(model: Path, detector: Detector) -> list[str]:
+    """The card's line on the int8 copy of the second stage that its later passes read, when it has one."""
+    if detector.refiner is None or not detector.refiner.has_int8_passes:
+        return []
+    entry = detector.meta.get("refiner", {})
+    path = int8_passes_path(model)
+    calibrated = entry.get("int8_calibrated_on", {})
+    return [
+        f"  The passes after the first read an int8 copy of it, `{path.name}` ({path.stat().st_size / 1024:.0f} KiB;"
+        f" ONNX Runtime static quantization, calibrated on {calibrated.get('patches', '?')} patches around the"
+        f" crossings of {', '.join(f'`{d}`' for d in calibrated.get('data', [])) or 'the training images'});"
+        " the first pass, whose verification every score counts, stays in float.",
     ]
 
 
@@ -313,6 +329,7 @@ def write_card(
                     if refine.get("iterations", 1) > 1
                     else []
                 ),
+                *_int8_passes_lines(model, detector),
                 *(
                     [
                         "  Its first pass also gives each crossing's box side (four bar diameters); the later passes"
@@ -656,7 +673,7 @@ def ship(
         raise ConfigError(
             f"{run_dir}: no best.onnx and results.json; accepted: a finished `rebar train` run folder"
         )
-    stages = (refiner_path, depth_check_path, crossing_point_path)
+    stages = (refiner_path, int8_passes_path, depth_check_path, crossing_point_path)
     size = sum(p.stat().st_size for p in (src, *(f(src) for f in stages)) if p.exists())
     if size > MAX_SHIPPED_BYTES:
         raise ConfigError(

@@ -107,6 +107,24 @@ def run_add_line_check(args: argparse.Namespace) -> None:
     print(model)
 
 
+def run_add_int8_passes(args: argparse.Namespace) -> None:
+    from rebar_data.perception.data import load_split
+    from rebar_data.perception.export import check_model_file, onnx_meta
+    from rebar_data.perception.refine_train import attach_int8_passes, calibrated_on
+    from rebar_data.perception.train import resolve_config
+
+    root, info, model, cfg, extra, records = _added_stage_inputs(args)
+    if not args.config:  # the settings the model trained with, as its file records them
+        meta = onnx_meta(check_model_file(model))
+        cfg = resolve_config(meta.get("train_config"), {}, source=f"{model}'s train settings")
+    samples = load_split(root, "train") + extra
+    out = attach_int8_passes(
+        model, samples, cfg.refine, seed=cfg.seed, data=calibrated_on(info.get("name"), records)
+    )
+    print(f"second stage's later passes in int8 beside {model}: {out}", file=sys.stderr)
+    print(out)
+
+
 def run_adapt(args: argparse.Namespace) -> None:
     from rebar_data.config import read_yaml
     from rebar_data.perception.adapt_train import adapt_model
@@ -306,6 +324,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("--config", help="YAML of training settings, as for `rebar train` (its line_check)")
     c.add_argument("--quiet", action="store_true", help="no progress lines")
     c.set_defaults(func=run_add_line_check)
+
+    c = sub.add_parser(
+        "add-int8-passes",
+        help="write the int8 copy of a model's second stage that its passes after the first read",
+    )
+    c.add_argument("dataset", help="the dataset the model trained on (its train split calibrates the copy)")
+    c.add_argument("--model", help="the model's .onnx file, changed in place (default: the shipped model)")
+    c.add_argument(
+        "--supplement",
+        action="append",
+        metavar="DATASET",
+        help="a dataset whose every image calibrates it too (repeatable; make train: SUPPLEMENTS)",
+    )
+    c.add_argument("--config", help="YAML of training settings (default: those the model trained with)")
+    c.add_argument("--quiet", action="store_true", help="no progress lines")
+    c.set_defaults(func=run_add_int8_passes)
 
     p = sub.add_parser(
         "adapt",

@@ -482,11 +482,16 @@ def _load_depth_check(model: Path, meta: dict[str, Any], threads: int) -> DepthC
 
 
 def _stage_file(
-    model: Path, meta: dict[str, Any], key: str, beside: Callable[[Path], Path]
+    model: Path,
+    meta: dict[str, Any],
+    key: str,
+    beside: Callable[[Path], Path],
+    *,
+    sha_key: str = "sha256",
 ) -> tuple[Path, dict[str, Any]] | None:
     """The later stage that ``model``'s meta names under ``key``: its file (``beside(model)``) and its meta
     entry; None when the meta names none. ConfigError unless the file is beside the model, and is the
-    file it was exported with."""
+    file it was exported with (the entry's ``sha_key``)."""
     entry = meta.get(key)
     if not entry:
         return None
@@ -496,10 +501,10 @@ def _stage_file(
             f"{model}: its stage {path.name} is missing beside it; accepted: the files together, "
             f"as `rebar train` writes them ({model.name} and {path.name})"
         )
-    if path.suffix == ".onnx" and entry.get("sha256"):
+    if path.suffix == ".onnx" and entry.get(sha_key):
         from rebar_data.dataset.writers.manifest import sha256_file
 
-        if sha256_file(path) != entry["sha256"]:
+        if sha256_file(path) != entry[sha_key]:
             raise ConfigError(
                 f"{path}: is not the stage {model.name} was exported with (its SHA-256 differs); "
                 "accepted: the files from the same `rebar train` run"
@@ -532,6 +537,12 @@ def refiner_path(model: Path) -> Path:
     return model.with_name(f"{model.stem}.refine{model.suffix}")
 
 
+def int8_passes_path(model: Path) -> Path:
+    """Where the int8 copy of a model file's second stage that its passes after the first read lives
+    (``RefineConfig.quantize = "later"``): beside it, ``<stem>.refine.int8.onnx``."""
+    return model.with_name(f"{model.stem}.refine.int8.onnx")
+
+
 def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | None:
     """The refiner a model file names in its meta (None when it names none)."""
     found = _stage_file(model, meta, "refiner", refiner_path)
@@ -547,8 +558,15 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
         "shrink_above_px": entry.get("shrink_above_px"),  # None: every pass at full resolution
     }
     if path.suffix == ".onnx":
+        later = None
+        if entry.get("quantize") == "later":
+            later, _ = _stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
         return Refiner.load_onnx(
-            path, threads=threads, context_scale=int(entry.get("context_scale", 0)), **passes
+            path,
+            threads=threads,
+            context_scale=int(entry.get("context_scale", 0)),
+            later_path=later,
+            **passes,
         )
     from rebar_data.perception.refine_train import load
 

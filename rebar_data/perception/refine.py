@@ -190,7 +190,10 @@ class Refiner:
     half a step). A refiner with a size output (``sizes``) also gives, in the first pass, each crossing's
     box side (four bar diameters); with ``shrink_above_px`` the later passes read a crossing seen larger
     than its first size from the image shrunk to 0.75, larger than the second to 0.5 (:data:`SHRINKS`), so
-    that the patch shows all of it (``RefineConfig.size``)."""
+    that the patch shows all of it (``RefineConfig.size``). With ``later_run`` the passes after the first
+    read another copy of the network, an int8 one (``RefineConfig.quantize = "later"``): the first pass,
+    whose verification every score counts and whose sizes choose the later passes' resolution, stays
+    in float."""
 
     def __init__(
         self,
@@ -206,6 +209,7 @@ class Refiner:
         sizes: bool = False,
         shrink_above_px: tuple[float, float] | None = None,
         first_pass_views: int | None = None,
+        later_run: Callable[[np.ndarray], np.ndarray] | None = None,
     ):
         first_pass_views = views if first_pass_views is None else first_pass_views
         for name, value in (("views", views), ("first_pass_views", first_pass_views)):
@@ -216,6 +220,9 @@ class Refiner:
         if not 0.0 < step <= 1.0:
             raise ConfigError(f"step = {step} is not accepted; accepted: a number above 0, at most 1")
         self._run = run
+        self._int8_run = later_run
+        # whether the passes after the first read the int8 copy (False: the float network, for comparing)
+        self.later_int8 = later_run is not None
         self.views = views
         self.first_pass_views = first_pass_views
         self.step = step
@@ -275,9 +282,12 @@ class Refiner:
         step: float = 1.0,
         shrink_above_px: tuple[float, float] | None = None,
         first_pass_views: int | None = None,
+        later_path: Path | None = None,
     ) -> Refiner:
         """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
-        meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on)."""
+        meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on). ``later_path``: the
+        int8 copy the passes after the first read (None: they read ``path``); it must take and give what
+        ``path`` does."""
         from rebar_data.perception.infer import onnx_session
 
         sess = onnx_session(path, threads)
@@ -288,6 +298,20 @@ class Refiner:
 
         def run(x: np.ndarray) -> np.ndarray:
             return sess.run(None, {name: x})[0]
+
+        later_run = None
+        if later_path is not None:
+            later = onnx_session(later_path, threads)
+            signature = [(sess.get_inputs()[0].shape, sess.get_outputs()[0].shape)]
+            if [(later.get_inputs()[0].shape, later.get_outputs()[0].shape)] != signature:
+                raise ConfigError(
+                    f"{later_path}: takes or gives other shapes than {path.name}; accepted: the int8 copy "
+                    f"written from it (`rebar add-int8-passes`, or `rebar train` with quantize: later)"
+                )
+            later_name = later.get_inputs()[0].name
+
+            def later_run(x: np.ndarray) -> np.ndarray:
+                return later.run(None, {later_name: x})[0]
 
         # 2: offsets; 3: offsets and the verification logit; 4: and the log box side
         columns = sess.get_outputs()[0].shape[-1]
@@ -312,7 +336,13 @@ class Refiner:
             sizes=columns == 4,
             shrink_above_px=shrink_above_px,
             first_pass_views=first_pass_views,
+            later_run=later_run,
         )
+
+    @property
+    def has_int8_passes(self) -> bool:
+        """Whether this refiner has an int8 copy for the passes after the first."""
+        return self._int8_run is not None
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N, 2) refined positions of the (N, 2) points ``uv`` in ``image`` (pixels, COCO corner origin)."""
@@ -362,20 +392,21 @@ class Refiner:
         return self.patch_px * np.exp(self._read_at(image, uv, self.first_pass_views)[1][:, 3])
 
     def _read_at(
-        self, image: np.ndarray, uv: np.ndarray, views: int | None = None
+        self, image: np.ndarray, uv: np.ndarray, views: int | None = None, *, later: bool = False
     ) -> tuple[np.ndarray, np.ndarray]:
         """The corners the patches around ``uv`` are centred on, and the network's output for them, read in
-        ``views`` views (None: ``self.views``)."""
+        ``views`` views (None: ``self.views``), by the later passes' copy with ``later``."""
         x, corners = stage_input(
             image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
         )
-        return corners, self._read(x, self.views if views is None else views)
+        run = self._int8_run if later and self.later_int8 and self._int8_run is not None else self._run
+        return corners, self._read(x, self.views if views is None else views, run)
 
     def _placed_at_size(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None) -> np.ndarray:
         """Where each point's patch places its crossing, read at the resolution of :data:`SHRINKS` its
         box side ``box`` calls for (None: all at full resolution)."""
         if box is None:
-            corners, out = self._read_at(image, uv)
+            corners, out = self._read_at(image, uv, later=True)
             return corners + out[:, :2]
         lo, hi = self.shrink_above_px
         level = (box > lo).astype(int) + (box > hi)
@@ -390,17 +421,17 @@ class Refiner:
                 img, factors = shrunk(image, 1.0 / f)
             else:
                 img, factors = shrunk_around(image, uv[pick], 1.0 / f, self.patch_px)
-            corners, out = self._read_at(img, uv[pick] * factors)
+            corners, out = self._read_at(img, uv[pick] * factors, later=True)
             placed[pick] = (corners + out[:, :2]) / factors
         return placed
 
-    def _read(self, x: np.ndarray, views: int) -> np.ndarray:
-        """The network's output for patches ``x``: the offsets averaged over ``views`` views (turned back),
-        the rest the plain view's."""
+    def _read(self, x: np.ndarray, views: int, run: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
+        """The output of the network ``run`` for patches ``x``: the offsets averaged over ``views`` views
+        (turned back), the rest the plain view's."""
         if views == 1:
-            return self._run(x).astype(np.float64)
+            return run(x).astype(np.float64)
         sym = SYMMETRIES[:views]
-        out = self._run(np.ascontiguousarray(np.concatenate([turned(x, s) for s in sym]))).astype(np.float64)
+        out = run(np.ascontiguousarray(np.concatenate([turned(x, s) for s in sym]))).astype(np.float64)
         out = out.reshape(views, len(x), -1)
         plain = out[0].copy()  # SYMMETRIES[0] is the identity
         plain[:, :2] = np.mean([turned_back(o[:, :2], s) for o, s in zip(out, sym, strict=True)], axis=0)

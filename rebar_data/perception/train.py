@@ -67,7 +67,7 @@ from rebar_data.perception.evaluate import (
     truth_of,
 )
 from rebar_data.perception.export import export_onnx, load_checkpoint, save_checkpoint
-from rebar_data.perception.infer import Detector
+from rebar_data.perception.infer import Detector, int8_passes_path
 from rebar_data.perception.line_check_train import UnfitLineCheck, fit_line_check, fitted_on
 from rebar_data.perception.metrics import (
     DEFAULT_OKS_SIGMA,
@@ -79,6 +79,7 @@ from rebar_data.perception.metrics import (
 from rebar_data.perception.model import KeypointNet, count_parameters
 from rebar_data.perception.refine_train import (
     PatchNet,
+    calibrated_on,
     calibration_patches,
     first_stage_detections,
     negatives_in,
@@ -605,6 +606,7 @@ def _finish(
     for stale in (
         out / "best.refine.onnx",
         out / "best.refine.pt",
+        int8_passes_path(out / "best.onnx"),
         out / "best.depth.onnx",
         out / "best.depth.pt",
         out / "best.crossing.onnx",
@@ -614,10 +616,13 @@ def _finish(
     if refiner is not None:
         save_refiner(out / "best.refine.pt", refiner, cfg.refine)
         onnx_path = export_refiner(refiner, out / "best.refine.onnx")
-        if cfg.refine.quantize == "int8":
+        # int8: the file itself; later: an int8 copy beside it for the passes after the first
+        later = int8_passes_path(out / "best.onnx")
+        if cfg.refine.quantize != "none":
             patches = calibration_patches(train_samples, cfg.refine, seed=cfg.seed)
-            quantize_int8(onnx_path, onnx_path, patches)
-            _log(f"second stage quantized to int8 ({len(patches)} calibration patches)", progress)
+            quantize_int8(onnx_path, onnx_path if cfg.refine.quantize == "int8" else later, patches)
+            what = "second stage" if cfg.refine.quantize == "int8" else "second stage's later passes"
+            _log(f"{what} quantized to int8 ({len(patches)} calibration patches)", progress)
         meta["refiner"] = {
             "patch_px": cfg.refine.patch_px,
             "iterations": cfg.refine.iterations,
@@ -632,6 +637,12 @@ def _finish(
             "first_pass_views": cfg.refine.first_pass_views,
             "sha256": sha256_file(onnx_path),
         }
+        if cfg.refine.quantize == "later":
+            meta["refiner"]["int8_sha256"] = sha256_file(later)
+            meta["refiner"]["int8_calibrated_on"] = {
+                "data": calibrated_on(dataset_meta.get("name"), dataset_meta.get("supplements", [])),
+                "patches": len(patches),
+            }
     if depth_net is not None:
         save_depth_check(out / "best.depth.pt", depth_net, cfg.depth_check)
         depth_path = export_depth_check(depth_net, out / "best.depth.onnx")

@@ -10,7 +10,7 @@ import torch
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.config import TrainConfig
-from rebar_data.perception.data import load_split
+from rebar_data.perception.data import load_split, read_info
 from rebar_data.perception.epochs import TrainingImages, make_batch
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.loss import detection_loss
@@ -170,9 +170,10 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
         **TINY_TRAIN,
         "epochs": 2,
         "adapt": {"epochs": 0},  # no adapt epochs: the first stage stays as it is
-        "refine": {**TINY_TRAIN["refine"], "supplement_repeats": 3},
+        # the repeats are a second-stage setting: a resumed run may change them with the supplement; how
+        # the file ships is an export setting: the later passes' int8 copy beside the float file
+        "refine": {**TINY_TRAIN["refine"], "supplement_repeats": 3, "quantize": "later"},
     }
-    # the repeats are a second-stage setting: a resumed run may change them with the supplement
     again = train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
     assert again.epochs_run == trained_run.epochs_run
     assert [h["train_loss"] for h in again.history] == [h["train_loss"] for h in trained_run.history]
@@ -199,6 +200,11 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     ship(run, models_dir=tmp_path / "models")
     card = (tmp_path / "models" / CARD_NAME).read_text()
     assert "`drawn-second` v0.0.0 (6 images), each listed 3 times" in card
+    shipped = Detector.load(tmp_path / "models" / "rebar_keypoint.onnx")
+    assert shipped.refiner.has_int8_passes
+    name = read_info(drawn_dataset)["name"]
+    assert shipped.meta["refiner"]["int8_calibrated_on"]["data"] == [f"{name} train"]
+    assert "`rebar_keypoint.refine.int8.onnx`" in card
     with pytest.raises(ConfigError, match="another pipeline"):  # its val and test scenes would leak in
         train(drawn_dataset, run, config=cfg, refine_supplements=[drawn_dataset], progress=False)
 

@@ -1,0 +1,126 @@
+"""The second stage's later passes read by an int8 copy of it (``RefineConfig.quantize = "later"``): the
+first pass, whose verification every score counts, stays in float."""
+
+from __future__ import annotations
+
+import shutil
+
+import numpy as np
+import pytest
+
+from rebar_data.config import ConfigError
+from rebar_data.perception import infer
+from rebar_data.perception.config import RefineConfig
+from rebar_data.perception.data import load_split, read_sample_image
+from rebar_data.perception.export import onnx_meta, update_onnx_meta
+from rebar_data.perception.infer import Detector, int8_passes_path
+from rebar_data.perception.refine import Refiner
+from rebar_data.perception.refine_train import attach_int8_passes
+
+
+def _network(offset: float, logit: float, calls: list[str], name: str):
+    """A stand-in network: every patch's offset (du, dv) = (offset, 0), the given logit, log box side 0."""
+
+    def run(x: np.ndarray) -> np.ndarray:
+        calls.append(name)
+        out = np.zeros((len(x), 4), np.float32)
+        out[:, 0], out[:, 2] = offset, logit
+        return out
+
+    return run
+
+
+def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file():
+    calls: list[str] = []
+    refiner = Refiner(
+        _network(0.0, 1.5, calls, "float"),
+        patch_px=16,
+        iterations=3,
+        verifies=True,
+        views=1,
+        step=0.5,
+        later_run=_network(2.0, -9.0, calls, "int8"),
+    )
+    assert refiner.has_int8_passes and refiner.later_int8
+    image = np.zeros((64, 64, 3), np.uint8)
+    uv, logit = refiner.refine_and_verify(image, np.array([[20.0, 30.0]]))
+    assert calls == ["float", "int8", "int8"]
+    np.testing.assert_allclose(logit, [1.5])  # the float file's verification
+    # the first pass puts it on its patch's corner (20, 30); each later one half way to its patch's corner
+    # + 2 (u: 20 -> 21 -> 22)
+    np.testing.assert_allclose(uv, [[22.0, 30.0]])
+    calls.clear()
+    refiner.later_int8 = False  # the float file for every pass, as a model without the copy
+    uv, _ = refiner.refine_and_verify(image, np.array([[20.0, 30.0]]))
+    assert calls == ["float"] * 3
+    np.testing.assert_allclose(uv, [[20.0, 30.0]])
+    assert not Refiner(_network(0, 0, [], "f"), patch_px=16, iterations=2, verifies=True).has_int8_passes
+
+
+@pytest.fixture(scope="module")
+def float_model(tmp_path_factory):
+    """A copy of the shipped model whose second stage's passes all read the float file."""
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    folder = tmp_path_factory.mktemp("float")
+    for f in infer.MODELS_DIR.glob(f"{infer.SHIPPED_MODEL.stem}.*onnx"):
+        shutil.copy(f, folder / f.name)
+    model = folder / infer.SHIPPED_MODEL.name
+    int8_passes_path(model).unlink(missing_ok=True)
+    entry = dict(onnx_meta(model)["refiner"])
+    for key in ("int8_sha256", "int8_calibrated_on"):
+        entry.pop(key, None)
+    update_onnx_meta(model, {"refiner": {**entry, "quantize": "none"}})
+    return model
+
+
+def test_add_int8_passes_writes_the_copy_and_the_detector_reads_its_later_passes_with_it(
+    float_model, drawn_dataset
+):
+    from rebar_data.perception.bench import int8_passes_cost
+    from rebar_data.perception.card import _int8_passes_lines
+
+    model = float_model
+    assert not Detector.load(model, threads=1).refiner.has_int8_passes
+    cfg = RefineConfig(calibration_patches=64)
+    out = attach_int8_passes(model, load_split(drawn_dataset, "train"), cfg, seed=0, data=["drawn train"])
+    assert out == int8_passes_path(model) and out.is_file() and out.stat().st_size < model.stat().st_size
+    entry = onnx_meta(model)["refiner"]
+    assert entry["quantize"] == "later" and entry["int8_calibrated_on"]["data"] == ["drawn train"]
+    det = Detector.load(model, threads=1)
+    assert det.refiner.has_int8_passes
+    assert f"`{out.name}`" in " ".join(_int8_passes_lines(model, det))
+    moved = []
+    for s in load_split(drawn_dataset, "test"):
+        rgb = read_sample_image(s)
+        with_int8 = det.detect(rgb, camera=s.camera, threshold=0.05)
+        det.refiner.later_int8 = False
+        in_float = det.detect(rgb, camera=s.camera, threshold=0.05)
+        det.refiner.later_int8 = True
+        # the same detections, scored alike (the float file verifies them), placed nearly alike
+        np.testing.assert_array_equal(with_int8[:, 2], in_float[:, 2])
+        moved.append(np.abs(with_int8[:, :2] - in_float[:, :2]).max(initial=0.0))
+    assert max(moved) < 0.5, moved
+    assert (
+        len(int8_passes_cost(det, [read_sample_image(load_split(drawn_dataset, "test")[0])], repeats=2)) == 2
+    )
+    assert det.refiner.later_int8  # the bench leaves the copy switched on
+    # the copy is checked as every stage is: missing, or not the file the model names
+    keep = out.read_bytes()
+    out.write_bytes(keep[:-1] + b"\0")
+    with pytest.raises(ConfigError, match="SHA-256"):
+        Detector.load(model)
+    out.unlink()
+    with pytest.raises(ConfigError, match="refine.int8.onnx is missing"):
+        Detector.load(model)
+    out.write_bytes(keep)
+
+
+def test_add_int8_passes_refuses_what_it_cannot_add_to(float_model, trained_run, drawn_dataset):
+    samples = load_split(drawn_dataset, "train")
+    with pytest.raises(ConfigError, match="int8 throughout already"):  # the tiny run ships int8
+        attach_int8_passes(trained_run.out_dir / "best.onnx", samples, RefineConfig(), seed=0, data=[])
+    with pytest.raises(ConfigError, match="reads 32 px patches"):
+        attach_int8_passes(float_model, samples, RefineConfig(patch_px=48), seed=0, data=[])
+    with pytest.raises(ConfigError, match="no such ONNX model"):
+        attach_int8_passes(float_model.with_suffix(".pt"), samples, RefineConfig(), seed=0, data=[])
