@@ -70,7 +70,9 @@ def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[flo
 def int8_passes_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
     """Median ms of the RGB path with the second stage's later passes read by its int8 copy and by the
     float file (:func:`_in_turn`); the detector must have the copy."""
-    return _in_turn(det, frames, repeats=repeats, switch=lambda on: setattr(det.refiner, "later_int8", on))
+    return _in_turn(
+        det, frames, repeats=repeats, switch=lambda on: setattr(det.refiner, "use_int8_passes", on)
+    )
 
 
 def drawn_frame() -> Frame:

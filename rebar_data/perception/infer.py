@@ -558,14 +558,14 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
         "shrink_above_px": entry.get("shrink_above_px"),  # None: every pass at full resolution
     }
     if path.suffix == ".onnx":
-        later = None
+        int8 = None  # the int8 copy its later passes read (quantize: later)
         if entry.get("quantize") == "later":
-            later, _ = _stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
+            int8, _ = _stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
         return Refiner.load_onnx(
             path,
             threads=threads,
             context_scale=int(entry.get("context_scale", 0)),
-            later_path=later,
+            int8_path=int8,
             **passes,
         )
     from rebar_data.perception.refine_train import load

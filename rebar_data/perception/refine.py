@@ -190,7 +190,7 @@ class Refiner:
     half a step). A refiner with a size output (``sizes``) also gives, in the first pass, each crossing's
     box side (four bar diameters); with ``shrink_above_px`` the later passes read a crossing seen larger
     than its first size from the image shrunk to 0.75, larger than the second to 0.5 (:data:`SHRINKS`), so
-    that the patch shows all of it (``RefineConfig.size``). With ``later_run`` the passes after the first
+    that the patch shows all of it (``RefineConfig.size``). With ``int8_run`` the passes after the first
     read another copy of the network, an int8 one (``RefineConfig.quantize = "later"``): the first pass,
     whose verification every score counts and whose sizes choose the later passes' resolution, stays
     in float."""
@@ -209,7 +209,7 @@ class Refiner:
         sizes: bool = False,
         shrink_above_px: tuple[float, float] | None = None,
         first_pass_views: int | None = None,
-        later_run: Callable[[np.ndarray], np.ndarray] | None = None,
+        int8_run: Callable[[np.ndarray], np.ndarray] | None = None,
     ):
         first_pass_views = views if first_pass_views is None else first_pass_views
         for name, value in (("views", views), ("first_pass_views", first_pass_views)):
@@ -220,9 +220,9 @@ class Refiner:
         if not 0.0 < step <= 1.0:
             raise ConfigError(f"step = {step} is not accepted; accepted: a number above 0, at most 1")
         self._run = run
-        self._int8_run = later_run
+        self._int8_run = int8_run
         # whether the passes after the first read the int8 copy (False: the float network, for comparing)
-        self.later_int8 = later_run is not None
+        self.use_int8_passes = int8_run is not None
         self.views = views
         self.first_pass_views = first_pass_views
         self.step = step
@@ -282,10 +282,10 @@ class Refiner:
         step: float = 1.0,
         shrink_above_px: tuple[float, float] | None = None,
         first_pass_views: int | None = None,
-        later_path: Path | None = None,
+        int8_path: Path | None = None,
     ) -> Refiner:
         """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
-        meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on). ``later_path``: the
+        meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on). ``int8_path``: the
         int8 copy the passes after the first read (None: they read ``path``); it must take and give what
         ``path`` does."""
         from rebar_data.perception.infer import onnx_session
@@ -299,19 +299,19 @@ class Refiner:
         def run(x: np.ndarray) -> np.ndarray:
             return sess.run(None, {name: x})[0]
 
-        later_run = None
-        if later_path is not None:
-            later = onnx_session(later_path, threads)
-            signature = [(sess.get_inputs()[0].shape, sess.get_outputs()[0].shape)]
-            if [(later.get_inputs()[0].shape, later.get_outputs()[0].shape)] != signature:
+        int8_run = None
+        if int8_path is not None:
+            int8 = onnx_session(int8_path, threads)
+            signature = (sess.get_inputs()[0].shape, sess.get_outputs()[0].shape)
+            if (int8.get_inputs()[0].shape, int8.get_outputs()[0].shape) != signature:
                 raise ConfigError(
-                    f"{later_path}: takes or gives other shapes than {path.name}; accepted: the int8 copy "
+                    f"{int8_path}: takes or gives other shapes than {path.name}; accepted: the int8 copy "
                     f"written from it (`rebar add-int8-passes`, or `rebar train` with quantize: later)"
                 )
-            later_name = later.get_inputs()[0].name
+            int8_name = int8.get_inputs()[0].name
 
-            def later_run(x: np.ndarray) -> np.ndarray:
-                return later.run(None, {later_name: x})[0]
+            def int8_run(x: np.ndarray) -> np.ndarray:
+                return int8.run(None, {int8_name: x})[0]
 
         # 2: offsets; 3: offsets and the verification logit; 4: and the log box side
         columns = sess.get_outputs()[0].shape[-1]
@@ -336,7 +336,7 @@ class Refiner:
             sizes=columns == 4,
             shrink_above_px=shrink_above_px,
             first_pass_views=first_pass_views,
-            later_run=later_run,
+            int8_run=int8_run,
         )
 
     @property
@@ -399,7 +399,7 @@ class Refiner:
         x, corners = stage_input(
             image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
         )
-        run = self._int8_run if later and self.later_int8 and self._int8_run is not None else self._run
+        run = self._int8_run if later and self.use_int8_passes and self._int8_run is not None else self._run
         return corners, self._read(x, self.views if views is None else views, run)
 
     def _placed_at_size(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None) -> np.ndarray:

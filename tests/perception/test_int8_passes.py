@@ -39,9 +39,9 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
         verifies=True,
         views=1,
         step=0.5,
-        later_run=_network(2.0, -9.0, calls, "int8"),
+        int8_run=_network(2.0, -9.0, calls, "int8"),
     )
-    assert refiner.has_int8_passes and refiner.later_int8
+    assert refiner.has_int8_passes and refiner.use_int8_passes
     image = np.zeros((64, 64, 3), np.uint8)
     uv, logit = refiner.refine_and_verify(image, np.array([[20.0, 30.0]]))
     assert calls == ["float", "int8", "int8"]
@@ -50,7 +50,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
     # + 2 (u: 20 -> 21 -> 22)
     np.testing.assert_allclose(uv, [[22.0, 30.0]])
     calls.clear()
-    refiner.later_int8 = False  # the float file for every pass, as a model without the copy
+    refiner.use_int8_passes = False  # the float file for every pass, as a model without the copy
     uv, _ = refiner.refine_and_verify(image, np.array([[20.0, 30.0]]))
     assert calls == ["float"] * 3
     np.testing.assert_allclose(uv, [[20.0, 30.0]])
@@ -94,9 +94,9 @@ def test_add_int8_passes_writes_the_copy_and_the_detector_reads_its_later_passes
     for s in load_split(drawn_dataset, "test"):
         rgb = read_sample_image(s)
         with_int8 = det.detect(rgb, camera=s.camera, threshold=0.05)
-        det.refiner.later_int8 = False
+        det.refiner.use_int8_passes = False
         in_float = det.detect(rgb, camera=s.camera, threshold=0.05)
-        det.refiner.later_int8 = True
+        det.refiner.use_int8_passes = True
         # the same detections, scored alike (the float file verifies them), placed nearly alike
         np.testing.assert_array_equal(with_int8[:, 2], in_float[:, 2])
         moved.append(np.abs(with_int8[:, :2] - in_float[:, :2]).max(initial=0.0))
@@ -104,7 +104,7 @@ def test_add_int8_passes_writes_the_copy_and_the_detector_reads_its_later_passes
     assert (
         len(int8_passes_cost(det, [read_sample_image(load_split(drawn_dataset, "test")[0])], repeats=2)) == 2
     )
-    assert det.refiner.later_int8  # the bench leaves the copy switched on
+    assert det.refiner.use_int8_passes  # the bench leaves the copy switched on
     # the copy is checked as every stage is: missing, or not the file the model names
     keep = out.read_bytes()
     out.write_bytes(keep[:-1] + b"\0")
@@ -124,3 +124,11 @@ def test_add_int8_passes_refuses_what_it_cannot_add_to(float_model, trained_run,
         attach_int8_passes(float_model, samples, RefineConfig(patch_px=48), seed=0, data=[])
     with pytest.raises(ConfigError, match="no such ONNX model"):
         attach_int8_passes(float_model.with_suffix(".pt"), samples, RefineConfig(), seed=0, data=[])
+
+
+def test_an_int8_copy_of_another_network_is_refused():
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    model = infer.SHIPPED_MODEL
+    with pytest.raises(ConfigError, match="takes or gives other shapes than rebar_keypoint.refine.onnx"):
+        Refiner.load_onnx(infer.refiner_path(model), threads=1, int8_path=infer.depth_check_path(model))
