@@ -138,8 +138,8 @@ class RefineConfig(Strict):
     ``quantize = "later"``, the default: the file stays in float and an int8 copy beside it
     (``<stem>.refine.int8.onnx``, calibrated as above) is what the passes after the first read; the
     first pass, whose verification every score counts, stays in float. On a 2-core machine whose CPU
-    has VNNI (int8 dot products) the int8 file read 45 patches 3.3x faster than the float one (3.3
-    against 10.7 ms); on the five cross-renderer and paper-tunnel test sets without depth (recall@P0.99,
+    has VNNI (int8 dot products) the int8 file read 45 patches 2.8x as fast as the float one (3.0
+    against 8.3 ms, timed in turn, load 0.6); on the five cross-renderer and paper-tunnel test sets without depth (recall@P0.99,
     float / later / all int8): crossval-planar 0.920 / 0.920 / 0.921, crossval-tunnel 0.872 / 0.872 /
     0.875, cycles-train-planar-e 0.858 / 0.858 / 0.843, cycles-train-tunnel-e 0.849 / 0.849 / 0.858,
     paper-tunnel 0.960 / 0.960 / 0.960 (all int8 calibrated on the first stage's candidates, not the
