@@ -401,6 +401,18 @@ class RefineConfig(Strict):
     and 10.1 ms a frame (90th percentile 8.2, 12.3 and 19.8 ms; `rebar bench`'s 8 rendered frames, 47
     candidates each, load 0.2), so the default is 2 (a half turn), within 15 ms at the 90th percentile.
 
+    With the later passes read by the int8 copy (``quantize = "later"``), on the five held-out sets
+    without depth (crossval-planar / crossval-tunnel / cycles-train-planar-e / cycles-train-tunnel-e /
+    paper-tunnel test; PCK@2px, recall@P0.99): 2 views and 2 passes (shipped) 0.959 / 0.939 / 0.924 /
+    0.899 / 0.947, 0.920 / 0.872 / 0.858 / 0.849 / 0.960; 4 views 0.959 / 0.941 / 0.924 / 0.896 / 0.948,
+    0.920 / 0.872 / 0.858 / 0.858 / 0.957; 8 views 0.962 / 0.940 / 0.925 / 0.897 / 0.949, recall as 2
+    views but 0.849 / 0.960; 3 passes of 4 views 0.965 / 0.942 / 0.927 / 0.899 / 0.951 (PCK@1px 0.019
+    and 0.015 higher on crossval-planar and paper-tunnel), 0.920 / 0.882 / 0.858 / 0.830 / 0.963, for
+    1.6 times the RGB path's time (54 against 34 ms a frame over the five sets). None moves PCK@2px near
+    paper-tunnel's goal (0.97), so the default stays. With the later passes in float, one view
+    instead of two: 0.960 / 0.938 / 0.922 / 0.894 / 0.946, recall@P0.99 0.920 / 0.872 / 0.841 / 0.830 /
+    0.957.
+
     ``first_pass_views`` (inference only, stored in the model file; files written before it read every
     pass in ``views``): the views the first pass reads. The first pass needs only to come within the
     later pass's reach, and its verification and size are the plain view's either way. With the wider
@@ -702,7 +714,16 @@ class LineCheckConfig(Strict):
     detections, for a model file that would carry 100 trees and their evaluator; not taken. A prototype that took every candidate within a 10-degree wedge along each bar direction (no
     step-by-step following) took the top bar a lower bar converges to in perspective for the lower bar, and
     the curved set lost recall (0.869 to 0.840-0.851); two rounds there (the first round's scores as the
-    second's evidence) changed each figure by under 0.02.
+    second's evidence) changed each figure by under 0.02. Two cues of which mat a detection's bars lie
+    in, read from the image at each detection (offline, on candidates the first stage scores 0.2 or more,
+    where these features alone gave 0.909 / 0.860 / 0.867 / 0.857 / 0.958): each bar's brightness along
+    its centreline 6-22 px from the crossing (the brighter bar against the darker, each against the
+    image's confident detections) and the two bars' difference in colour: 0.922 / 0.852 / 0.865 / 0.857 /
+    0.959 (the confident false detections' bars were no darker than a crossing's: the median log ratio
+    0.140 against 0.136); which bar is on top at each detection (the edges across each bar at the
+    crossing against 12-28 px from it), to count along each bar where it passes on top: on the slab it
+    named the top bar at a few of a frame's crossings only, the ribs of the bar on top giving edges
+    across the one beneath, so it was not fitted.
     """
 
     enabled: bool = True
