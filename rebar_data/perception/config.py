@@ -405,8 +405,8 @@ class RefineConfig(Strict):
     without depth (crossval-planar / crossval-tunnel / cycles-train-planar-e / cycles-train-tunnel-e /
     paper-tunnel test; PCK@2px, recall@P0.99): 2 views and 2 passes (shipped) 0.959 / 0.939 / 0.924 /
     0.899 / 0.947, 0.920 / 0.872 / 0.858 / 0.849 / 0.960; 4 views 0.959 / 0.941 / 0.924 / 0.896 / 0.948,
-    0.920 / 0.872 / 0.858 / 0.858 / 0.957; 8 views 0.962 / 0.940 / 0.925 / 0.897 / 0.949, recall as 2
-    views but 0.849 / 0.960; 3 passes of 4 views 0.965 / 0.942 / 0.927 / 0.899 / 0.951 (PCK@1px 0.019
+    0.920 / 0.872 / 0.858 / 0.858 / 0.957; 8 views 0.962 / 0.940 / 0.925 / 0.897 / 0.949, recall as with
+    2 views; 3 passes of 4 views 0.965 / 0.942 / 0.927 / 0.899 / 0.951 (PCK@1px 0.019
     and 0.015 higher on crossval-planar and paper-tunnel), 0.920 / 0.882 / 0.858 / 0.830 / 0.963, for
     1.6 times the RGB path's time (54 against 34 ms a frame over the five sets). None moves PCK@2px near
     paper-tunnel's goal (0.97), so the default stays. With the later passes in float, one view
