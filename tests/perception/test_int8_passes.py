@@ -132,3 +132,15 @@ def test_an_int8_copy_of_another_network_is_refused():
     model = infer.SHIPPED_MODEL
     with pytest.raises(ConfigError, match="takes or gives other shapes than rebar_keypoint.refine.onnx"):
         Refiner.load_onnx(infer.refiner_path(model), threads=1, int8_path=infer.depth_check_path(model))
+
+
+def test_the_shipped_files_stay_within_five_megabytes():
+    """The issue's size goal: every file the shipped model loads, the int8 copy included."""
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    files = sorted(infer.MODELS_DIR.glob(f"{infer.SHIPPED_MODEL.stem}*.onnx"))
+    det = Detector.load(None, threads=1)
+    loaded = [infer.SHIPPED_MODEL, infer.refiner_path(infer.SHIPPED_MODEL)]
+    loaded += [int8_passes_path(infer.SHIPPED_MODEL)] if det.refiner.has_int8_passes else []
+    assert set(loaded) <= set(files)
+    assert sum(f.stat().st_size for f in files) <= 5_000_000, [(f.name, f.stat().st_size) for f in files]
