@@ -146,7 +146,8 @@ class RefineConfig(Strict):
     crossings: calibrated on the crossings it lost 0.015-0.026 on the two -e sets), PCK@2px within
     0.001 of float for ``"later"``; the RGB path took 30.4 ms a frame against 37.0 in float, all int8
     24.5. All int8 moves every verified score, and so the operating points and the line check fitted
-    on them, for a mixed change; ``"later"`` moves only where the later passes place a crossing.
+    on them, for a mixed change; ``"later"`` moves only where the later passes place a crossing (and
+    so, with depth, where the depth check reads it).
     The first stage stays in float: int8 cost it recall@P0.99 (0.80 to 0.45) and time nothing. Both
     settings shape only the exported file, so changing them keeps a trained second stage.
 
