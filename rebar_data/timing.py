@@ -57,17 +57,13 @@ def machine_description(cpuinfo: str | None = None) -> str:
         key, sep, value = line.partition(":")
         if sep and key.strip() not in fields:  # the first processor's entry speaks for all
             fields[key.strip()] = value.strip()
-    if "flags" not in fields:
-        return cores + (f", {fields['model name']}" if "model name" in fields else "")
-    flags = set(fields["flags"].split())
-    have = [name for flag, name in VECTOR_EXTENSIONS if flag in flags]
-    if flags & set(_VNNI):
-        have.append("VNNI")
-    lacking = [name for flag, name in VECTOR_EXTENSIONS if flag not in flags]
-    parts = [cores]
-    if "model name" in fields:
-        parts.append(fields["model name"])
-    parts.append(" and ".join([", ".join(have[:-1]), have[-1]] if len(have) > 1 else have) or "no AVX")
-    if lacking and have:
-        parts.append(f"no {lacking[0]}")  # the narrowest missing one says where the machine stops
+    parts = [cores] + ([fields["model name"]] if "model name" in fields else [])
+    if "flags" in fields:
+        flags = set(fields["flags"].split())
+        have = [name for flag, name in VECTOR_EXTENSIONS if flag in flags]
+        have += ["VNNI"] if flags & set(_VNNI) else []
+        lacking = [name for flag, name in VECTOR_EXTENSIONS if flag not in flags]
+        parts.append(f"{', '.join(have[:-1])} and {have[-1]}" if len(have) > 1 else (have or ["no AVX"])[0])
+        if lacking and have:
+            parts.append(f"no {lacking[0]}")  # the narrowest missing one says where the machine stops
     return ", ".join(parts)

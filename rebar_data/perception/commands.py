@@ -51,20 +51,28 @@ def run_train(args: argparse.Namespace) -> None:
     print(out)
 
 
-def _added_stage_inputs(args: argparse.Namespace):
-    """What `rebar add-crossing-point` and `add-line-check` share: the dataset (checked) and its info, the
-    model file, the training settings (``--config``) and every image of the supplements with their
+def _added_stage_inputs(args: argparse.Namespace, *, model_settings: bool = False):
+    """What `rebar add-crossing-point`, `add-line-check` and `add-int8-passes` share: the dataset (checked)
+    and its info, the model file, the training settings (``--config``; without it the defaults, or with
+    ``model_settings`` those the model file records) and every image of the supplements with their
     records."""
     from rebar_data.config import read_yaml
     from rebar_data.perception.data import check_dataset, read_info
+    from rebar_data.perception.export import check_model_file, onnx_meta
     from rebar_data.perception.infer import resolve_model_path
     from rebar_data.perception.train import resolve_config, supplement_images
 
     root = check_dataset(args.dataset)
     info = read_info(root)
     model = resolve_model_path(args.model)
-    settings = read_yaml(args.config) if args.config else None
-    cfg = resolve_config(settings, {}, source=str(args.config or "train settings"))
+    if args.config:
+        settings, source = read_yaml(args.config), str(args.config)
+    elif model_settings:
+        settings = onnx_meta(check_model_file(model)).get("train_config")
+        source = f"{model}'s train settings"
+    else:
+        settings, source = None, "train settings"
+    cfg = resolve_config(settings, {}, source=source)
     extra, records = supplement_images(args.supplement or (), trained_on=info.get("name"))
     return root, info, model, cfg, extra, records
 
@@ -109,14 +117,9 @@ def run_add_line_check(args: argparse.Namespace) -> None:
 
 def run_add_int8_passes(args: argparse.Namespace) -> None:
     from rebar_data.perception.data import load_split
-    from rebar_data.perception.export import check_model_file, onnx_meta
     from rebar_data.perception.refine_train import attach_int8_passes, calibrated_on
-    from rebar_data.perception.train import resolve_config
 
-    root, info, model, cfg, extra, records = _added_stage_inputs(args)
-    if not args.config:  # the settings the model trained with, as its file records them
-        meta = onnx_meta(check_model_file(model))
-        cfg = resolve_config(meta.get("train_config"), {}, source=f"{model}'s train settings")
+    root, info, model, cfg, extra, records = _added_stage_inputs(args, model_settings=True)
     samples = load_split(root, "train") + extra
     out = attach_int8_passes(
         model, samples, cfg.refine, seed=cfg.seed, data=calibrated_on(info.get("name"), records)
@@ -248,6 +251,20 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
     print(out)
 
 
+def _added_stage_parser(
+    sub: argparse._SubParsersAction, name: str, *, help: str, dataset: str, supplement: str, config: str
+) -> argparse.ArgumentParser:
+    """The parser of a command that adds a stage to a model file in place (`rebar add-line-check`,
+    `add-int8-passes`): the dataset, --model, --supplement, --config and --quiet, helped as given."""
+    c = sub.add_parser(name, help=help)
+    c.add_argument("dataset", help=dataset)
+    c.add_argument("--model", help="the model's .onnx file, changed in place (default: the shipped model)")
+    c.add_argument("--supplement", action="append", metavar="DATASET", help=supplement)
+    c.add_argument("--config", help=config)
+    c.add_argument("--quiet", action="store_true", help="no progress lines")
+    return c
+
+
 def register(sub: argparse._SubParsersAction) -> None:
     t = sub.add_parser("train", help="train the crossing detector on a dataset (CPU; resumable)")
     t.add_argument("dataset", help="dataset folder ROOT/<name>/v<version>/, as `rebar dataset build` prints")
@@ -309,37 +326,22 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
     a.set_defaults(func=run_add_crossing_point)
 
-    c = sub.add_parser(
+    _added_stage_parser(
+        sub,
         "add-line-check",
         help="fit the line check (scores read along each detection's bars) into a model file",
-    )
-    c.add_argument("dataset", help="the dataset the model trained on (its val split fits and calibrates it)")
-    c.add_argument("--model", help="the model's .onnx file, changed in place (default: the shipped model)")
-    c.add_argument(
-        "--supplement",
-        action="append",
-        metavar="DATASET",
-        help="a dataset whose every image the check also fits on (repeatable; make train: LINE_SUPPLEMENTS)",
-    )
-    c.add_argument("--config", help="YAML of training settings, as for `rebar train` (its line_check)")
-    c.add_argument("--quiet", action="store_true", help="no progress lines")
-    c.set_defaults(func=run_add_line_check)
-
-    c = sub.add_parser(
+        dataset="the dataset the model trained on (its val split fits and calibrates it)",
+        supplement="a dataset whose every image the check also fits on (repeatable; make train: LINE_SUPPLEMENTS)",
+        config="YAML of training settings, as for `rebar train` (its line_check)",
+    ).set_defaults(func=run_add_line_check)
+    _added_stage_parser(
+        sub,
         "add-int8-passes",
         help="write the int8 copy of a model's second stage that its passes after the first read",
-    )
-    c.add_argument("dataset", help="the dataset the model trained on (its train split calibrates the copy)")
-    c.add_argument("--model", help="the model's .onnx file, changed in place (default: the shipped model)")
-    c.add_argument(
-        "--supplement",
-        action="append",
-        metavar="DATASET",
-        help="a dataset whose every image calibrates it too (repeatable; make train: SUPPLEMENTS)",
-    )
-    c.add_argument("--config", help="YAML of training settings (default: those the model trained with)")
-    c.add_argument("--quiet", action="store_true", help="no progress lines")
-    c.set_defaults(func=run_add_int8_passes)
+        dataset="the dataset the model trained on (its train split calibrates the copy)",
+        supplement="a dataset whose every image calibrates it too (repeatable; make train: SUPPLEMENTS)",
+        config="YAML of training settings (default: those the model trained with)",
+    ).set_defaults(func=run_add_int8_passes)
 
     p = sub.add_parser(
         "adapt",

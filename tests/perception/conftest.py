@@ -1,5 +1,8 @@
 from __future__ import annotations
 
+import shutil
+from pathlib import Path
+
 import pytest
 import torch
 
@@ -19,6 +22,19 @@ COLOUR_OFF = dict(
     noise_probability=0,
 )
 STILL = AugmentConfig(**COLOUR_OFF)
+
+
+def shipped_model_copy(folder: Path) -> Path:
+    """The shipped model's files copied into ``folder`` (a test that changes a model file in place works on
+    this); skips the test when no model is shipped yet."""
+    from rebar_data.perception import infer
+
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    for f in infer.MODELS_DIR.glob(f"{infer.SHIPPED_MODEL.stem}.*onnx"):
+        shutil.copy(f, folder / f.name)
+    return folder / infer.SHIPPED_MODEL.name
+
 
 TINY_MODEL = {"channels": (8, 8, 16, 16), "blocks": (0, 1, 1)}
 TINY_TRAIN = {

@@ -3,8 +3,6 @@ first pass, whose verification every score counts, stays in float."""
 
 from __future__ import annotations
 
-import shutil
-
 import numpy as np
 import pytest
 
@@ -16,6 +14,8 @@ from rebar_data.perception.export import onnx_meta, update_onnx_meta
 from rebar_data.perception.infer import Detector, int8_passes_path
 from rebar_data.perception.refine import Refiner
 from rebar_data.perception.refine_train import attach_int8_passes
+
+from .conftest import shipped_model_copy
 
 
 def _network(offset: float, logit: float, calls: list[str], name: str):
@@ -60,12 +60,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
 @pytest.fixture(scope="module")
 def float_model(tmp_path_factory):
     """A copy of the shipped model whose second stage's passes all read the float file."""
-    if not infer.SHIPPED_MODEL.exists():
-        pytest.skip("no model shipped yet (make train ships one)")
-    folder = tmp_path_factory.mktemp("float")
-    for f in infer.MODELS_DIR.glob(f"{infer.SHIPPED_MODEL.stem}.*onnx"):
-        shutil.copy(f, folder / f.name)
-    model = folder / infer.SHIPPED_MODEL.name
+    model = shipped_model_copy(tmp_path_factory.mktemp("float"))
     int8_passes_path(model).unlink(missing_ok=True)
     entry = dict(onnx_meta(model)["refiner"])
     for key in ("int8_sha256", "int8_calibrated_on"):

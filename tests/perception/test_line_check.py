@@ -1,13 +1,10 @@
 from __future__ import annotations
 
-import shutil
-
 import cv2
 import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import infer
 from rebar_data.perception import line_check as lc
 from rebar_data.perception.config import LineCheckConfig
 from rebar_data.perception.data import load_split, read_sample_image
@@ -15,6 +12,8 @@ from rebar_data.perception.depth_check import read_depth
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.line_check import FEATURES, LineCheck
 from rebar_data.perception.line_check_train import attach
+
+from .conftest import shipped_model_copy
 
 
 def _angle_apart(a: np.ndarray, b: float) -> np.ndarray:
@@ -117,12 +116,7 @@ def test_a_check_fitted_on_other_features_is_refused():
 def checked_model(drawn_dataset, tmp_path_factory):
     """A copy of the shipped model with a line check fitted into it by ``attach`` on the drawn frames (a
     model trained in a test finds too few crossings to fit one)."""
-    if not infer.SHIPPED_MODEL.exists():
-        pytest.skip("no model shipped yet (make train ships one)")
-    folder = tmp_path_factory.mktemp("checked")
-    for f in infer.MODELS_DIR.glob(f"{infer.SHIPPED_MODEL.stem}.*onnx"):
-        shutil.copy(f, folder / f.name)
-    model = folder / infer.SHIPPED_MODEL.name
+    model = shipped_model_copy(tmp_path_factory.mktemp("checked"))
     val = load_split(drawn_dataset, "val")
     entry = attach(model, val + load_split(drawn_dataset, "train"), val, LineCheckConfig(), data=["drawn"])
     return model, entry
