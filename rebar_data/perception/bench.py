@@ -40,29 +40,46 @@ def _time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 5) -> np.n
 
 
 def _in_turn(
-    det, frames: list[np.ndarray], *, repeats: int, switch: Callable[[bool], None]
+    frames: list[np.ndarray],
+    *,
+    repeats: int,
+    on: Callable[[np.ndarray], object],
+    off: Callable[[np.ndarray], object],
 ) -> tuple[float, float]:
-    """Median ms of ``det.detect`` without depth on ``frames`` with ``switch(True)`` and with
-    ``switch(False)``, timed in turn call by call (this machine changes speed between runs; the two see it
-    in the same state); ``switch(True)`` again at the end."""
+    """Median ms of ``on(rgb)`` and of ``off(rgb)`` on ``frames``, timed in turn call by call (this machine
+    changes speed between runs; the two see it in the same state)."""
     each = max(3, -(-repeats // len(frames)))
     on_ms, off_ms = [], []
+    for rgb in frames:
+        for _ in range(each):
+            on_ms.append(_time_ms(lambda rgb=rgb: on(rgb), repeats=1, warmup=1)[0])
+            off_ms.append(_time_ms(lambda rgb=rgb: off(rgb), repeats=1, warmup=1)[0])
+    return float(np.median(on_ms)), float(np.median(off_ms))
+
+
+def _switched(
+    det, frames: list[np.ndarray], *, repeats: int, switch: Callable[[bool], None]
+) -> tuple[float, float]:
+    """:func:`_in_turn` of ``det.detect`` without depth with ``switch(True)`` and with ``switch(False)``;
+    ``switch(True)`` again at the end."""
+
+    def with_switch(on: bool) -> Callable[[np.ndarray], object]:
+        def detect(rgb: np.ndarray) -> object:
+            switch(on)
+            return det.detect(rgb)
+
+        return detect
+
     try:
-        for rgb in frames:
-            for _ in range(each):
-                switch(True)
-                on_ms.append(_time_ms(lambda rgb=rgb: det.detect(rgb), repeats=1, warmup=1)[0])
-                switch(False)
-                off_ms.append(_time_ms(lambda rgb=rgb: det.detect(rgb), repeats=1, warmup=1)[0])
+        return _in_turn(frames, repeats=repeats, on=with_switch(True), off=with_switch(False))
     finally:
         switch(True)
-    return float(np.median(on_ms)), float(np.median(off_ms))
 
 
 def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
     """Median ms of the RGB path with the line check and without it (:func:`_in_turn`)."""
     check = det.line_check
-    return _in_turn(
+    return _switched(
         det, frames, repeats=repeats, switch=lambda on: setattr(det, "line_check", check if on else None)
     )
 
@@ -70,9 +87,19 @@ def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[flo
 def int8_passes_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
     """Median ms of the RGB path with the second stage's later passes read by its int8 copy and by the
     float file (:func:`_in_turn`); the detector must have the copy."""
-    return _in_turn(
+    return _switched(
         det, frames, repeats=repeats, switch=lambda on: setattr(det.refiner, "use_int8_passes", on)
     )
+
+
+def runtime_cost(path, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
+    """Median ms of the RGB path of the model file ``path`` (None: the shipped one) run by OpenVINO and by
+    ONNX Runtime (:mod:`~rebar_data.perception.runtime`), timed in turn (:func:`_in_turn`)."""
+    from rebar_data.perception.infer import Detector
+
+    openvino = Detector.load(path, threads=THREADS, runtime="openvino")
+    onnxruntime = Detector.load(path, threads=THREADS, runtime="onnxruntime")
+    return _in_turn(frames, repeats=repeats, on=openvino.detect, off=onnxruntime.detect)
 
 
 def drawn_frame() -> Frame:
@@ -190,8 +217,11 @@ def latency_frames() -> tuple[list[np.ndarray], str]:
 
 
 def _onnx_session_ms(net, example, *, repeats: int) -> np.ndarray:
-    import onnxruntime as ort
+    """Forward-only ms of ``net`` on ``example``, exported to ONNX and run as the detector's files are
+    (:func:`~rebar_data.perception.runtime.onnx_session`, the default runtime)."""
     import torch
+
+    from rebar_data.perception.runtime import onnx_session
 
     with tempfile.TemporaryDirectory() as tmp:
         path = Path(tmp) / "m.onnx"
@@ -200,11 +230,7 @@ def _onnx_session_ms(net, example, *, repeats: int) -> np.ndarray:
             torch.onnx.export(
                 net.eval(), (example,), str(path), input_names=["x"], opset_version=17, dynamo=False
             )
-        so = ort.SessionOptions()
-        so.intra_op_num_threads, so.inter_op_num_threads = THREADS, 1
-        so.log_severity_level = 3
-        so.add_session_config_entry("session.intra_op.allow_spinning", "0")  # as the detector runs
-        sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+        sess = onnx_session(path, THREADS, "auto")
     x = example.numpy()
     return _time_ms(lambda: sess.run(None, {"x": x}), repeats=repeats)
 
@@ -217,6 +243,7 @@ def run(repeats: int = 100) -> list[str]:
     from rebar_data.perception.config import ModelConfig
     from rebar_data.perception.infer import SHIPPED_MODEL, Detector
     from rebar_data.perception.model import KeypointNet, count_parameters, ray_grid
+    from rebar_data.perception.runtime import runtime_description
 
     threads_before = torch.get_num_threads()
     torch.set_num_threads(THREADS)
@@ -242,7 +269,7 @@ def run(repeats: int = 100) -> list[str]:
         lat = detector_latency(det, frames, repeats=repeats)
         med = lat.median_ms
         lines.append(
-            f"perception: {what}, ONNX Runtime, {THREADS} threads, 640x480 batch 1, end to end, over {described}: "
+            f"perception: {what}, {runtime_description('auto')}, {THREADS} threads, 640x480 batch 1, end to end, over {described}: "
             f"median {med:.1f} ms, p90 {lat.p90_ms:.1f} ms a frame ({1e3 / med:.0f} Hz; "
             f"{lat.crossings:.0f} crossings found a frame; budget {BUDGET_MS:g} ms: "
             f"{'met' if med <= BUDGET_MS else 'MISSED'})"
@@ -271,6 +298,13 @@ def run(repeats: int = 100) -> list[str]:
                 f"perception:   the second stage's later passes in int8: the RGB path {int8_ms:.1f} ms, "
                 f"{float_ms:.1f} ms with them in float, timed in turn frame by frame ({float_ms / int8_ms:.2f}x "
                 "faster)"
+            )
+        if det.backend == "openvino":  # what the runtime saves, on the same frames
+            ov_ms, ort_ms = runtime_cost(det.path, [f[0] for f in frames], repeats=repeats)
+            lines.append(
+                f"perception:   the runtime: the RGB path {ov_ms:.1f} ms with {runtime_description('auto')}, "
+                f"{ort_ms:.1f} ms with ONNX Runtime in float32, timed in turn frame by frame "
+                f"({ort_ms / ov_ms:.2f}x faster)"
             )
         if det.crossing_point is not None:  # the 3D crossing points as well, on the same frames
             each = max(3, -(-repeats // len(frames)))
@@ -303,7 +337,9 @@ def run(repeats: int = 100) -> list[str]:
         net = KeypointNet(ModelConfig()).eval()
         x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float()
         rays = torch.from_numpy(ray_grid(*FRAME_HW, (525.0, 525.0, 320.0, 240.0)))[None]  # output cells
-        reference = lat.first_stage_ms or med  # the same network under ONNX Runtime, with peak decoding
+        reference = (
+            lat.first_stage_ms or med
+        )  # the same network in the detector's runtime, with peak decoding
         with torch.inference_mode():
             eager = _time_ms(lambda: net(x, rays), repeats=max(10, repeats // 5))
         lines.append(

@@ -694,7 +694,7 @@ def ship(
         shutil.copyfile(a, b.with_name(b.name + ".tmp"))
     for _, b in reversed(pairs):  # the later stages land first, so the first never names a missing file
         b.with_name(b.name + ".tmp").replace(b)
-    detector = Detector.load(dst)
+    detector = Detector.load(dst, runtime="onnxruntime")  # the card's figures: float32, as trained
     rows = evaluation_rows(
         detector, run_dir, evaluate_on=evaluate_on, random_split=random_split, progress=progress
     )

@@ -7,6 +7,8 @@ import json
 import sys
 from pathlib import Path
 
+from rebar_data.perception.runtime import RUNTIMES
+
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 
 
@@ -163,7 +165,7 @@ def run_detect(args: argparse.Namespace) -> None:
         raise ConfigError(
             f"{target}: no such dataset, image or folder; accepted: a dataset folder, an image or a folder of images"
         )
-    detector = Detector.load(args.model, threads=args.threads)
+    detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime)
     if (target / "tables/samples.parquet").exists():
         _detect_dataset(detector, target, args)
     else:
@@ -206,11 +208,25 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
     if census is not None:
         print(format_census(census), file=sys.stderr)
     if args.metrics:
-        record = {"split": args.split, "dataset": str(root), "truth": args.truth, "point": point, **metrics}
+        record = {
+            "split": args.split,
+            "dataset": str(root),
+            "truth": args.truth,
+            "point": point,
+            "runtime": _runtime_words(detector),
+            **metrics,
+        }
         if census is not None:
             record["false_detections"] = census
         Path(args.metrics).write_text(json.dumps(record, indent=2) + "\n")
     print(out)
+
+
+def _runtime_words(detector) -> str:
+    """What ran ``detector``'s first stage, in words (its figures may move a little with the runtime)."""
+    from rebar_data.perception.runtime import runtime_description
+
+    return "PyTorch, float32" if detector.backend == "torch" else runtime_description(detector.backend)
 
 
 def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
@@ -414,5 +430,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "crossing-point stage; default: as --truth for a dataset, sight for images",
     )
     d.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
+    d.add_argument(
+        "--runtime",
+        choices=RUNTIMES,
+        default="auto",
+        help="what runs the model's float stages: auto (OpenVINO in bfloat16 where the CPU has it, else "
+        "ONNX Runtime; the default), onnxruntime (float32, as training fits) or openvino",
+    )
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=run_detect)

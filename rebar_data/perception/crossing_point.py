@@ -58,10 +58,12 @@ class CrossingPoint:
         return cls(run, patch_px=net.patch_px, pool=pool)
 
     @classmethod
-    def load_onnx(cls, path: Path, *, threads: int, pool: int = 1) -> CrossingPoint:
-        from rebar_data.perception.infer import onnx_session
+    def load_onnx(
+        cls, path: Path, *, threads: int, pool: int = 1, runtime: str = "onnxruntime"
+    ) -> CrossingPoint:
+        from rebar_data.perception.runtime import onnx_session
 
-        sess = onnx_session(path, threads)
+        sess = onnx_session(path, threads, runtime)
         inputs = sess.get_inputs()
         size = inputs[0].shape[1]
         if len(inputs) != 2 or not isinstance(size, int):

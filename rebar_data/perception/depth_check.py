@@ -139,10 +139,19 @@ class DepthCheck:
         return cls(run, patch_px=net.patch_px, scale_m=scale_m, clip=clip, pool=net.pool)
 
     @classmethod
-    def load_onnx(cls, path: Path, *, threads: int, scale_m: float, clip: float, pool: int = 1) -> DepthCheck:
-        from rebar_data.perception.infer import onnx_session
+    def load_onnx(
+        cls,
+        path: Path,
+        *,
+        threads: int,
+        scale_m: float,
+        clip: float,
+        pool: int = 1,
+        runtime: str = "onnxruntime",
+    ) -> DepthCheck:
+        from rebar_data.perception.runtime import onnx_session
 
-        sess = onnx_session(path, threads)
+        sess = onnx_session(path, threads, runtime)
         name = sess.get_inputs()[0].name
         size = sess.get_inputs()[0].shape[-1]
         if not isinstance(size, int):

@@ -23,6 +23,7 @@ from rebar_data.perception.line_check import LineCheck
 from rebar_data.perception.metrics import OPERATING_THRESHOLD
 from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
 from rebar_data.perception.refine import Refiner
+from rebar_data.perception.runtime import onnx_session, resolve_runtime
 from rebar_data.perception.targets import decode
 
 DEFAULT_FOCAL_PER_WIDTH = 525.0 / 640.0  # Kinect v1 colour camera, when neither caller nor model says
@@ -65,7 +66,7 @@ class Detector:
     Attributes:
         path: The file it was loaded from (None when built from a network in memory).
         meta: What the model file says about itself (training data, settings, scores).
-        backend: ``onnxruntime`` or ``torch``.
+        backend: what runs the first stage: ``onnxruntime``, ``openvino`` or ``torch``.
         score_bias: Logit shift applied to the heatmap before scores are read (``meta["score_bias"]``,
             chosen on the validation split so that score 0.5 is the operating point; 0 when absent).
         score_bias_without_depth: The same for a call without a depth image, when the model has a depth
@@ -115,7 +116,14 @@ class Detector:
         self.line_check: LineCheck | None = None
 
     @classmethod
-    def load(cls, path: str | Path | None = None, *, threads: int = 2, line_check: bool = True) -> Detector:
+    def load(
+        cls,
+        path: str | Path | None = None,
+        *,
+        threads: int = 2,
+        line_check: bool = True,
+        runtime: str = "auto",
+    ) -> Detector:
         """Load a detector.
 
         Args:
@@ -124,28 +132,30 @@ class Detector:
             threads: CPU threads for inference.
             line_check: Load the file's line check; False leaves it out (to fit a new one, whatever the
                 file holds).
+            runtime: What runs an ``.onnx`` file's float stages (:mod:`~rebar_data.perception.runtime`):
+                "auto" (OpenVINO in bfloat16 where the CPU has it), "onnxruntime" or "openvino".
         """
         p = resolve_model_path(path)
         if p.suffix == ".onnx":
-            det = cls._load_onnx(p, threads)
+            det = cls._load_onnx(p, threads, resolve_runtime(runtime))
         else:
             from rebar_data.perception.export import load_checkpoint
 
             net, meta, _ = load_checkpoint(p)
             det = cls.from_network(net, meta=meta, path=p)
-            det.refiner = _load_refiner(p, det.meta, threads)
-            det.depth_check = _load_depth_check(p, det.meta, threads)
-            det.crossing_point = _load_crossing_point(p, det.meta, threads)
+            det.refiner = _load_refiner(p, det.meta, threads, "onnxruntime")
+            det.depth_check = _load_depth_check(p, det.meta, threads, "onnxruntime")
+            det.crossing_point = _load_crossing_point(p, det.meta, threads, "onnxruntime")
         entry = det.meta.get("line_check")
         if line_check and entry:
             det.line_check = LineCheck.from_meta(entry, str(p))
         return det
 
     @classmethod
-    def _load_onnx(cls, path: Path, threads: int) -> Detector:
+    def _load_onnx(cls, path: Path, threads: int, runtime: str) -> Detector:
         from rebar_data.perception.export import META_KEY
 
-        sess = onnx_session(path, threads)
+        sess = onnx_session(path, threads, runtime)
         raw = sess.get_modelmeta().custom_metadata_map.get(META_KEY)
         names = [i.name for i in sess.get_inputs()]
 
@@ -155,10 +165,10 @@ class Detector:
                 feed[names[1]] = rays[None]
             return sess.run(None, feed)[0][0]
 
-        det = cls(run, meta=json.loads(raw) if raw else {}, backend="onnxruntime", path=path)
-        det.refiner = _load_refiner(path, det.meta, threads)
-        det.depth_check = _load_depth_check(path, det.meta, threads)
-        det.crossing_point = _load_crossing_point(path, det.meta, threads)
+        det = cls(run, meta=json.loads(raw) if raw else {}, backend=runtime, path=path)
+        det.refiner = _load_refiner(path, det.meta, threads, runtime)
+        det.depth_check = _load_depth_check(path, det.meta, threads, runtime)
+        det.crossing_point = _load_crossing_point(path, det.meta, threads, runtime)
         return det
 
     @classmethod
@@ -442,31 +452,12 @@ def shifted_score(score: np.ndarray, shift: float | np.ndarray) -> np.ndarray:
     return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + shift)))
 
 
-def onnx_session(path: Path, threads: int):
-    """An ONNX Runtime CPU session for one of the project's model files, set up for low latency."""
-    import onnxruntime as ort
-
-    so = ort.SessionOptions()
-    so.intra_op_num_threads = threads
-    so.inter_op_num_threads = 1
-    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
-    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
-    so.log_severity_level = 3
-    # threads sleep rather than spin between runs: on a 2-core machine shared with the simulator,
-    # spinning doubled the latency under load and cost nothing to drop when idle
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
-    try:
-        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
-    except Exception as e:
-        raise ConfigError(f"{path}: cannot be loaded as an ONNX model ({type(e).__name__})") from None
-
-
 def depth_check_path(model: Path) -> Path:
     """Where a model file's third stage lives: beside it, ``<stem>.depth.onnx`` (or ``.depth.pt``)."""
     return model.with_name(f"{model.stem}.depth{model.suffix}")
 
 
-def _load_depth_check(model: Path, meta: dict[str, Any], threads: int) -> DepthCheck | None:
+def _load_depth_check(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> DepthCheck | None:
     """The third stage a model file names in its meta (None when it names none)."""
     found = _stage_file(model, meta, "depth_check", depth_check_path)
     if found is None:
@@ -474,7 +465,9 @@ def _load_depth_check(model: Path, meta: dict[str, Any], threads: int) -> DepthC
     path, entry = found
     scale_m, clip, pool = float(entry["scale_m"]), float(entry["clip"]), int(entry.get("pool", 1))
     if path.suffix == ".onnx":
-        return DepthCheck.load_onnx(path, threads=threads, scale_m=scale_m, clip=clip, pool=pool)
+        return DepthCheck.load_onnx(
+            path, threads=threads, scale_m=scale_m, clip=clip, pool=pool, runtime=runtime
+        )
     from rebar_data.perception.depth_check_train import load
 
     net, _, _ = load(path)
@@ -517,7 +510,9 @@ def crossing_point_path(model: Path) -> Path:
     return model.with_name(f"{model.stem}.crossing{model.suffix}")
 
 
-def _load_crossing_point(model: Path, meta: dict[str, Any], threads: int) -> CrossingPoint | None:
+def _load_crossing_point(
+    model: Path, meta: dict[str, Any], threads: int, runtime: str
+) -> CrossingPoint | None:
     """The crossing-point stage a model file names in its meta (None when it names none)."""
     found = _stage_file(model, meta, "crossing_point", crossing_point_path)
     if found is None:
@@ -525,7 +520,7 @@ def _load_crossing_point(model: Path, meta: dict[str, Any], threads: int) -> Cro
     path, entry = found
     pool = int(entry.get("pool", 1))
     if path.suffix == ".onnx":
-        return CrossingPoint.load_onnx(path, threads=threads, pool=pool)
+        return CrossingPoint.load_onnx(path, threads=threads, pool=pool, runtime=runtime)
     from rebar_data.perception.crossing_point_train import load
 
     net, _, _ = load(path)
@@ -543,7 +538,7 @@ def int8_passes_path(model: Path) -> Path:
     return model.with_name(f"{model.stem}.refine.int8.onnx")
 
 
-def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | None:
+def _load_refiner(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> Refiner | None:
     """The refiner a model file names in its meta (None when it names none)."""
     found = _stage_file(model, meta, "refiner", refiner_path)
     if found is None:
@@ -564,6 +559,7 @@ def _load_refiner(model: Path, meta: dict[str, Any], threads: int) -> Refiner | 
         return Refiner.load_onnx(
             path,
             threads=threads,
+            runtime=runtime,
             context_scale=int(entry.get("context_scale", 0)),
             int8_path=int8,
             **passes,

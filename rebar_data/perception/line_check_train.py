@@ -129,7 +129,8 @@ def attach(
     from rebar_data.perception.export import check_model_file, update_onnx_meta
 
     model = check_model_file(model)
-    detector = Detector.load(model, threads=threads, line_check=False)  # one already there is replaced
+    # float32 as trained; a line check already there is replaced
+    detector = Detector.load(model, threads=threads, line_check=False, runtime="onnxruntime")
     entry, _ = fit_line_check(detector, samples, val_samples, cfg, data=data, progress=progress)
     update_onnx_meta(model, {"line_check": entry})
     return entry

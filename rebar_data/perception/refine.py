@@ -283,14 +283,16 @@ class Refiner:
         shrink_above_px: tuple[float, float] | None = None,
         first_pass_views: int | None = None,
         int8_path: Path | None = None,
+        runtime: str = "onnxruntime",
     ) -> Refiner:
         """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
         meta says it: :func:`~rebar_data.perception.infer.Detector.load` passes it on). ``int8_path``: the
         int8 copy the passes after the first read (None: they read ``path``); it must take and give what
-        ``path`` does."""
-        from rebar_data.perception.infer import onnx_session
+        ``path`` does. ``runtime`` runs ``path`` (:mod:`~rebar_data.perception.runtime`); the int8 copy always
+        runs in ONNX Runtime."""
+        from rebar_data.perception.runtime import onnx_session
 
-        sess = onnx_session(path, threads)
+        sess = onnx_session(path, threads, runtime)
         name = sess.get_inputs()[0].name
         size = sess.get_inputs()[0].shape[1]
         if not isinstance(size, int):

@@ -590,5 +590,5 @@ def attach_int8_passes(
         "int8_calibrated_on": {"data": list(data), "patches": len(patches)},
     }
     update_onnx_meta(model, {"refiner": entry})
-    Detector.load(model)  # loads with it, or says why not
+    Detector.load(model, runtime="onnxruntime")  # loads with it, or says why not
     return dst

@@ -666,7 +666,9 @@ def _finish(
             "pool": cfg.crossing_point.pool,
             "sha256": sha256_file(export_crossing_point(crossing_net, out / "best.crossing.onnx")),
         }
-    detector = Detector.load(export_onnx(net, out / "best.onnx", meta), threads=cfg.threads)
+    detector = Detector.load(
+        export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
+    )
     if val_samples:  # the operating point, chosen on val with the raw scores
         raw = predict(detector, val_samples, threshold=CALIBRATION_FLOOR, progress=progress)
         if detector.depth_check is not None:  # and the RGB stages' own, for calls without depth

@@ -31,7 +31,7 @@ def tiny_net():
 def test_onnx_export_gives_the_same_output_as_pytorch(tiny_net, tmp_path):
     rgb = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
     path = export_onnx(tiny_net, tmp_path / "m.onnx", {"note": "test"})
-    onnx_det = Detector.load(path, threads=1)
+    onnx_det = Detector.load(path, threads=1, runtime="onnxruntime")  # float32: the export itself
     torch_det = Detector.from_network(tiny_net)
     camera = (100.0, 100.0, 64.0, 48.0)
     np.testing.assert_allclose(onnx_det.raw(rgb, camera=camera), torch_det.raw(rgb, camera=camera), atol=1e-4)
@@ -156,10 +156,10 @@ def test_a_model_file_without_first_pass_views_reads_every_pass_in_its_views():
         pytest.skip("no model shipped yet (make train ships one)")
     meta = Detector.load(threads=1).meta
     entry = {k: v for k, v in meta["refiner"].items() if k != "first_pass_views"} | {"views": 4}
-    old = infer._load_refiner(infer.SHIPPED_MODEL, {**meta, "refiner": entry}, 1)
+    old = infer._load_refiner(infer.SHIPPED_MODEL, {**meta, "refiner": entry}, 1, "onnxruntime")
     assert old.views == old.first_pass_views == 4
     stored = infer._load_refiner(
-        infer.SHIPPED_MODEL, {**meta, "refiner": {**entry, "first_pass_views": 1}}, 1
+        infer.SHIPPED_MODEL, {**meta, "refiner": {**entry, "first_pass_views": 1}}, 1, "onnxruntime"
     )
     assert stored.views == 4 and stored.first_pass_views == 1
 
@@ -204,7 +204,7 @@ def test_an_onnx_file_turns_back_into_the_network_it_was_exported_from(tiny_net,
     want = Detector.from_network(tiny_net).raw(rgb, camera=camera)
     np.testing.assert_allclose(Detector.from_network(net).raw(rgb, camera=camera), want, atol=1e-4)
     # and it exports again to the same outputs: the round trip loses nothing
-    again = Detector.load(export_onnx(net, tmp_path / "again.onnx", meta), threads=1)
+    again = Detector.load(export_onnx(net, tmp_path / "again.onnx", meta), threads=1, runtime="onnxruntime")
     np.testing.assert_allclose(again.raw(rgb, camera=camera), want, atol=1e-4)
 
 

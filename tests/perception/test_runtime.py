@@ -1,0 +1,99 @@
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rebar_data.config import ConfigError
+from rebar_data.perception import infer, runtime
+from rebar_data.perception.infer import Detector
+from rebar_data.perception.runtime import OpenVinoSession, onnx_session, openvino_bf16, resolve_runtime
+
+needs_openvino = pytest.mark.skipif(
+    runtime._openvino_core() is None, reason="openvino is not installed (pip install openvino)"
+)
+
+
+def test_a_runtime_is_one_of_the_accepted_names_and_auto_follows_the_cpu():
+    with pytest.raises(ConfigError, match="runtime 'tensorrt' is not accepted; accepted: auto, onnxruntime"):
+        resolve_runtime("tensorrt")
+    assert resolve_runtime("onnxruntime") == "onnxruntime"
+    assert resolve_runtime("auto") == ("openvino" if openvino_bf16() else "onnxruntime")
+
+
+def test_openvino_is_refused_with_a_clear_message_where_it_is_not_installed(monkeypatch):
+    monkeypatch.setattr(runtime, "_openvino_core", lambda: None)
+    assert resolve_runtime("auto") == "onnxruntime"
+    with pytest.raises(ConfigError, match="needs the openvino package; accepted: pip install openvino"):
+        resolve_runtime("openvino")
+
+
+@needs_openvino
+def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
+    model = trained_run.out_dir / "best.onnx"
+    ort, ov = onnx_session(model, 1), onnx_session(model, 1, "openvino")
+    assert isinstance(ov, OpenVinoSession)
+    assert ov.get_modelmeta().custom_metadata_map == ort.get_modelmeta().custom_metadata_map
+    assert [(a.name, a.shape) for a in ov.get_inputs()] == [(a.name, a.shape) for a in ort.get_inputs()]
+    rng = np.random.default_rng(0)
+    for h, w in ((64, 96), (96, 64), (64, 96)):  # two image sizes: each compiled for its own
+        feed = {
+            "image": rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8),
+            "rays": rng.normal(size=(1, 2, h // 4, w // 4)).astype(np.float32),
+        }
+        want, got = ort.run(None, feed)[0], ov.run(None, feed)[0]
+        assert got.shape == want.shape == (1, 3, h // 4, w // 4)
+        # bfloat16 keeps 8 bits of mantissa: logits agree to a few hundredths of their spread
+        tolerance = 0.05 if openvino_bf16() else 1e-4
+        assert np.abs(got - want).max() <= tolerance * max(1.0, np.abs(want).max()), np.abs(got - want).max()
+    assert len(ov._compiled) == 2
+
+
+@needs_openvino
+def test_a_batch_of_patches_is_padded_for_openvino_and_comes_back_as_long():
+    path = infer.refiner_path(infer.SHIPPED_MODEL)
+    if not path.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    ort, ov = onnx_session(path, 1), onnx_session(path, 1, "openvino")
+    assert isinstance(ov, OpenVinoSession)
+    size = ort.get_inputs()[0].shape[1:]
+    rng = np.random.default_rng(1)
+    for n in (1, 5, 8, 13):
+        x = rng.integers(0, 256, (n, *size), dtype=np.uint8)
+        want, got = ort.run(None, {"patches": x})[0], ov.run(None, {"patches": x})[0]
+        assert got.shape == want.shape and len(got) == n
+        assert np.abs(got - want).max() <= 0.05 * max(1.0, np.abs(want).max())
+
+
+@needs_openvino
+def test_an_int8_file_runs_in_onnx_runtime_whatever_the_runtime(trained_run):
+    # the tests' tiny run quantizes its whole second stage (quantize: int8), which OpenVINO does not read
+    path = infer.refiner_path(trained_run.out_dir / "best.onnx")
+    assert not isinstance(onnx_session(path, 1, "openvino"), OpenVinoSession)
+    with pytest.raises(ConfigError, match="cannot be loaded as an ONNX model"):
+        onnx_session(trained_run.out_dir / "config.json", 1, "openvino")
+
+
+@needs_openvino
+def test_the_shipped_detector_finds_the_same_crossings_in_either_runtime():
+    from rebar_data.perception.bench import drawn_frame
+
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    det_ort = Detector.load(threads=1, runtime="onnxruntime")
+    det_ov = Detector.load(threads=1, runtime="openvino")
+    assert (det_ort.backend, det_ov.backend) == ("onnxruntime", "openvino")
+    rgb, _ = drawn_frame()
+    a, b = det_ort.detect(rgb, threshold=0.3), det_ov.detect(rgb, threshold=0.3)
+    # every confident detection of the one is a detection of the other, placed within half a pixel
+    for p, q in ((a, b), (b, a)):
+        confident = p[p[:, 2] >= 0.6]
+        assert len(confident) >= 20
+        gap = np.hypot(*(confident[:, None, :2] - q[None, :, :2]).transpose(2, 0, 1)).min(axis=1)
+        assert gap.max() < 0.5, gap.max()
+
+
+def test_the_shipped_model_loads_in_onnx_runtime_and_in_the_default_runtime():
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    assert Detector.load(runtime="onnxruntime").backend == "onnxruntime"
+    assert Detector.load().backend == resolve_runtime("auto")
