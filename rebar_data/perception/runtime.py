@@ -176,7 +176,7 @@ class OpenVinoSession:
             pad = -n % BATCH_STEP
         if pad:
             feed = {k: np.concatenate([v, np.zeros((pad, *v.shape[1:]), v.dtype)]) for k, v in feed.items()}
-        out = request.infer(feed)
+        out = request.infer(feed, share_inputs=True)  # read in place: no copy of the image or patches
         return [np.array(out[o][:n] if pad else out[o]) for o in compiled.outputs]
 
 
