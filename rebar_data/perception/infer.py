@@ -1,7 +1,8 @@
 """Run the detector on an image: ``Detector.load(path).detect(rgb) -> (N, 3)`` u, v, score.
 
-ONNX Runtime runs ``.onnx`` files (the shipped model is one; several times faster than eager PyTorch on
-a CPU); ``.pt`` checkpoints run in PyTorch. Coordinates are in the input image's pixels with COCO's corner
+``.onnx`` files (the shipped model is one; several times faster than eager PyTorch on a CPU) run in OpenVINO
+in bfloat16 where the CPU has it and in ONNX Runtime otherwise (:mod:`~rebar_data.perception.runtime`);
+``.pt`` checkpoints run in PyTorch. Coordinates are in the input image's pixels with COCO's corner
 origin (the top-left corner of the top-left pixel is (0, 0)), as everywhere in the project.
 """
 

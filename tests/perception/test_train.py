@@ -259,6 +259,11 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     card = (tmp_path / "models" / CARD_NAME).read_text()
     assert "- Adapt epochs: 2 more after the best epoch" in card and "only in its adapt epochs" in card
     assert "hold up to 16 of the crossings each image's lower mat shows" in card  # the depth check's
+    # the latency names what ran it (the default runtime), the figures the runtime training fits on
+    from rebar_data.perception.runtime import runtime_description
+
+    assert f"2 CPU threads, {runtime_description('auto')}, end to end" in card
+    assert "above are ONNX Runtime's in float32" in card
     stamp = (run / ADAPT_LAST).stat().st_mtime_ns
     train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
     assert (run / ADAPT_LAST).stat().st_mtime_ns == stamp  # finished on the same data: kept
