@@ -19,6 +19,7 @@ the detector's figures by a few detections either way (the README's latency sect
 
 from __future__ import annotations
 
+import threading
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
@@ -144,6 +145,8 @@ class OpenVinoSession:
             a.shape and isinstance(a.shape[0], str) for a in self._inputs
         )
         self._compiled: dict[tuple, Any] = {}
+        # an infer request serves one call at a time; ONNX Runtime's sessions may be called from threads
+        self._lock = threading.Lock()
         if not self._per_shape:
             self._compiled[()] = self._compile(self._model)
 
@@ -162,6 +165,10 @@ class OpenVinoSession:
 
     def run(self, output_names: None, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
         """Every output for ``feed`` (``output_names`` must be None: all of them, in the file's order)."""
+        with self._lock:
+            return self._run(feed)
+
+    def _run(self, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
         key = tuple((k, v.shape) for k, v in feed.items()) if self._per_shape else ()
         if key not in self._compiled:
             if len(self._compiled) >= SHAPES_KEPT:

@@ -62,6 +62,16 @@ def test_a_batch_of_patches_is_padded_for_openvino_and_comes_back_as_long():
         want, got = ort.run(None, {"patches": x})[0], ov.run(None, {"patches": x})[0]
         assert got.shape == want.shape and len(got) == n
         assert np.abs(got - want).max() <= 0.05 * max(1.0, np.abs(want).max())
+    assert ov.run(None, {"patches": np.zeros((0, *size), np.uint8)})[0].shape == (0, 4)
+    # one session called from threads at once gives what it gives called in turn
+    from concurrent.futures import ThreadPoolExecutor
+
+    batches = [rng.integers(0, 256, (n, *size), dtype=np.uint8) for n in (3, 9, 17, 30)]
+    alone = [ov.run(None, {"patches": x})[0] for x in batches]
+    with ThreadPoolExecutor(4) as pool:
+        together = list(pool.map(lambda x: ov.run(None, {"patches": x})[0], batches))
+    for a, b in zip(alone, together, strict=True):
+        np.testing.assert_array_equal(a, b)
 
 
 @needs_openvino
