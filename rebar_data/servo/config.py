@@ -199,6 +199,9 @@ class SuiteConfig(Strict):
     seed: Annotated[int, Field(ge=0)] = 0
     detector: Literal["shipped", "ground_truth"] = "shipped"
     detector_path: str | None = None
+    # what runs the shipped detector's model files (rebar_data.perception.runtime): auto is OpenVINO in
+    # bfloat16 where the CPU has it, ONNX Runtime in float32 elsewhere; pin one to compare machines
+    detector_runtime: Literal["auto", "onnxruntime", "openvino"] = "auto"
     frames: Literal["renderer", "raycast"] = "renderer"
     shadows: bool = False
     scene: SceneConfig = SceneConfig()

@@ -138,9 +138,12 @@ class _WithCamera:
         return self.inner.detect(rgb, camera=self._camera, depth=depth)
 
 
-def load_shipped_detector(path: str | Path | None = None, camera: CameraModel | None = None) -> Detector:
-    """The shipped crossing detector (``path`` None) or a given model, told the camera's intrinsics when it
-    takes them; one clear ConfigError when it is not available."""
+def load_shipped_detector(
+    path: str | Path | None = None, camera: CameraModel | None = None, *, runtime: str = "auto"
+) -> Detector:
+    """The shipped crossing detector (``path`` None) or a given model, run by ``runtime``
+    (:mod:`rebar_data.perception.runtime`) and told the camera's intrinsics when it takes them; one clear
+    ConfigError when it is not available."""
     try:
         from rebar_data.perception.infer import Detector as ShippedDetector
     except ImportError as e:
@@ -149,7 +152,7 @@ def load_shipped_detector(path: str | Path | None = None, camera: CameraModel | 
             "accepted: detector: ground_truth until the detector is built"
         ) from None
     try:
-        det = ShippedDetector.load(path)
+        det = ShippedDetector.load(path, runtime=runtime)
     except FileNotFoundError as e:
         where = path or "the shipped model"
         raise ConfigError(

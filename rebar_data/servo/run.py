@@ -38,7 +38,11 @@ MAX_START_DRAWS = 50
 def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> ServoContext:
     """World, camera, frame source and detector factory for a suite (a missing model fails first, fast)."""
     camera = CameraModel.kinect(suite.camera.fov_x_deg)
-    shipped = load_shipped_detector(suite.detector_path, camera) if suite.detector == "shipped" else None
+    shipped = (
+        load_shipped_detector(suite.detector_path, camera, runtime=suite.detector_runtime)
+        if suite.detector == "shipped"
+        else None
+    )
     mesh_path = resolve_path(suite.world.mesh_config, suite_path)
     rm = build_world_mesh(suite.world, mesh_path)
     world = ServoWorld(suite.world, rm)

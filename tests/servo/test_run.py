@@ -199,3 +199,20 @@ def test_a_missing_model_writes_nothing_not_even_the_parent_of_out(tmp_path, roo
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "nowhere.onnx" in err, err
     assert not (tmp_path / "runs").exists()
+
+
+def test_a_suite_pins_what_runs_the_shipped_detector(tmp_path, root, capsys):
+    from rebar_data.perception import infer
+    from rebar_data.servo.camera import CameraModel
+    from rebar_data.servo.detectors import load_shipped_detector
+
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    det = load_shipped_detector(None, CameraModel.kinect(), runtime="onnxruntime")
+    assert det.inner.backend == "onnxruntime"
+    path = tmp_path / "suite.yaml"
+    path.write_text(yaml.safe_dump(suite_dict(detector="shipped", detector_runtime="tensorrt")))
+    assert main(["servo", "run", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "detector_runtime" in err and "'onnxruntime'" in err, err
+    assert not (tmp_path / "o").exists()
