@@ -97,9 +97,10 @@ def runtime_description(runtime: str) -> str:
 def _openvino_core() -> Any:
     try:
         import openvino
-    except ImportError:
+
+        return openvino.Core()
+    except (ImportError, OSError, RuntimeError):  # not installed, or its libraries do not load here
         return None
-    return openvino.Core()
 
 
 @dataclass(frozen=True)
