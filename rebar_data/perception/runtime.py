@@ -6,15 +6,15 @@
   every x86 CPU to rounding; training fits its stages and operating points on what this runtime gives.
 - ``"openvino"``: the float files in OpenVINO with bfloat16 arithmetic where the CPU has it (AVX-512 BF16
   or AMX), float32 where it has not; the int8 copy stays in ONNX Runtime (OpenVINO does not read its
-  quantized operators, and a QDQ copy in OpenVINO was no faster: 2.9-3.3 ms against 3.1-3.6 ms for 90
-  patches here).
+  quantized operators, and the same copy quantized in QDQ form ran no faster in OpenVINO: 0.041-0.050 ms
+  a patch against ONNX Runtime's 0.041-0.045, batches of 80-120).
 - ``"auto"`` (the default): OpenVINO where it is installed and the CPU has bfloat16, ONNX Runtime otherwise.
 
 Why: on this project's 2-core AMD EPYC (AVX-512 BF16), OpenVINO in bfloat16 ran the first stage on a
 640x480 frame in 3.8 ms against ONNX Runtime's 7.0 ms, and 90 second-stage patches in 5.7 against 11.5 ms;
 in float32 it was slower than ONNX Runtime (11.7 ms for the first stage). bfloat16 keeps 8 bits of mantissa:
-the first stage's logits moved by up to 0.10 and the second stage's offsets by up to 0.05 px, which moved
-the detector's figures by a few detections either way (the README's latency section has them).
+the first stage's logits moved by up to 0.10 and the second stage's outputs by up to 0.05, which moved
+the detector's figures by a few detections either way (the README's runtime paragraph has them).
 """
 
 from __future__ import annotations
