@@ -4,6 +4,7 @@ import json
 import shutil
 
 import pyarrow.parquet as pq
+import pytest
 import yaml
 
 from rebar_data.cli import main
@@ -44,6 +45,14 @@ def test_detect_on_a_dataset_split_writes_one_row_per_prediction(
     census = json.loads(metrics.read_text())["false_detections"]
     assert census["recall"] == 0.97 and census["false"] == sum(census[p] for p in PLACES)
     assert f"{census['false']} false detections above" in printed.err
+    # the metrics say what ran the model (its figures may move a little with the runtime)
+    from rebar_data.perception.runtime import runtime_description
+
+    assert json.loads(metrics.read_text())["runtime"] == runtime_description("auto")
+    with pytest.raises(SystemExit) as e:  # argparse names the accepted runtimes
+        main(["detect", str(drawn_dataset), "--out", str(out), "--runtime", "tensorrt"])
+    err = capsys.readouterr().err
+    assert e.value.code == 2 and "invalid choice: 'tensorrt'" in err and "onnxruntime" in err, err
 
 
 def test_detect_on_images_draws_overlays(trained_run, drawn_dataset, tmp_path):
