@@ -107,3 +107,12 @@ def test_the_shipped_model_loads_in_onnx_runtime_and_in_the_default_runtime():
         pytest.skip("no model shipped yet (make train ships one)")
     assert Detector.load(runtime="onnxruntime").backend == "onnxruntime"
     assert Detector.load().backend == resolve_runtime("auto")
+
+
+@needs_openvino
+def test_the_bench_times_the_two_runtimes_in_turn(trained_run):
+    from rebar_data.perception.bench import drawn_frame, runtime_cost
+
+    rgb, _ = drawn_frame()
+    openvino_ms, onnxruntime_ms = runtime_cost(trained_run.out_dir / "best.onnx", [rgb], repeats=3)
+    assert openvino_ms > 0 and onnxruntime_ms > 0
