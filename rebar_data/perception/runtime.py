@@ -31,8 +31,9 @@ from rebar_data.config import ConfigError
 
 Runtime = Literal["auto", "onnxruntime", "openvino"]
 RUNTIMES: tuple[str, ...] = ("auto", "onnxruntime", "openvino")
-# input shapes an OpenVINO session keeps compiled at once (the first stage is compiled per image size: with
-# its height and width left free it ran 5.0 ms against 3.8 ms compiled for 640x480)
+# input shapes an OpenVINO session compiles for (the first stage is compiled per image size: with its height
+# and width left free it ran 5.0 ms against 3.8 ms compiled for 640x480); sizes past these are served by one
+# compile with them left free, so a folder of many sizes is not compiled again image by image
 SHAPES_KEPT = 4
 # a batch of patches is padded to a multiple of this many: each batch size OpenVINO has not seen before costs
 # it a new plan (200 calls of 20-200 patches: 0.075 ms a patch as they came, 0.060 padded to 8, 0.068 to 16)
@@ -119,8 +120,8 @@ class _Meta:
 class OpenVinoSession:
     """An ONNX file compiled by OpenVINO for the CPU (bfloat16 where the CPU has it), answering the calls
     the project makes of an ONNX Runtime session. A file whose inputs have free dimensions past the first
-    (the first stage's image) is compiled for each input shape it is given (the last :data:`SHAPES_KEPT`
-    kept); one free only in the first (a batch of patches) is compiled once and given batches padded to a
+    (the first stage's image) is compiled for each of the first :data:`SHAPES_KEPT` input shapes it is
+    given, and once more with them free for any other; one free only in the first (a batch of patches) is compiled once and given batches padded to a
     multiple of :data:`BATCH_STEP`; one with none free is compiled once."""
 
     def __init__(self, path: Path, threads: int):
@@ -173,10 +174,13 @@ class OpenVinoSession:
         key = tuple((k, v.shape) for k, v in feed.items()) if self._per_shape else ()
         if key not in self._compiled:
             if len(self._compiled) >= SHAPES_KEPT:
-                self._compiled.pop(next(iter(self._compiled)))
-            model = self._model.clone()
-            model.reshape({k: list(v.shape) for k, v in feed.items()})
-            self._compiled[key] = self._compile(model)
+                key = ()  # one compile with the free dimensions left free serves every other shape
+            if key not in self._compiled:
+                model = self._model
+                if key:
+                    model = model.clone()
+                    model.reshape({k: list(v.shape) for k, v in feed.items()})
+                self._compiled[key] = self._compile(model)
         compiled, request = self._compiled[key]
         n = pad = 0
         if self._padded:

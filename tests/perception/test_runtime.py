@@ -46,6 +46,17 @@ def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
         tolerance = 0.05 if openvino_bf16() else 1e-4
         assert np.abs(got - want).max() <= tolerance * max(1.0, np.abs(want).max()), np.abs(got - want).max()
     assert len(ov._compiled) == 2
+    # past SHAPES_KEPT sizes, one compile with the sizes left free serves the rest
+    for k in range(runtime.SHAPES_KEPT + 2):
+        h, w = 32 * (k + 1), 64
+        feed = {
+            "image": rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8),
+            "rays": rng.normal(size=(1, 2, h // 4, w // 4)).astype(np.float32),
+        }
+        want, got = ort.run(None, feed)[0], ov.run(None, feed)[0]
+        assert got.shape == want.shape
+        assert np.abs(got - want).max() <= tolerance * max(1.0, np.abs(want).max())
+    assert len(ov._compiled) == runtime.SHAPES_KEPT + 1 and () in ov._compiled
 
 
 @needs_openvino
