@@ -163,12 +163,7 @@ def adapt_model(
 
     from rebar_data.config import ConfigError
     from rebar_data.perception.export import export_onnx, network_from_onnx
-    from rebar_data.perception.infer import (
-        crossing_point_path,
-        depth_check_path,
-        int8_passes_path,
-        refiner_path,
-    )
+    from rebar_data.perception.infer import stage_files
 
     if model.suffix != ".onnx":
         raise ConfigError(
@@ -192,9 +187,9 @@ def adapt_model(
     )
     adapted, adapted_meta, _ = load_checkpoint(first)
     target = out / "rebar_keypoint.onnx"
-    for stage in (refiner_path, int8_passes_path, depth_check_path, crossing_point_path):
-        if stage(model).exists():
-            shutil.copy2(stage(model), stage(target))
+    for a, b in zip(stage_files(model), stage_files(target), strict=True):
+        if a.exists():
+            shutil.copy2(a, b)
     # the first stage last: a file there means the whole model is there
     return export_onnx(
         adapted, target, {**meta, "adapt": adapted_meta.get("adapt", {}), "adapted_from": str(model)}

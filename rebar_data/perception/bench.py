@@ -92,14 +92,13 @@ def int8_passes_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[fl
     )
 
 
-def runtime_cost(path, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
-    """Median ms of the RGB path of the model file ``path`` (None: the shipped one) run by OpenVINO and by
-    ONNX Runtime (:mod:`~rebar_data.perception.runtime`), timed in turn (:func:`_in_turn`)."""
+def runtime_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
+    """Median ms of the RGB path of ``det`` (loaded from a file, in OpenVINO) and of its file run by ONNX
+    Runtime (:mod:`~rebar_data.perception.runtime`), timed in turn (:func:`_in_turn`)."""
     from rebar_data.perception.infer import Detector
 
-    openvino = Detector.load(path, threads=THREADS, runtime="openvino")
-    onnxruntime = Detector.load(path, threads=THREADS, runtime="onnxruntime")
-    return _in_turn(frames, repeats=repeats, on=openvino.detect, off=onnxruntime.detect)
+    onnxruntime = Detector.load(det.path, threads=THREADS, runtime="onnxruntime")
+    return _in_turn(frames, repeats=repeats, on=det.detect, off=onnxruntime.detect)
 
 
 def drawn_frame() -> Frame:
@@ -300,7 +299,7 @@ def run(repeats: int = 100) -> list[str]:
                 "faster)"
             )
         if det.backend == "openvino":  # what the runtime saves, on the same frames
-            ov_ms, ort_ms = runtime_cost(det.path, [f[0] for f in frames], repeats=repeats)
+            ov_ms, ort_ms = runtime_cost(det, [f[0] for f in frames], repeats=repeats)
             lines.append(
                 f"perception:   the runtime: the RGB path {ov_ms:.1f} ms with {runtime_description('auto')}, "
                 f"{ort_ms:.1f} ms with ONNX Runtime in float32, timed in turn frame by frame "

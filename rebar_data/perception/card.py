@@ -21,6 +21,7 @@ from rebar_data.perception.infer import (
     depth_check_path,
     int8_passes_path,
     refiner_path,
+    stage_files,
 )
 from rebar_data.perception.metrics import oks_radius_px
 from rebar_data.perception.runtime import runtime_description
@@ -678,8 +679,7 @@ def ship(
         raise ConfigError(
             f"{run_dir}: no best.onnx and results.json; accepted: a finished `rebar train` run folder"
         )
-    stages = (refiner_path, int8_passes_path, depth_check_path, crossing_point_path)
-    size = sum(p.stat().st_size for p in (src, *(f(src) for f in stages)) if p.exists())
+    size = sum(p.stat().st_size for p in (src, *stage_files(src)) if p.exists())
     if size > MAX_SHIPPED_BYTES:
         raise ConfigError(
             f"{src}: {size / 2**20:.1f} MiB (with its later stages) is over the "
@@ -690,11 +690,11 @@ def ship(
     models_dir.mkdir(parents=True, exist_ok=True)
     dst = models_dir / SHIPPED_MODEL.name
     pairs = [(src, dst)]
-    for beside in stages:
-        if beside(src).exists():
-            pairs.append((beside(src), beside(dst)))
+    for a, b in zip(stage_files(src), stage_files(dst), strict=True):
+        if a.exists():
+            pairs.append((a, b))
         else:
-            beside(dst).unlink(missing_ok=True)  # a model without that stage: no stale file beside it
+            b.unlink(missing_ok=True)  # a model without that stage: no stale file beside it
     for a, b in pairs:
         shutil.copyfile(a, b.with_name(b.name + ".tmp"))
     for _, b in reversed(pairs):  # the later stages land first, so the first never names a missing file

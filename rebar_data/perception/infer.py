@@ -539,6 +539,12 @@ def int8_passes_path(model: Path) -> Path:
     return model.with_name(f"{model.stem}.refine.int8.onnx")
 
 
+def stage_files(model: Path) -> list[Path]:
+    """Where a model file's later stages live beside it, whichever it has: what shipping or adapting the
+    model copies with it."""
+    return [f(model) for f in (refiner_path, int8_passes_path, depth_check_path, crossing_point_path)]
+
+
 def _load_refiner(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> Refiner | None:
     """The refiner a model file names in its meta (None when it names none)."""
     found = _stage_file(model, meta, "refiner", refiner_path)

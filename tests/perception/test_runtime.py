@@ -125,5 +125,6 @@ def test_the_bench_times_the_two_runtimes_in_turn(trained_run):
     from rebar_data.perception.bench import drawn_frame, runtime_cost
 
     rgb, _ = drawn_frame()
-    openvino_ms, onnxruntime_ms = runtime_cost(trained_run.out_dir / "best.onnx", [rgb], repeats=3)
+    det = Detector.load(trained_run.out_dir / "best.onnx", threads=1, runtime="openvino")
+    openvino_ms, onnxruntime_ms = runtime_cost(det, [rgb], repeats=3)
     assert openvino_ms > 0 and onnxruntime_ms > 0
