@@ -92,6 +92,21 @@ def int8_passes_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[fl
     )
 
 
+def reading_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
+    """Median ms of the RGB path in the mirrored reading and in the single one (``Detector.reading``),
+    timed in turn (:func:`_in_turn`); the detector is left in the reading it had."""
+    before = det.reading
+    try:
+        return _switched(
+            det,
+            frames,
+            repeats=repeats,
+            switch=lambda on: setattr(det, "reading", "mirrored" if on else "single"),
+        )
+    finally:
+        det.reading = before
+
+
 def runtime_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
     """Median ms of the RGB path of ``det`` (loaded from a file, in OpenVINO) and of its file run by ONNX
     Runtime (:mod:`~rebar_data.perception.runtime`), timed in turn (:func:`_in_turn`)."""
@@ -195,12 +210,19 @@ def detector_latency(det, frames: list[Frame], *, repeats: int) -> DetectorLaten
     )
 
 
-def _stages(lat: DetectorLatency) -> list[str]:
+def _first_stage_words(det) -> str:
+    """What the detector's first stage reads: the frame, or in the mirrored reading the frame and its mirror."""
+    if getattr(det, "reading", "single") == "mirrored":
+        return "heatmap network on the frame and its mirror image, and peaks"
+    return "heatmap network and peaks"
+
+
+def _stages(lat: DetectorLatency, det) -> list[str]:
     """What the first stage and the later ones cost (nothing for one stage)."""
     if lat.first_stage_ms is None:
         return []
     return [
-        f"perception:   of which the first stage (heatmap network and peaks) {lat.first_stage_ms:.1f} ms "
+        f"perception:   of which the first stage ({_first_stage_words(det)}) {lat.first_stage_ms:.1f} ms "
         f"and the later ones (refining, verifying and checking in depth {lat.candidates:.0f} candidates a frame) "
         f"{lat.median_ms - lat.first_stage_ms:.1f} ms, {lat.second_stage_us_per_candidate:.0f} us a candidate"
     ]
@@ -268,12 +290,13 @@ def run(repeats: int = 100) -> list[str]:
         lat = detector_latency(det, frames, repeats=repeats)
         med = lat.median_ms
         lines.append(
-            f"perception: {what}, {runtime_description('auto')}, {THREADS} threads, 640x480 batch 1, end to end, over {described}: "
+            f"perception: {what}, {runtime_description('auto')}, {det.reading} reading, {THREADS} threads, 640x480 "
+            f"batch 1, end to end, over {described}: "
             f"median {med:.1f} ms, p90 {lat.p90_ms:.1f} ms a frame ({1e3 / med:.0f} Hz; "
             f"{lat.crossings:.0f} crossings found a frame; budget {BUDGET_MS:g} ms: "
             f"{'met' if med <= BUDGET_MS else 'MISSED'})"
         )
-        lines += _stages(lat)
+        lines += _stages(lat, det)
         if det.depth_check is not None:  # a camera without depth: the RGB stages alone, on the same frames
             rgb_frames = [(f[0], None) for f in frames]
             rgb_only = detector_latency(det, rgb_frames, repeats=repeats)
@@ -291,12 +314,19 @@ def run(repeats: int = 100) -> list[str]:
                     f"perception:   the line check: the RGB path {with_ms:.1f} ms with it, {without_ms:.1f} ms "
                     f"without (the RGB stages alone), timed in turn frame by frame ({with_ms / without_ms:.2f}x)"
                 )
+        if det.reading == "mirrored":  # what the mirror image costs, same frames
+            mirrored_ms, single_ms = reading_cost(det, [f[0] for f in frames], repeats=repeats)
+            lines.append(
+                f"perception:   the reading: the RGB path {mirrored_ms:.1f} ms mirrored, {single_ms:.1f} ms in the "
+                f"single reading, timed in turn frame by frame ({mirrored_ms / single_ms:.2f}x)"
+            )
         if det.refiner is not None and det.refiner.has_int8_passes:  # what the int8 copy saves, same frames
             int8_ms, float_ms = int8_passes_cost(det, [f[0] for f in frames], repeats=repeats)
+            passes = "every pass" if det.reading == "mirrored" else "the later passes"
             lines.append(
-                f"perception:   the second stage's later passes in int8: the RGB path {int8_ms:.1f} ms, "
-                f"{float_ms:.1f} ms with them in float, timed in turn frame by frame ({float_ms / int8_ms:.2f}x "
-                "faster)"
+                f"perception:   the second stage's int8 copy ({passes}): the RGB path {int8_ms:.1f} ms, "
+                f"{float_ms:.1f} ms with the float file instead, timed in turn frame by frame "
+                f"({float_ms / int8_ms:.2f}x faster)"
             )
         if det.backend == "openvino":  # what the runtime saves, on the same frames
             ov_ms, ort_ms = runtime_cost(det, [f[0] for f in frames], repeats=repeats)
@@ -331,19 +361,19 @@ def run(repeats: int = 100) -> list[str]:
                 )
                 + f"): median {dense.median_ms:.1f} ms, p90 {dense.p90_ms:.1f} ms"
             )
-            lines += _stages(dense)
+            lines += _stages(dense, det)
         rgb = frames[0][0]
         net = KeypointNet(ModelConfig()).eval()
         x = torch.from_numpy(rgb).permute(2, 0, 1)[None].float()
         rays = torch.from_numpy(ray_grid(*FRAME_HW, (525.0, 525.0, 320.0, 240.0)))[None]  # output cells
-        reference = (
-            lat.first_stage_ms or med
-        )  # the same network in the detector's runtime, with peak decoding
+        # the same network in the detector's runtime, with peak decoding (read twice in the mirrored reading)
+        reference = lat.first_stage_ms or med
+        ours = f"our first stage ({_first_stage_words(det)})"
         with torch.inference_mode():
             eager = _time_ms(lambda: net(x, rays), repeats=max(10, repeats // 5))
         lines.append(
             f"perception: same network in eager PyTorch (forward only): median {np.median(eager):.1f} ms "
-            f"({np.median(eager) / reference:.1f}x the first stage's end-to-end figure)"
+            f"({np.median(eager) / reference:.1f}x {ours}, end to end)"
         )
         yolo = YoloPoseLike().eval()
         yolo_x = (x / 255.0).contiguous()
@@ -351,7 +381,7 @@ def run(repeats: int = 100) -> list[str]:
         lines.append(
             f"perception: YOLOv8n-pose-shaped network ({count_parameters(yolo) / 1e6:.1f} M parameters vs "
             f"{count_parameters(net) / 1e3:.0f} k), same runtime, forward only: median {np.median(yolo_ms):.1f} ms "
-            f"({np.median(yolo_ms) / reference:.1f}x our first stage, {np.median(yolo_ms) / med:.1f}x both stages)"
+            f"({np.median(yolo_ms) / reference:.1f}x {ours}, {np.median(yolo_ms) / med:.1f}x both stages)"
         )
         return lines
     finally:

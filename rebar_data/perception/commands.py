@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from rebar_data.perception.reading import READINGS
 from rebar_data.perception.runtime import RUNTIMES
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
@@ -165,7 +166,7 @@ def run_detect(args: argparse.Namespace) -> None:
         raise ConfigError(
             f"{target}: no such dataset, image or folder; accepted: a dataset folder, an image or a folder of images"
         )
-    detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime)
+    detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
     if (target / "tables/samples.parquet").exists():
         _detect_dataset(detector, target, args)
     else:
@@ -214,6 +215,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
             "truth": args.truth,
             "point": point,
             "runtime": _runtime_words(detector),
+            "reading": detector.reading,
             **metrics,
         }
         if census is not None:
@@ -436,6 +438,14 @@ def register(sub: argparse._SubParsersAction) -> None:
         default="auto",
         help="what runs the model's float stages: auto (OpenVINO in bfloat16 where the CPU has it, else "
         "ONNX Runtime; the default), onnxruntime (float32, as training fits) or openvino",
+    )
+    d.add_argument(
+        "--reading",
+        choices=READINGS,
+        default="mirrored",
+        help="how the stages read each image: mirrored (the default: the first stage reads the image and its "
+        "mirror image and takes their mean, the second stage reads its int8 copy) or single (the first stage "
+        "reads the image once; the reading before there was a choice)",
     )
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=run_detect)

@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from rebar_data.config import ConfigError
@@ -23,6 +24,12 @@ from rebar_data.perception.depth_check import DepthCheck, as_depth_m
 from rebar_data.perception.line_check import LineCheck
 from rebar_data.perception.metrics import OPERATING_THRESHOLD
 from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
+from rebar_data.perception.reading import (
+    MIRRORED_LATER_VIEWS,
+    check_reading,
+    mean_with_mirror,
+    mirrored_camera,
+)
 from rebar_data.perception.refine import Refiner
 from rebar_data.perception.runtime import onnx_session, resolve_runtime
 from rebar_data.perception.targets import decode
@@ -86,6 +93,8 @@ class Detector:
         line_check: Weighs each detection's score with the scores along its two bars
             (:mod:`rebar_data.perception.line_check`; ``meta["line_check"]``); used when ``detect`` gets
             no depth image. Set it to None to get the RGB stages' scores alone.
+        reading: How the stages read an image, "mirrored" or "single" (:mod:`rebar_data.perception.reading`;
+            ``Detector.load``'s default is "mirrored", a network in memory's "single").
     """
 
     def __init__(
@@ -98,6 +107,7 @@ class Detector:
     ):
         self._run = run
         self.meta = meta
+        self.reading: str = "single"
         self.score_bias = float(meta.get("score_bias", 0.0))
         # the operating point of the RGB stages alone, when a depth check changed the other one
         self.score_bias_without_depth = float(meta.get("score_bias_without_depth", self.score_bias))
@@ -124,6 +134,7 @@ class Detector:
         threads: int = 2,
         line_check: bool = True,
         runtime: str = "auto",
+        reading: str = "mirrored",
     ) -> Detector:
         """Load a detector.
 
@@ -135,7 +146,9 @@ class Detector:
                 file holds).
             runtime: What runs an ``.onnx`` file's float stages (:mod:`~rebar_data.perception.runtime`):
                 "auto" (OpenVINO in bfloat16 where the CPU has it), "onnxruntime" or "openvino".
+            reading: How the stages read an image: "mirrored" or "single" (the ``reading`` attribute).
         """
+        check_reading(reading)
         p = resolve_model_path(path)
         if p.suffix == ".onnx":
             det = cls._load_onnx(p, threads, resolve_runtime(runtime))
@@ -150,6 +163,7 @@ class Detector:
         entry = det.meta.get("line_check")
         if line_check and entry:
             det.line_check = LineCheck.from_meta(entry, str(p))
+        det.reading = reading
         return det
 
     @classmethod
@@ -215,7 +229,8 @@ class Detector:
         return self._rays[key]
 
     def raw(self, rgb: np.ndarray, *, camera: tuple[float, float, float, float] | None = None) -> np.ndarray:
-        """The network's (3, ceil(H/4), ceil(W/4)) output for an RGB image: heatmap logit and offsets."""
+        """The network's (3, ceil(H/4), ceil(W/4)) output for an RGB image: heatmap logit and offsets (in
+        the mirrored reading, the mean of the image's and its mirror image's, turned back)."""
         image = _check_image(rgb)
         h, w = image.shape[:2]
         camera = tuple(float(c) for c in camera) if camera is not None else self.default_camera(h, w)
@@ -223,7 +238,18 @@ class Detector:
         if ph or pw:
             image = np.pad(image, ((0, ph), (0, pw), (0, 0)))
         out = self._run(image, self._ray_grid(h + ph, w + pw, camera))  # rays of the output cells
+        if check_reading(self.reading) == "mirrored":
+            out = mean_with_mirror(out, self._mirror_output(image, camera))
         return out[:, : -(-h // STRIDE), : -(-w // STRIDE)]
+
+    def _mirror_output(self, image: np.ndarray, camera: tuple[float, float, float, float]) -> np.ndarray:
+        """The network's output for the padded ``image`` turned left for right, turned back: cell for cell
+        with the image's own output (the padded width is a whole number of cells), the column offsets
+        still measured in the mirror image's direction. The camera turns with the image (its principal
+        point mirrored), so each cell's viewing ray is its own turned."""
+        hp, wp = image.shape[:2]
+        mirrored = self._run(cv2.flip(image, 1), self._ray_grid(hp, wp, mirrored_camera(camera, wp)))
+        return mirrored[:, :, ::-1]
 
     def detect(
         self,
@@ -302,6 +328,7 @@ class Detector:
                 image,
                 det[:, :2],
                 keep=lambda logit: self._may_reach(det[:, 2], logit, threshold, checked=checked, bias=bias),
+                **self._refiner_reading(),
             )
             if verify is not None:
                 log_p = log_probability(verify)
@@ -372,12 +399,20 @@ class Detector:
         placed = det[checked, :2]
         if self.refiner is not None and len(checked):
             keep = None if check is None else (lambda logit: read(logit) >= threshold)
-            placed, verify = self.refiner.refine_and_verify(image, placed, keep=keep)
+            placed, verify = self.refiner.refine_and_verify(
+                image, placed, keep=keep, **self._refiner_reading()
+            )
             if not scores:
                 read(verify)
         elif not scores:
             read(None)
         return LineInputs(det[:, :2], evidence, checked, placed, scores[-1])
+
+    def _refiner_reading(self) -> dict[str, Any]:
+        """How the second stage reads in this detector's reading (``refine_and_verify``'s arguments)."""
+        if check_reading(self.reading) == "mirrored":
+            return {"later_views": MIRRORED_LATER_VIEWS, "int8_first_pass": True}
+        return {}
 
     def _may_reach(
         self, score: np.ndarray, verify_logit: np.ndarray, threshold: float, *, checked: bool, bias: float

@@ -356,17 +356,25 @@ class Refiner:
         uv: np.ndarray,
         *,
         keep: Callable[[np.ndarray], np.ndarray] | None = None,
+        later_views: int | None = None,
+        int8_first_pass: bool = False,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """The refined positions (N, 2) and, when the refiner verifies, (N,) logits that each point's
         first patch (centred where the first stage put it) shows a crossing; None otherwise.
 
         ``keep`` (for a refiner that verifies) takes the first pass's logits and says which points the
         later passes go on moving; the others stay where the first pass placed them (the detector drops
-        those its verification has already put under its threshold, so their later passes are spared)."""
+        those its verification has already put under its threshold, so their later passes are spared).
+        ``later_views``: the views the later passes read (None: ``views``); ``int8_first_pass``: the first
+        pass reads the int8 copy too, where the later passes do (the detector's mirrored reading)."""
+        if later_views is not None and later_views not in VIEWS:
+            raise ConfigError(
+                f"later_views = {later_views} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}"
+            )
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
             return uv, (np.zeros(0) if self.verifies else None)
-        corners, out = self._read_at(image, uv, self.first_pass_views)
+        corners, out = self._read_at(image, uv, self.first_pass_views, int8=int8_first_pass)
         logit = out[:, 2].copy() if self.verifies else None
         box = None  # the first pass's sizes, when later passes read by them
         if self.sizes and self.shrink_above_px is not None:
@@ -375,15 +383,19 @@ class Refiner:
         moving = slice(None)  # the points the later passes move: all, or those ``keep`` names
         if self.iterations > 1 and keep is not None and logit is not None:
             moving = np.asarray(keep(logit), bool)
-        uv[moving] = self._later_passes(image, uv[moving], None if box is None else box[moving])
+        later = self._later_passes(image, uv[moving], None if box is None else box[moving], later_views)
+        uv[moving] = later
         return uv, logit
 
-    def _later_passes(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None) -> np.ndarray:
-        """``uv`` moved by the passes after the first (each ``step`` of the way to where it places them)."""
+    def _later_passes(
+        self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, views: int | None = None
+    ) -> np.ndarray:
+        """``uv`` moved by the passes after the first (each ``step`` of the way to where it places them),
+        each read in ``views`` views (None: ``self.views``)."""
         for _ in range(1, self.iterations):
             if not len(uv):
                 break
-            uv = uv + self.step * (self._placed_at_size(image, uv, box) - uv)
+            uv = uv + self.step * (self._placed_at_size(image, uv, box, views) - uv)
         return uv
 
     def box_sizes(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -394,21 +406,24 @@ class Refiner:
         return self.patch_px * np.exp(self._read_at(image, uv, self.first_pass_views)[1][:, 3])
 
     def _read_at(
-        self, image: np.ndarray, uv: np.ndarray, views: int | None = None, *, later: bool = False
+        self, image: np.ndarray, uv: np.ndarray, views: int | None = None, *, int8: bool = False
     ) -> tuple[np.ndarray, np.ndarray]:
         """The corners the patches around ``uv`` are centred on, and the network's output for them, read in
-        ``views`` views (None: ``self.views``), by the later passes' copy with ``later``."""
+        ``views`` views (None: ``self.views``), by the int8 copy with ``int8`` (where there is one and
+        ``use_int8_passes`` is on)."""
         x, corners = stage_input(
             image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
         )
-        run = self._int8_run if later and self.use_int8_passes and self._int8_run is not None else self._run
+        run = self._int8_run if int8 and self.use_int8_passes and self._int8_run is not None else self._run
         return corners, self._read(x, self.views if views is None else views, run)
 
-    def _placed_at_size(self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None) -> np.ndarray:
-        """Where each point's patch places its crossing, read at the resolution of :data:`SHRINKS` its
-        box side ``box`` calls for (None: all at full resolution)."""
+    def _placed_at_size(
+        self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, views: int | None = None
+    ) -> np.ndarray:
+        """Where each point's patch places its crossing, read in ``views`` views (None: ``self.views``) at
+        the resolution of :data:`SHRINKS` its box side ``box`` calls for (None: all at full resolution)."""
         if box is None:
-            corners, out = self._read_at(image, uv, later=True)
+            corners, out = self._read_at(image, uv, views, int8=True)
             return corners + out[:, :2]
         lo, hi = self.shrink_above_px
         level = (box > lo).astype(int) + (box > hi)
@@ -423,7 +438,7 @@ class Refiner:
                 img, factors = shrunk(image, 1.0 / f)
             else:
                 img, factors = shrunk_around(image, uv[pick], 1.0 / f, self.patch_px)
-            corners, out = self._read_at(img, uv[pick] * factors, later=True)
+            corners, out = self._read_at(img, uv[pick] * factors, views, int8=True)
             placed[pick] = (corners + out[:, :2]) / factors
         return placed
 

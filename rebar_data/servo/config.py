@@ -202,6 +202,9 @@ class SuiteConfig(Strict):
     # what runs the shipped detector's model files (rebar_data.perception.runtime): auto is OpenVINO in
     # bfloat16 where the CPU has it, ONNX Runtime in float32 elsewhere; pin one to compare machines
     detector_runtime: Literal["auto", "onnxruntime", "openvino"] = "auto"
+    # how the shipped detector reads each frame (rebar_data.perception.reading): mirrored, the default, also
+    # reads the frame's mirror image; single reads it once
+    detector_reading: Literal["mirrored", "single"] = "mirrored"
     frames: Literal["renderer", "raycast"] = "renderer"
     shadows: bool = False
     scene: SceneConfig = SceneConfig()

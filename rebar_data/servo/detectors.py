@@ -139,10 +139,15 @@ class _WithCamera:
 
 
 def load_shipped_detector(
-    path: str | Path | None = None, camera: CameraModel | None = None, *, runtime: str = "auto"
+    path: str | Path | None = None,
+    camera: CameraModel | None = None,
+    *,
+    runtime: str = "auto",
+    reading: str = "mirrored",
 ) -> Detector:
     """The shipped crossing detector (``path`` None) or a given model, run by ``runtime``
-    (:mod:`rebar_data.perception.runtime`) and told the camera's intrinsics when it takes them; one clear
+    (:mod:`rebar_data.perception.runtime`), reading each frame as ``reading`` says
+    (:mod:`rebar_data.perception.reading`) and told the camera's intrinsics when it takes them; one clear
     ConfigError when it is not available."""
     try:
         from rebar_data.perception.infer import Detector as ShippedDetector
@@ -152,7 +157,7 @@ def load_shipped_detector(
             "accepted: detector: ground_truth until the detector is built"
         ) from None
     try:
-        det = ShippedDetector.load(path, runtime=runtime)
+        det = ShippedDetector.load(path, runtime=runtime, reading=reading)
     except FileNotFoundError as e:
         where = path or "the shipped model"
         raise ConfigError(

@@ -39,7 +39,9 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
     """World, camera, frame source and detector factory for a suite (a missing model fails first, fast)."""
     camera = CameraModel.kinect(suite.camera.fov_x_deg)
     shipped = (
-        load_shipped_detector(suite.detector_path, camera, runtime=suite.detector_runtime)
+        load_shipped_detector(
+            suite.detector_path, camera, runtime=suite.detector_runtime, reading=suite.detector_reading
+        )
         if suite.detector == "shipped"
         else None
     )

@@ -31,7 +31,7 @@ def tiny_net():
 def test_onnx_export_gives_the_same_output_as_pytorch(tiny_net, tmp_path):
     rgb = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
     path = export_onnx(tiny_net, tmp_path / "m.onnx", {"note": "test"})
-    onnx_det = Detector.load(path, threads=1, runtime="onnxruntime")  # float32: the export itself
+    onnx_det = Detector.load(path, threads=1, runtime="onnxruntime", reading="single")  # the export itself
     torch_det = Detector.from_network(tiny_net)
     camera = (100.0, 100.0, 64.0, 48.0)
     np.testing.assert_allclose(onnx_det.raw(rgb, camera=camera), torch_det.raw(rgb, camera=camera), atol=1e-4)
@@ -204,7 +204,9 @@ def test_an_onnx_file_turns_back_into_the_network_it_was_exported_from(tiny_net,
     want = Detector.from_network(tiny_net).raw(rgb, camera=camera)
     np.testing.assert_allclose(Detector.from_network(net).raw(rgb, camera=camera), want, atol=1e-4)
     # and it exports again to the same outputs: the round trip loses nothing
-    again = Detector.load(export_onnx(net, tmp_path / "again.onnx", meta), threads=1, runtime="onnxruntime")
+    again = Detector.load(
+        export_onnx(net, tmp_path / "again.onnx", meta), threads=1, runtime="onnxruntime", reading="single"
+    )
     np.testing.assert_allclose(again.raw(rgb, camera=camera), want, atol=1e-4)
 
 
