@@ -143,7 +143,7 @@ def load_shipped_detector(
     camera: CameraModel | None = None,
     *,
     runtime: str = "auto",
-    reading: str = "mirrored",
+    reading: str = "single",
 ) -> Detector:
     """The shipped crossing detector (``path`` None) or a given model, run by ``runtime``
     (:mod:`rebar_data.perception.runtime`), reading each frame as ``reading`` says

@@ -208,9 +208,9 @@ def test_a_suite_pins_what_runs_the_shipped_detector(tmp_path, root, capsys):
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
-    det = load_shipped_detector(None, CameraModel.kinect(), runtime="onnxruntime", reading="single")
-    assert det.inner.backend == "onnxruntime" and det.inner.reading == "single"
-    assert load_shipped_detector(None, CameraModel.kinect()).inner.reading == "mirrored"
+    det = load_shipped_detector(None, CameraModel.kinect(), runtime="onnxruntime", reading="mirrored")
+    assert det.inner.backend == "onnxruntime" and det.inner.reading == "mirrored"
+    assert load_shipped_detector(None, CameraModel.kinect()).inner.reading == "single"  # the servo's default
     path = tmp_path / "suite.yaml"
     path.write_text(yaml.safe_dump(suite_dict(detector="shipped", detector_runtime="tensorrt")))
     assert main(["servo", "run", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2
