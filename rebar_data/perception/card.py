@@ -188,6 +188,20 @@ def _row(name: str, m: dict) -> str:
     )
 
 
+def _reading_lines(detector: Detector) -> list[str]:
+    """How the card's figures read each image (:mod:`rebar_data.perception.reading`)."""
+    how = (
+        "mirrored: the first stage reads the image and its mirror image and takes their mean, the second stage "
+        "reads its int8 copy, its later passes in one view"
+        if detector.reading == "mirrored"
+        else "once, the second stage's first pass in float (the single reading)"
+    )
+    return [
+        f"- Reading: the figures on this card read each image {how}; `Detector.load` reads mirrored by",
+        '  default, `reading="single"` once (`rebar_data/perception/reading.py`, the README\'s detector section).',
+    ]
+
+
 def write_card(
     run_dir: Path,
     path: Path,
@@ -378,6 +392,7 @@ def write_card(
         "  `rebar bench --only detector` measures it again beside a YOLOv8n-pose-shaped network. The figures",
         "  above are ONNX Runtime's in float32, the runtime training fits on; `Detector.load` runs OpenVINO in",
         '  bfloat16 where the CPU has it (`runtime="auto"`), which moves them by a few detections.',
+        *_reading_lines(detector),
         f"- Operating threshold: score 0.5, placed at the best F1 on the val split (a logit shift of {detector.score_bias:+.2f}",
         "  stored in the file; it changes no ranking, so AP and recall at a precision do not depend on it)"
         + (

@@ -23,6 +23,8 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     assert "context view: the 2 times wider square" in card
     # latency is timed on rendered frames like the training data's, not on the drawn worst case
     assert "over 8 rendered paper-tunnel frames" in card and "candidates" in card
+    # its figures read each image as Detector.load does by default: the mirrored reading
+    assert "- Reading: the figures on this card read each image mirrored" in card
     det = Detector.load(model)
     assert det.meta["dataset"]["name"] == "drawn" and det.refiner is not None
 
