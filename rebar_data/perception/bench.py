@@ -212,7 +212,7 @@ def detector_latency(det, frames: list[Frame], *, repeats: int) -> DetectorLaten
 
 def _first_stage_words(det) -> str:
     """What the detector's first stage reads: the frame, or in the mirrored reading the frame and its mirror."""
-    if getattr(det, "reading", "single") == "mirrored":
+    if det.reading == "mirrored":
         return "heatmap network on the frame and its mirror image, and peaks"
     return "heatmap network and peaks"
 

@@ -21,14 +21,14 @@ cycles-train-tunnel-e; with the mirror they moved every figure by under 0.01).
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Literal, get_args
 
 import numpy as np
 
 from rebar_data.config import ConfigError
 
 Reading = Literal["mirrored", "single"]
-READINGS: tuple[str, ...] = ("mirrored", "single")
+READINGS: tuple[str, ...] = get_args(Reading)
 # the views the second stage's later passes read in the mirrored reading (the single one: the file's)
 MIRRORED_LATER_VIEWS = 1
 

@@ -43,6 +43,12 @@ VIEWS = (1, 2, 4, 8)
 SHRINKS = (1.0, 0.75, 0.5)
 
 
+def _check_views(name: str, value: int) -> None:
+    """ConfigError unless ``value`` is one of :data:`VIEWS` (``name`` says which setting it is)."""
+    if value not in VIEWS:
+        raise ConfigError(f"{name} = {value} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}")
+
+
 def turned(x: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
     """Patches (N, P, P, C) under one of :data:`SYMMETRIES` (rows flipped, columns flipped, then the axes
     swapped)."""
@@ -212,11 +218,8 @@ class Refiner:
         int8_run: Callable[[np.ndarray], np.ndarray] | None = None,
     ):
         first_pass_views = views if first_pass_views is None else first_pass_views
-        for name, value in (("views", views), ("first_pass_views", first_pass_views)):
-            if value not in VIEWS:
-                raise ConfigError(
-                    f"{name} = {value} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}"
-                )
+        _check_views("views", views)
+        _check_views("first_pass_views", first_pass_views)
         if not 0.0 < step <= 1.0:
             raise ConfigError(f"step = {step} is not accepted; accepted: a number above 0, at most 1")
         self._run = run
@@ -367,10 +370,8 @@ class Refiner:
         those its verification has already put under its threshold, so their later passes are spared).
         ``later_views``: the views the later passes read (None: ``views``); ``int8_first_pass``: the first
         pass reads the int8 copy too, where the later passes do (the detector's mirrored reading)."""
-        if later_views is not None and later_views not in VIEWS:
-            raise ConfigError(
-                f"later_views = {later_views} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}"
-            )
+        if later_views is not None:
+            _check_views("later_views", later_views)
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
             return uv, (np.zeros(0) if self.verifies else None)
@@ -383,8 +384,7 @@ class Refiner:
         moving = slice(None)  # the points the later passes move: all, or those ``keep`` names
         if self.iterations > 1 and keep is not None and logit is not None:
             moving = np.asarray(keep(logit), bool)
-        later = self._later_passes(image, uv[moving], None if box is None else box[moving], later_views)
-        uv[moving] = later
+        uv[moving] = self._later_passes(image, uv[moving], None if box is None else box[moving], later_views)
         return uv, logit
 
     def _later_passes(

@@ -23,14 +23,14 @@ import threading
 from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any, Literal, get_args
 
 import numpy as np
 
 from rebar_data.config import ConfigError
 
 Runtime = Literal["auto", "onnxruntime", "openvino"]
-RUNTIMES: tuple[str, ...] = ("auto", "onnxruntime", "openvino")
+RUNTIMES: tuple[str, ...] = get_args(Runtime)
 # input shapes an OpenVINO session compiles for (the first stage is compiled per image size: with its height
 # and width left free it ran 5.0 ms against 3.8 ms compiled for 640x480); sizes past these are served by one
 # compile with them left free, so a folder of many sizes is not compiled again image by image

@@ -14,6 +14,8 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 
 from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, read_yaml, validate
+from rebar_data.perception.reading import Reading
+from rebar_data.perception.runtime import Runtime
 from rebar_data.scene.config import SceneConfig
 
 Vec3 = tuple[float, float, float]
@@ -201,14 +203,14 @@ class SuiteConfig(Strict):
     detector_path: str | None = None
     # what runs the shipped detector's model files (rebar_data.perception.runtime): auto is OpenVINO in
     # bfloat16 where the CPU has it, ONNX Runtime in float32 elsewhere; pin one to compare machines
-    detector_runtime: Literal["auto", "onnxruntime", "openvino"] = "auto"
+    detector_runtime: Runtime = "auto"
     # how the shipped detector reads each frame (rebar_data.perception.reading): single (the default) reads it
     # once; mirrored also reads its mirror image, as Detector.load does by default. The servo keeps the single
     # reading: the robot's frames come with depth, where the mirrored reading adds little (paper-tunnel test
     # recall at precision 0.99 0.990 against 0.993), and on eval/paper.yaml it moved the worst IBVS visit's
     # true lateral error from 0.97 mm to 1.01-1.07 mm (bar 1 mm; the same visit in every reading tried, the
     # others 0.5 mm or less); the servo README has the figures
-    detector_reading: Literal["mirrored", "single"] = "single"
+    detector_reading: Reading = "single"
     frames: Literal["renderer", "raycast"] = "renderer"
     shadows: bool = False
     scene: SceneConfig = SceneConfig()
