@@ -319,6 +319,17 @@ def pixel_metrics(
     )
 
 
+def ap_ceiling(recall: float) -> float:
+    """The most a 101-point interpolated AP can be with every prediction's ``recall`` (the recall reached
+    with all of them): COCOeval counts precision 0 at each recall threshold above the highest reached, so
+    even with no false detection ranked above a crossing the AP is the share of the thresholds reached.
+    At recall 0.988, 99 of the 101 thresholds are reached: AP at most 0.980, however few the false
+    detections; AP 0.99 needs recall 0.99 with a precision of 0.9999 up to it, or every crossing found."""
+    if not np.isfinite(recall):  # no crossings to find
+        return float("nan")
+    return float(np.count_nonzero(RECALL_THRESHOLDS <= recall + 1e-12)) / len(RECALL_THRESHOLDS)
+
+
 def summary(
     truths: Sequence[Truth],
     predictions: Sequence[np.ndarray],
@@ -329,10 +340,14 @@ def summary(
     """Every headline figure in one flat dict (what the per-epoch table and the reports hold)."""
     ap = keypoint_ap(truths, predictions, sigma=sigma)
     px = pixel_metrics(truths, predictions, threshold=threshold)
+    at50 = int(np.argmin(np.abs(OKS_THRESHOLDS - 0.5)))
     return {
         "oks_ap50": ap.ap50,
         "oks_ap": ap.ap,
         "oks_ap75": ap.ap75,
+        # with every prediction, the crossings found at OKS 0.5; and the most AP@0.5 can be at that recall
+        "oks_recall50": float(ap.recall[at50]),
+        "oks_ap50_ceiling": ap_ceiling(ap.recall[at50]),
         "pck1": px.pck[1.0],
         "pck2": px.pck[2.0],
         "pck5": px.pck[5.0],
@@ -348,10 +363,15 @@ def summary(
 
 
 def format_summary(m: dict[str, float]) -> str:
-    """One line with the headline figures."""
+    """One line with the headline figures (a summary written before AP@0.5's ceiling was: without it)."""
+    ceiling = (
+        f"; recall at OKS 0.5 {m['oks_recall50']:.4f}, so AP@0.5 at most {m['oks_ap50_ceiling']:.4f}"
+        if "oks_ap50_ceiling" in m
+        else ""
+    )
     return (
         f"{int(m['n_gt'])} visible crossings: OKS AP@0.5 {m['oks_ap50']:.4f}, AP@0.5:0.95 {m['oks_ap']:.4f} "
-        f"(sigma {m['oks_sigma']:g}), PCK@1/2/5px {m['pck1']:.3f}/{m['pck2']:.3f}/{m['pck5']:.3f}, "
+        f"(sigma {m['oks_sigma']:g}{ceiling}), PCK@1/2/5px {m['pck1']:.3f}/{m['pck2']:.3f}/{m['pck5']:.3f}, "
         f"error mean {m['mean_px']:.2f} median {m['median_px']:.2f} px, P/R@{m['threshold']:g} "
         f"{m['precision']:.3f}/{m['recall']:.3f}, recall@P0.99 {m['recall_at_p99']:.3f}"
     )

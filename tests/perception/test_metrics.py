@@ -9,6 +9,8 @@ import pytest
 from rebar_data.perception.metrics import (
     DEFAULT_OKS_SIGMA,
     Truth,
+    ap_ceiling,
+    format_summary,
     keypoint_ap,
     oks_matrix,
     oks_radius_px,
@@ -259,3 +261,26 @@ def test_the_breakdown_scores_the_frames_inside_and_the_scenes_with_and_without_
     assert list(breakdown(other, samples, preds, sigma=DEFAULT_OKS_SIGMA)) == [
         "crossings >= 8 px inside the frame"
     ]
+
+
+def test_ap50_is_capped_by_the_recall_reached_however_few_the_false_detections():
+    """COCOeval counts precision 0 at the recall thresholds above the highest reached: 98 of 100 crossings
+    found exactly, no false detection, give AP@0.5 99/101, which is the ceiling the summary states."""
+    uv = np.random.default_rng(5).uniform(50, 590, (100, 2))
+    truths = [Truth(uv, np.full(100, 30.0))]
+    m = summary(truths, [np.c_[uv[:98], np.ones(98)]])
+    assert m["oks_recall50"] == pytest.approx(0.98)
+    assert m["oks_ap50"] == pytest.approx(99 / 101) == m["oks_ap50_ceiling"]
+    assert m["precision"] == 1.0 and m["recall_at_p99"] == pytest.approx(0.98)
+    assert "AP@0.5 at most 0.9802" in format_summary(m)
+    # every crossing found lifts it to 1; one missing of 1000 still caps it at 100/101
+    assert ap_ceiling(1.0) == 1.0 and ap_ceiling(0.999) == pytest.approx(100 / 101)
+    assert np.isnan(ap_ceiling(float("nan")))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_ap50_never_exceeds_its_ceiling(seed):
+    truths, preds = _scene(np.random.default_rng(seed))
+    m = summary(truths, preds)
+    assert 0.0 < m["oks_ap50"] <= m["oks_ap50_ceiling"] <= 1.0
+    assert m["oks_recall50"] == pytest.approx(keypoint_ap(truths, preds).recall[0])
