@@ -167,10 +167,34 @@ def run_detect(args: argparse.Namespace) -> None:
             f"{target}: no such dataset, image or folder; accepted: a dataset folder, an image or a folder of images"
         )
     detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
+    detector.resample = not args.no_resample
     if (target / "tables/samples.parquet").exists():
+        if args.camera is not None:
+            raise ConfigError(
+                f"--camera {args.camera}: a dataset's frames carry their own intrinsics; accepted: --camera "
+                "with an image or a folder of images"
+            )
         _detect_dataset(detector, target, args)
     else:
         _detect_images(detector, target, args)
+
+
+def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
+    """``--camera FX,FY,CX,CY`` as four numbers (None when not given)."""
+    from rebar_data.config import ConfigError
+
+    if text is None:
+        return None
+    try:
+        camera = tuple(float(x) for x in text.split(","))
+    except ValueError:
+        camera = ()
+    if len(camera) != 4 or not camera[0] > 0 or not camera[1] > 0:
+        raise ConfigError(
+            f"--camera {text}: is not accepted; accepted: FX,FY,CX,CY in pixels (COCO corner origin), focal "
+            "lengths above 0, such as 1050,1050,640,480 for a 1280x960 camera"
+        )
+    return camera
 
 
 def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
@@ -216,6 +240,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
             "point": point,
             "runtime": _runtime_words(detector),
             "reading": detector.reading,
+            "resample": detector.resample,
             **metrics,
         }
         if census is not None:
@@ -254,12 +279,13 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
         raise ConfigError(
             f"--out {out}: for images, --out is a folder for the overlays and detections.parquet"
         )
+    camera = _camera_of(args.camera)
     out.mkdir(parents=True, exist_ok=True)
     threshold = args.threshold if args.threshold is not None else OPERATING_THRESHOLD
     preds, ids = [], []
     for f in files:
         rgb = read_image(f)
-        det = detector.detect(rgb, threshold=threshold, point=args.point or "sight")
+        det = detector.detect(rgb, threshold=threshold, camera=camera, point=args.point or "sight")
         overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
         cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
         preds.append(det)
@@ -446,6 +472,18 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="how the stages read each image: mirrored (the default: the first stage reads the image and its "
         "mirror image and takes their mean, the second stage reads its int8 copy) or single (the first stage "
         "reads the image once; the reading before there was a choice)",
+    )
+    d.add_argument(
+        "--camera",
+        metavar="FX,FY,CX,CY",
+        help="images: the camera's intrinsics in pixels, COCO corner origin (default: the training camera's "
+        "field of view, the principal point at the centre); a frame is read resized to the focal length "
+        "the model trained at when its own differs by more than 15%%",
+    )
+    d.add_argument(
+        "--no-resample",
+        action="store_true",
+        help="read every frame at its own scale, whatever its focal length (for comparison)",
     )
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=run_detect)

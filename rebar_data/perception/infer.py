@@ -21,6 +21,7 @@ import numpy as np
 from rebar_data.config import ConfigError
 from rebar_data.perception.crossing_point import CrossingPoint, check_point
 from rebar_data.perception.depth_check import DepthCheck, as_depth_m
+from rebar_data.perception.focal import focal_scale, resample, resampled_size, scaled_camera
 from rebar_data.perception.line_check import LineCheck
 from rebar_data.perception.metrics import OPERATING_THRESHOLD
 from rebar_data.perception.model import INPUT_MULTIPLE, STRIDE, ray_grid
@@ -95,6 +96,11 @@ class Detector:
             no depth image. Set it to None to get the RGB stages' scores alone.
         reading: How the stages read an image, "mirrored" or "single" (:mod:`rebar_data.perception.reading`;
             ``Detector.load``'s default is "mirrored", a network in memory's "single").
+        focal_px: The focal length (pixels) its first stage trained at (``meta["focal_px"]``; None for a file
+            written before it was stored).
+        resample: Whether ``detect`` resizes a frame taken with another focal length to ``focal_px`` before
+            reading it (:mod:`rebar_data.perception.focal`; on by default). Positions come back in the
+            caller's pixels either way.
     """
 
     def __init__(
@@ -125,6 +131,11 @@ class Detector:
         self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
         self.crossing_point: CrossingPoint | None = None
         self.line_check: LineCheck | None = None
+        # the focal length its first stage trained at (files written before it was stored: unknown), and
+        # whether ``detect`` reads a frame taken with another at that one (:mod:`~rebar_data.perception.focal`)
+        focal = meta.get("focal_px")
+        self.focal_px: float | None = float(focal) if focal else None
+        self.resample = True
 
     @classmethod
     def load(
@@ -269,8 +280,10 @@ class Detector:
                 measurement), for the third stage when the model has one; None skips that stage.
             threshold: Lowest score returned; the default is the operating point the metrics report.
             camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin; None assumes the principal
-                point at the centre and the training data's focal length for this width.
-            max_detections: Most crossings returned.
+                point at the centre and the training data's focal length for this width (its field of
+                view). A frame whose focal length is not the one the detector trained at is read resized
+                to it (``resample``; :mod:`~rebar_data.perception.focal`).
+            max_detections: Most crossings returned (counted at the scale the frame is read at).
             point: What u, v stand for: ``"sight"``, where the image shows the two bars cross (the
                 dataset's labels); ``"crossing"``, where the 3D crossing point (the centerlines' midpoint,
                 inside the steel) projects, from the crossing-point stage (the model must have one).
@@ -289,6 +302,34 @@ class Detector:
         h, w = image.shape[:2]
         camera = tuple(float(c) for c in camera) if camera is not None else self.default_camera(h, w)
         depth_m = as_depth_m(depth, (h, w)) if depth is not None else None
+        scale = focal_scale(self.focal_px, camera) if self.resample else 1.0
+        if scale == 1.0:
+            return self._detect_as_is(image, camera, depth_m, threshold, max_detections, point)
+        size = resampled_size(h, w, scale)
+        sx, sy = size[1] / w, size[0] / h  # exact, once the sizes are rounded
+        det = self._detect_as_is(
+            resample(image, size),
+            scaled_camera(camera, sx, sy),
+            None if depth_m is None else resample(depth_m, size, nearest=True),
+            threshold,
+            max_detections,
+            point,
+        )
+        det[:, 0] /= sx
+        det[:, 1] /= sy
+        return det
+
+    def _detect_as_is(
+        self,
+        image: np.ndarray,
+        camera: tuple[float, float, float, float],
+        depth_m: np.ndarray | None,
+        threshold: float,
+        max_detections: int,
+        point: str,
+    ) -> np.ndarray:
+        """``detect`` on ``image`` at the scale it comes in (``depth_m`` in metres, or None)."""
+        h, w = image.shape[:2]
         checked = depth_m is not None and self.depth_check is not None
         out = self.raw(image, camera=camera)
         if self.line_check is not None and not checked:

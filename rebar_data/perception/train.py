@@ -364,6 +364,8 @@ def _run(
         "oks_sigma": sigma,
         "threshold": OPERATING_THRESHOLD,
         "focal_per_width": float(np.median([s.camera[0] / s.width for s in train_samples])),
+        # the focal length the first stage learns at: `Detector.detect` reads other cameras' frames at it
+        "focal_px": float(np.median([0.5 * (s.camera[0] + s.camera[1]) for s in train_samples])),
         "train_config": cfg.model_dump(mode="json"),
     }
     # the first epochs' images: the training images and, ``other_renderer_repeats`` times, the second-stage

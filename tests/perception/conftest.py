@@ -3,6 +3,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pytest
 import torch
 
@@ -22,6 +23,44 @@ COLOUR_OFF = dict(
     noise_probability=0,
 )
 STILL = AugmentConfig(**COLOUR_OFF)
+
+
+def render_one_frame(tmp_path: Path):
+    """One frame of a small tunnel piece, rendered and labelled as a dataset build would, with the servo
+    camera (640x480 Kinect v1): a scene and pose the shipped model has never seen."""
+    import yaml
+
+    from rebar_data.dataset.config import PipelineConfig
+    from rebar_data.dataset.plan import make_plan
+    from rebar_data.dataset.worker import FrameWorker
+    from rebar_data.geometry.build import build_rebar_mesh
+    from rebar_data.perception.data import read_image
+
+    smoke = yaml.safe_load((Path(__file__).parents[2] / "pipelines/smoke.yaml").read_text())
+    cfg = PipelineConfig.model_validate(
+        {
+            **smoke,
+            "seed": 424242,
+            "camera": {
+                "intrinsics": "kinect_v1",
+                "trajectories": [{"kind": "approach", "count": 1, "frames": 1, "edge_margin_m": 0.2}],
+            },
+            "render": {"texture_size_px": 256, "cache_dir": str(tmp_path / "textures")},
+        }
+    )
+    rm = build_rebar_mesh(cfg.mesh_config())
+    plan = make_plan(cfg, rm)
+    worker = FrameWorker(cfg, tmp_path, rm)
+    try:
+        sample = plan.samples[0]
+        labels = worker.run(plan.scenes[0], [sample])[0].labels
+    finally:
+        worker.close()
+    k = worker.intrinsics
+    visible = labels.visibility == 2
+    truth = np.c_[labels.u[visible], labels.v[visible]]
+    rgb = read_image(tmp_path / f"images/{sample.split}/{sample.image_id}.png")
+    return rgb, truth, labels.box_size_px[visible], (k.fx, k.fy, k.cx, k.cy)
 
 
 def shipped_model_copy(folder: Path) -> Path:

@@ -1,7 +1,5 @@
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import torch
@@ -13,7 +11,7 @@ from rebar_data.perception.export import export_onnx, load_checkpoint, save_chec
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.model import KeypointNet
 
-from .conftest import TINY_MODEL
+from .conftest import TINY_MODEL, render_one_frame
 
 
 @pytest.fixture
@@ -97,51 +95,13 @@ def test_detect_rejects_what_is_not_an_rgb_image(tiny_net):
         det.detect(np.zeros((32, 32, 3), np.uint8), threshold=1.5)
 
 
-def _render_one_frame(tmp_path):
-    """One frame of a small tunnel piece, rendered and labelled as a dataset build would, with the servo
-    camera (640x480 Kinect v1): a scene and pose the shipped model has never seen."""
-    import yaml
-
-    from rebar_data.dataset.config import PipelineConfig
-    from rebar_data.dataset.plan import make_plan
-    from rebar_data.dataset.worker import FrameWorker
-    from rebar_data.geometry.build import build_rebar_mesh
-    from rebar_data.perception.data import read_image
-
-    smoke = yaml.safe_load((Path(__file__).parents[2] / "pipelines/smoke.yaml").read_text())
-    cfg = PipelineConfig.model_validate(
-        {
-            **smoke,
-            "seed": 424242,
-            "camera": {
-                "intrinsics": "kinect_v1",
-                "trajectories": [{"kind": "approach", "count": 1, "frames": 1, "edge_margin_m": 0.2}],
-            },
-            "render": {"texture_size_px": 256, "cache_dir": str(tmp_path / "textures")},
-        }
-    )
-    rm = build_rebar_mesh(cfg.mesh_config())
-    plan = make_plan(cfg, rm)
-    worker = FrameWorker(cfg, tmp_path, rm)
-    try:
-        sample = plan.samples[0]
-        labels = worker.run(plan.scenes[0], [sample])[0].labels
-    finally:
-        worker.close()
-    k = worker.intrinsics
-    visible = labels.visibility == 2
-    truth = np.c_[labels.u[visible], labels.v[visible]]
-    rgb = read_image(tmp_path / f"images/{sample.split}/{sample.image_id}.png")
-    return rgb, truth, labels.box_size_px[visible], (k.fx, k.fy, k.cx, k.cy)
-
-
 def test_shipped_model_detects_the_crossings_of_a_freshly_rendered_frame(tmp_path, monkeypatch):
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
     from rebar_data.perception.metrics import Truth, pixel_metrics
 
     monkeypatch.setenv("EGL_PLATFORM", "surfaceless")
-    rgb, truth, box, camera = _render_one_frame(tmp_path)
+    rgb, truth, box, camera = render_one_frame(tmp_path)
     assert len(truth) >= 20
     det = Detector.load(threads=1).detect(rgb, camera=camera)
     px = pixel_metrics([Truth(truth, box)], [det])

@@ -1,0 +1,155 @@
+"""A frame from a camera with another focal length is read at the one the detector trained at
+(``rebar_data.perception.focal``): resized to it, every stage run there, positions returned in the
+caller's pixels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from rebar_data.perception import infer
+from rebar_data.perception.focal import TOLERANCE, focal_scale, resample, resampled_size, scaled_camera
+from rebar_data.perception.infer import Detector
+from rebar_data.perception.metrics import Truth, match, pixel_metrics
+
+from .conftest import render_one_frame
+
+CAMERA = (525.0, 525.0, 320.0, 240.0)
+
+
+def _shipped() -> Detector:
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    return Detector.load(threads=1, runtime="onnxruntime")
+
+
+def _frame() -> tuple[np.ndarray, np.ndarray, Truth]:
+    """The bench's drawn 640x480 frame (focal length 525 px), its depth and its visible crossings."""
+    from rebar_data.perception.bench import FRAME_HW
+    from rebar_data.perception.synthetic import SyntheticSpec, random_frame
+
+    spec = SyntheticSpec(width=FRAME_HW[1], height=FRAME_HW[0], focal_px=525.0, occluder_fraction=0.0)
+    rgb, records, depth = random_frame(spec, np.random.default_rng(0))
+    vis = [r for r in records if r["visibility"] == 2]
+    return (
+        rgb,
+        depth,
+        Truth(np.array([[r["u"], r["v"]] for r in vis]), np.array([r["box_size_px"] for r in vis])),
+    )
+
+
+def test_the_scale_brings_the_focal_length_to_the_trained_one():
+    assert focal_scale(525.0, (1050.0, 1050.0, 640.0, 480.0)) == 0.5
+    assert focal_scale(525.0, (1000.0, 1100.0, 640.0, 480.0)) == 0.5  # the mean of fx and fy
+    assert focal_scale(525.0, (525.0 * (1 + TOLERANCE / 2), 525.0, 320.0, 240.0)) == 1.0  # near enough
+    assert focal_scale(525.0, (589.4, 589.4, 320.0, 240.0)) == 1.0  # the servo suites' Kinect: as it comes
+    assert focal_scale(525.0, (700.0, 700.0, 320.0, 240.0)) == 0.75
+    assert focal_scale(None, (1050.0, 1050.0, 640.0, 480.0)) == 1.0  # a file that does not say
+    assert resampled_size(480, 640, 0.75) == (360, 480)
+    assert scaled_camera((600.0, 610.0, 320.0, 240.0), 0.5, 0.25) == (300.0, 152.5, 160.0, 60.0)
+    depth = np.array([[1.0, 0.0], [0.0, 2.0]], np.float32)
+    assert set(np.unique(resample(depth, (4, 4), nearest=True))) == {0.0, 1.0, 2.0}  # no blend across edges
+
+
+@pytest.fixture(scope="module")
+def rendered(tmp_path_factory):
+    """A freshly rendered 640x480 frame at 525 px (as the tests' other rendered frame), its visible crossings
+    and camera."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("EGL_PLATFORM", "surfaceless")
+        return render_one_frame(tmp_path_factory.mktemp("focal"))
+
+
+def test_a_frame_twice_as_large_is_read_at_the_trained_scale_and_answered_in_its_own_pixels(rendered):
+    """The rendered frame enlarged to 1280x960 with its intrinsics: the first stage reads it at 640x480
+    (the trained focal length), and the crossings come back in the large frame's pixels, found as on the
+    frame itself. Read as it comes, the first stage reads 1280x960."""
+    det = _shipped()
+    rgb, truth, box, camera = rendered
+    assert det.focal_px == 525.0 and camera[0] == 525.0
+    shapes: list[tuple[int, int]] = []
+    run = det._run
+    det._run = lambda image, rays: shapes.append(image.shape[:2]) or run(image, rays)
+    large = resample(rgb, (960, 1280))
+    found = det.detect(large, camera=scaled_camera(camera, 2.0, 2.0))
+    assert set(shapes) == {(480, 640)}  # the frame and its mirror image, at the trained scale
+    px = pixel_metrics([Truth(truth * 2.0, box * 2.0)], [found])  # the large frame's pixels
+    assert px.recall >= 0.95 and px.precision >= 0.95, (px.recall, px.precision)
+    assert px.pck[5.0] >= 0.95 and px.median_px < 2.0, (px.pck, px.median_px)
+    shapes.clear()
+    det.resample = False
+    det.detect(large, camera=scaled_camera(camera, 2.0, 2.0))
+    assert set(shapes) == {(960, 1280)}
+
+
+def test_a_frame_at_the_trained_focal_length_is_read_as_it_comes(monkeypatch):
+    det = _shipped()
+    rgb, depth, _ = _frame()
+    expected = det.detect(rgb, camera=CAMERA)
+
+    def refuse(*args, **kwargs):
+        raise AssertionError("resampled a frame at the trained focal length")
+
+    monkeypatch.setattr(infer, "resample", refuse)
+    near = (525.0 * (1 + TOLERANCE / 2),) * 2 + CAMERA[2:]
+    assert len(det.detect(rgb, camera=near, depth=depth))
+    np.testing.assert_array_equal(det.detect(rgb, camera=CAMERA), expected)
+    det.focal_px = None  # a file written before the focal length was stored: read as it comes
+    assert len(det.detect(rgb, camera=scaled_camera(CAMERA, 2.0, 2.0)))
+
+
+def test_the_depth_image_is_resampled_with_the_frame():
+    """With depth, the drawn frame enlarged twice gives the crossings the frame itself gives (its depth check
+    lowers most of them: the drawn bars lie on the ground): the depth image is resized with it (nearest
+    pixel), so the depth check reads the same patches."""
+    det = _shipped()
+    rgb, depth, _ = _frame()
+    at_scale = det.detect(rgb, camera=CAMERA, depth=depth)
+    large, large_depth = resample(rgb, (960, 1280)), resample(depth, (960, 1280), nearest=True)
+    camera = scaled_camera(CAMERA, 2.0, 2.0)
+    resampled = det.detect(large, camera=camera, depth=large_depth)
+    without_depth = det.detect(large, camera=camera)
+    p, g, _ = match(at_scale[:, :2], resampled[:, :2] / 2.0, 1.5)
+    assert len(at_scale) >= 20 and len(p) >= 0.9 * max(len(at_scale), len(resampled)), (
+        len(at_scale),
+        len(resampled),
+        len(p),
+    )
+    assert len(without_depth) > 1.5 * len(resampled)  # the depth check ran on the resized depth image
+
+
+def test_detect_on_images_takes_the_camera_and_answers_in_the_images_pixels(rendered, tmp_path, capsys):
+    """`rebar detect IMAGE --camera FX,FY,CX,CY`: the rendered frame saved at 1280x960 with its intrinsics
+    gives its crossings in its own pixels; a malformed camera, or one beside a dataset, is refused in one
+    line with nothing written."""
+    import cv2
+    import pyarrow.parquet as pq
+
+    from rebar_data.cli import main
+
+    _shipped()
+    rgb, truth, box, camera = rendered
+    image = tmp_path / "frame.png"
+    cv2.imwrite(str(image), cv2.cvtColor(resample(rgb, (960, 1280)), cv2.COLOR_RGB2BGR))
+    text = ",".join(f"{c:g}" for c in scaled_camera(camera, 2.0, 2.0))
+    assert main(["detect", str(image), "--out", str(tmp_path / "out"), "--camera", text]) == 0
+    rows = pq.read_table(tmp_path / "out/detections.parquet").to_pandas()
+    found = rows[["u", "v", "score"]].to_numpy()
+    px = pixel_metrics([Truth(truth * 2.0, box * 2.0)], [found])
+    assert px.recall >= 0.95 and px.pck[5.0] >= 0.95, (px.recall, px.pck)
+    capsys.readouterr()
+    for bad in ("1050,1050,640", "0,1050,640,480", "a,b,c,d"):
+        assert main(["detect", str(image), "--out", str(tmp_path / "bad"), "--camera", bad]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "accepted: FX,FY,CX,CY" in err[0], err
+    assert not (tmp_path / "bad").exists()
+
+
+def test_a_camera_beside_a_dataset_is_refused(drawn_dataset, tmp_path, capsys):
+    from rebar_data.cli import main
+
+    _shipped()
+    out = tmp_path / "p.parquet"
+    assert main(["detect", str(drawn_dataset), "--out", str(out), "--camera", "525,525,320,240"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "carry their own intrinsics" in err[0] and not out.exists(), err
