@@ -12,6 +12,7 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
 from rebar_data.perception.data import check_dataset, load_split, read_info, renderer_engine, stated_oks_sigma
 from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, at_crossing_points, predict
+from rebar_data.perception.focal import TOLERANCE
 from rebar_data.perception.infer import (
     DUPLICATE_PX,
     MODELS_DIR,
@@ -199,6 +200,19 @@ def _reading_lines(detector: Detector) -> list[str]:
     return [
         f"- Reading: the figures on this card read each image {how}; `Detector.load` reads mirrored by",
         '  default, `reading="single"` once (`rebar_data/perception/reading.py`, the README\'s detector section).',
+    ]
+
+
+def _focal_lines(detector: Detector) -> list[str]:
+    """At what focal length the detector reads a frame (:mod:`rebar_data.perception.focal`)."""
+    if detector.focal_px is None:
+        return []
+    return [
+        f"- Camera: trained on frames of focal length {detector.focal_px:g} px. `detect` reads a frame whose focal",
+        f"  length differs by more than {TOLERANCE:.0%} resized to {detector.focal_px:g} px and answers in its own pixels",
+        "  (pass its intrinsics; without them a frame of any size is taken to have the training camera's field",
+        "  of view); `detector.resample = False` reads every frame at its own scale",
+        "  (`rebar_data/perception/focal.py`).",
     ]
 
 
@@ -393,6 +407,7 @@ def write_card(
         "  above are ONNX Runtime's in float32, the runtime training fits on; `Detector.load` runs OpenVINO in",
         '  bfloat16 where the CPU has it (`runtime="auto"`), which moves them by a few detections.',
         *_reading_lines(detector),
+        *_focal_lines(detector),
         f"- Operating threshold: score 0.5, placed at the best F1 on the val split (a logit shift of {detector.score_bias:+.2f}",
         "  stored in the file; it changes no ranking, so AP and recall at a precision do not depend on it)"
         + (

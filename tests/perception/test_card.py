@@ -27,6 +27,8 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     assert "- Reading: the figures on this card read each image mirrored" in card
     det = Detector.load(model)
     assert det.meta["dataset"]["name"] == "drawn" and det.refiner is not None
+    # training stores the focal length its frames had, and the card says frames of another are resampled
+    assert det.focal_px and f"trained on frames of focal length {det.focal_px:g} px" in card
 
 
 def test_ship_refuses_an_unfinished_run(tmp_path):
