@@ -57,11 +57,8 @@ def resample(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False)
     grows, the nearest pixel with ``nearest`` (a depth image, whose values must not blend across an
     edge). Corner-origin coordinates scale by exactly the ratio of the sizes."""
     h, w = image.shape[:2]
-    if nearest:
-        mode = cv2.INTER_NEAREST
-    else:
-        mode = cv2.INTER_AREA if size[0] * size[1] < h * w else cv2.INTER_LINEAR
-    return cv2.resize(image, (size[1], size[0]), interpolation=mode)
+    smooth = cv2.INTER_AREA if size[0] * size[1] < h * w else cv2.INTER_LINEAR
+    return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_NEAREST if nearest else smooth)
 
 
 def scaled_camera(
