@@ -87,7 +87,13 @@ def adapt_first_stage(
             f"{len(extra)} x {a.supplement_repeats} of {', '.join(data)}"
         )
     batches = batch_stream(
-        mix, run, first=state["epoch"] + 1, last=a.epochs, steps=steps, lower_mat_weight=a.lower_mat_weight
+        mix,
+        run,
+        first=state["epoch"] + 1,
+        last=a.epochs,
+        steps=steps,
+        lower_mat_weight=a.lower_mat_weight,
+        focal_px=meta.get("focal_px"),  # another camera's frames drawn at the model's, as detect reads them
     )
     for epoch in range(state["epoch"] + 1, a.epochs + 1):
         row = train_epoch(

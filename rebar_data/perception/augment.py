@@ -52,6 +52,9 @@ class Source:
     camera: tuple[float, float, float, float]
     hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     distractors: np.ndarray | None = None  # (H, W) bool: the distractors' pixels, when known
+    # every crop's scale is multiplied by it: a frame from another focal length drawn at the model's
+    # (rebar_data.perception.focal, as the detector reads such a frame)
+    gain: float = 1.0
 
 
 def draw_gain(rng: np.random.Generator, cfg: AugmentConfig, distractors: np.ndarray | None) -> float | None:
@@ -140,10 +143,12 @@ def random_affine(
     centre: np.ndarray,
     target: np.ndarray,
     cfg: AugmentConfig,
+    gain: float = 1.0,
 ) -> np.ndarray:
-    """A random similarity (scale, rotation, flips) taking ``centre`` in the image to ``target`` in the crop."""
+    """A random similarity (scale, rotation, flips) taking ``centre`` in the image to ``target`` in the crop;
+    its random scale multiplied by ``gain`` (the same draws whatever the gain)."""
     lo, hi = cfg.scale
-    s = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+    s = gain * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
     a = np.radians(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg))
     fx = -1.0 if rng.uniform() < cfg.flip_lr else 1.0
     fy = -1.0 if rng.uniform() < cfg.flip_ud else 1.0
@@ -166,7 +171,8 @@ def single_crop(src: Source, rng: np.random.Generator, *, size: int, cfg: Augmen
     """A crop around a random point of one image, with random scale, rotation and flips."""
     h, w = src.image.shape[:2]
     centre = np.array([rng.uniform(0, w), rng.uniform(0, h)])
-    crop_from_image = random_affine(rng, centre=centre, target=np.array([size / 2, size / 2]), cfg=cfg)
+    target = np.array([size / 2, size / 2])
+    crop_from_image = random_affine(rng, centre=centre, target=target, cfg=cfg, gain=src.gain)
     fill = float(rng.uniform(0, 255))
     out = warp(distractor_gain(src.image, src.distractors, rng, cfg), crop_from_image, size, fill=fill)
     pos = apply_affine(src.positives, crop_from_image)
@@ -205,7 +211,7 @@ def mosaic_crop(
         h, w = src.image.shape[:2]
         centre = np.array([rng.uniform(0, w), rng.uniform(0, h)])
         crop_from_image = random_affine(
-            rng, centre=centre, target=np.array([(x0 + x1) / 2, (y0 + y1) / 2]), cfg=cfg
+            rng, centre=centre, target=np.array([(x0 + x1) / 2, (y0 + y1) / 2]), cfg=cfg, gain=src.gain
         )
         full = warp(distractor_gain(src.image, src.distractors, rng, cfg), crop_from_image, size, fill=fill)
         i0, i1, j0, j1 = round(y0), round(y1), round(x0), round(x1)

@@ -20,6 +20,7 @@ from tqdm import tqdm
 from rebar_data.perception.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.data import Sample, per_file, read_distractors, read_image, read_images
+from rebar_data.perception.focal import focal_scale
 from rebar_data.perception.loss import detection_loss
 from rebar_data.perception.lower_mat import lower_mat_of
 from rebar_data.perception.model import STRIDE, KeypointNet
@@ -61,8 +62,11 @@ class TrainingImages:
         progress: bool,
         lower_mat: bool = False,
         distractors: bool = False,
+        focal_px: float | None = None,
     ):
         self.samples = samples
+        # each image's crops drawn at this focal length (None: as it comes), as the detector reads it
+        self.gains = [1.0 if s.camera is None else focal_scale(focal_px, s.camera) for s in samples]
         self.ignore_occluded = occluded == "ignore"
         # with ``lower_mat``, the crossings each image's lower mat shows (hard negatives), placed once
         self.hard = lower_mat_of(samples) if lower_mat else None
@@ -80,9 +84,8 @@ class TrainingImages:
         mask = None
         if self.distractors:
             mask = self.masks[k] if self.masks is not None else read_distractors(s)
-        return Source(
-            image, s.visible, s.occluded if self.ignore_occluded else np.zeros((0, 2)), s.camera, hard, mask
-        )
+        ignore = s.occluded if self.ignore_occluded else np.zeros((0, 2))
+        return Source(image, s.visible, ignore, s.camera, hard, mask, self.gains[k])
 
 
 def make_batch(
@@ -140,10 +143,12 @@ class BatchStream(torch.utils.data.IterableDataset):
         last: int,
         steps: int,
         lower_mat_weight: float = 1.0,
+        focal_px: float | None = None,
     ):
         super().__init__()
         self.samples, self.cfg, self.first, self.last, self.steps = samples, cfg, first, last, steps
         self.lower_mat_weight = lower_mat_weight
+        self.focal_px = focal_px
 
     def __iter__(self):
         data = TrainingImages(
@@ -153,6 +158,7 @@ class BatchStream(torch.utils.data.IterableDataset):
             progress=False,
             lower_mat=self.lower_mat_weight != 1.0,
             distractors=self.cfg.augment.scales_distractors,
+            focal_px=self.focal_px,
         )
         for epoch in range(self.first, self.last + 1):
             rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, epoch]))
@@ -176,12 +182,22 @@ def batch_stream(
     last: int,
     steps: int,
     lower_mat_weight: float = 1.0,
+    focal_px: float | None = None,
 ):
     """An iterator over the batches of epochs ``first`` to ``last`` (the lower mat's crossings weighing
-    ``lower_mat_weight``: :func:`make_batch`). With ``loader_workers`` = 1 they are made in a second
+    ``lower_mat_weight``: :func:`make_batch`), each image's crops drawn at the focal length ``focal_px``
+    (the model's; None: as it comes). With ``loader_workers`` = 1 they are made in a second
     process (started fresh, not forked: OpenCV's and OpenMP's thread pools do not survive a fork) while
     the network trains on the previous ones."""
-    stream = BatchStream(samples, cfg, first=first, last=last, steps=steps, lower_mat_weight=lower_mat_weight)
+    stream = BatchStream(
+        samples,
+        cfg,
+        first=first,
+        last=last,
+        steps=steps,
+        lower_mat_weight=lower_mat_weight,
+        focal_px=focal_px,
+    )
     if cfg.loader_workers == 0:
         return iter(stream)
     return iter(

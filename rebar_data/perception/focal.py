@@ -7,7 +7,9 @@ field of view shows it twice as large. The first stage ranks crossings by how th
 trained at, so ``Detector.detect`` resamples a frame whose focal length (the mean of fx and fy) differs
 from the trained one by more than :data:`TOLERANCE` to that focal length, runs every stage there, and
 returns positions in the caller's pixels. Without intrinsics the detector assumes the training camera's
-field of view (``Detector.default_camera``), so a 1280-pixel-wide frame is read at 640.
+field of view (``Detector.default_camera``), so a 1280-pixel-wide frame is read at 640. Training crops
+each frame at the model's focal length alike (``Source.gain``; ``TrainingImages(focal_px=)``): `rebar adapt`
+learns another camera's frames at the scale ``detect`` reads them.
 
 Within 15% a frame is read as it comes: the first stage trained on crops scaled 0.7-1.4 (distances vary
 as much), and a frame made smaller has fewer pixels to place a crossing with. The servo suites' Kinect

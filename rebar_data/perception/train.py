@@ -375,7 +375,12 @@ def _run(
     started = time.perf_counter()
     if not state["stopped"] and state["epoch"] < cfg.epochs:
         batches = batch_stream(
-            first_samples, cfg, first=state["epoch"] + 1, last=cfg.epochs, steps=steps_per_epoch
+            first_samples,
+            cfg,
+            first=state["epoch"] + 1,
+            last=cfg.epochs,
+            steps=steps_per_epoch,
+            focal_px=base_meta["focal_px"],
         )
     for epoch in range(state["epoch"] + 1, cfg.epochs + 1):
         if state["stopped"]:

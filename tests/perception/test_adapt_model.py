@@ -73,3 +73,34 @@ def test_rebar_adapt_refuses_the_frames_of_the_dataset_itself(trained_run, drawn
     assert main(argv) == 2
     assert "whose val and test scenes a supplement would train on" in capsys.readouterr().err
     assert not (tmp_path / "c").exists()
+
+
+def test_adapt_draws_the_other_cameras_crops_at_the_models_focal_length(
+    trained_run, drawn_dataset, other_frames, tmp_path, monkeypatch
+):
+    """The adapt epochs crop another camera's frames at the focal length the model trained at, as `detect`
+    will read them (``rebar_data.perception.focal``)."""
+    from rebar_data.perception import adapt_train
+
+    model = trained_run.out_dir / "best.onnx"
+    asked: dict = {}
+
+    class Stop(Exception):
+        pass
+
+    def stream(*args, **kwargs):
+        asked.update(kwargs)
+        raise Stop
+
+    monkeypatch.setattr(adapt_train, "batch_stream", stream)
+    cfg = resolve_config(TINY_TRAIN, {})
+    with pytest.raises(Stop):
+        adapt_model(
+            model,
+            load_split(drawn_dataset, "train"),
+            load_splits(other_frames),
+            tmp_path / "a",
+            cfg,
+            data=["o"],
+        )
+    assert asked["focal_px"] == onnx_meta(model)["focal_px"] == 157.5

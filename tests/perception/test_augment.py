@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+from pathlib import Path
+
 import cv2
 import numpy as np
 import pytest
@@ -16,6 +18,7 @@ from rebar_data.perception.augment import (
     warp,
 )
 from rebar_data.perception.config import AugmentConfig
+from rebar_data.perception.data import Sample
 from rebar_data.perception.model import ray_grid
 
 from .conftest import COLOUR_OFF, STILL
@@ -105,6 +108,36 @@ def test_single_crop_keeps_points_in_the_crop_and_on_their_spots():
         for u, v in crop.positives:
             assert 0 <= u < 64 and 0 <= v < 64
             assert crop.image[int(v), int(u), 0] > 150
+
+
+def test_a_frame_from_another_focal_length_is_cropped_at_the_models_with_the_same_draws():
+    """A source's gain multiplies every crop's scale (the same random draws): two points 40 px apart land
+    half as far apart in a crop with gain 0.5 as with gain 1, each on its spot; the training images give a
+    frame of twice the model's focal length that gain, and one within the tolerance 1."""
+    from rebar_data.perception.epochs import TrainingImages
+    from rebar_data.perception.focal import TOLERANCE
+
+    pts = np.array([[40.0, 60.0], [80.0, 60.0]])
+    image = _blob_image(pts)
+    spans = []
+    for gain in (1.0, 0.5):
+        src = Source(image, pts, np.zeros((0, 2)), (150.0, 150.0, 80.0, 60.0), gain=gain)
+        crop = single_crop(src, np.random.default_rng(4), size=400, cfg=AugmentConfig(scale=(0.9, 1.1)))
+        assert len(crop.positives) == 2
+        assert all(crop.image[int(v), int(u), 0] > 150 for u, v in crop.positives)
+        spans.append(np.linalg.norm(crop.positives[1] - crop.positives[0]))
+    assert spans[1] == pytest.approx(spans[0] / 2)
+    near = 525.0 * (1 + TOLERANCE / 2)
+    samples = [
+        Sample("a", Path("a.png"), 10, 10, np.zeros((0, 2)), np.zeros(0), camera=(f, f, 5.0, 5.0))
+        for f in (1050.0, near, 525.0)
+    ]
+    assert TrainingImages(samples, cache=False, occluded="ignore", progress=False, focal_px=525.0).gains == [
+        0.5,
+        1.0,
+        1.0,
+    ]
+    assert TrainingImages(samples, cache=False, occluded="ignore", progress=False).gains == [1.0] * 3
 
 
 def test_mosaic_puts_every_positive_on_its_spot_and_marks_seam_points_ignored():
