@@ -283,7 +283,7 @@ class Detector:
                 point at the centre and the training data's focal length for this width (its field of
                 view). A frame whose focal length is not the one the detector trained at is read resized
                 to it (``resample``; :mod:`~rebar_data.perception.focal`).
-            max_detections: Most crossings returned (counted at the scale the frame is read at).
+            max_detections: Most crossings returned.
             point: What u, v stand for: ``"sight"``, where the image shows the two bars cross (the
                 dataset's labels); ``"crossing"``, where the 3D crossing point (the centerlines' midpoint,
                 inside the steel) projects, from the crossing-point stage (the model must have one).
