@@ -108,15 +108,16 @@ def reading_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float,
 
 
 def focal_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
-    """Median ms of the RGB path on ``frames`` (640x480 at 525 px) enlarged twice with their intrinsics, as
+    """Median ms of the RGB path on ``frames`` (640x480, at the camera ``detect`` assumes for them) enlarged
+    twice with their intrinsics, as
     a 1280x960 camera of the same field of view gives them: read at the trained focal length (resampled,
     :mod:`~rebar_data.perception.focal`) and as they come, timed in turn (:func:`_in_turn`); the detector
     is left as it was."""
     from rebar_data.perception.focal import resample, scaled_camera
 
     before = det.resample
-    camera = scaled_camera((525.0, 525.0, 320.0, 240.0), 2.0, 2.0)
     large = [resample(rgb, (2 * rgb.shape[0], 2 * rgb.shape[1])) for rgb in frames]
+    camera = scaled_camera(det.default_camera(*frames[0].shape[:2]), 2.0, 2.0)  # the frames' own, enlarged
 
     def read(resampled: bool) -> Callable[[np.ndarray], object]:
         def detect(rgb: np.ndarray) -> object:
@@ -142,12 +143,16 @@ def runtime_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float,
 
 def drawn_frame() -> Frame:
     """A drawn rebar frame of 640x480 and its depth, dense with bars: the later stages' worst case."""
+    rgb, _, depth = drawn_frame_labelled()
+    return rgb, depth
+
+
+def drawn_frame_labelled() -> tuple[np.ndarray, list[dict], np.ndarray]:
+    """:func:`drawn_frame` with its keypoint records (focal length 525 px)."""
     from rebar_data.perception.synthetic import SyntheticSpec, random_frame
 
     spec = SyntheticSpec(width=FRAME_HW[1], height=FRAME_HW[0], focal_px=525.0, occluder_fraction=0.0)
-    rng = np.random.default_rng(0)
-    rgb, _, depth = random_frame(spec, rng)
-    return rgb, depth
+    return random_frame(spec, np.random.default_rng(0))
 
 
 def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[Frame]:
@@ -345,7 +350,7 @@ def run(repeats: int = 100) -> list[str]:
                 f"single reading, timed in turn frame by frame ({mirrored_ms / single_ms:.2f}x)"
             )
         if (
-            det.focal_px == 525.0
+            det.focal_px is not None
         ):  # a 1280x960 camera's frames, read at the trained focal length or as they come
             resampled_ms, as_is_ms = focal_cost(det, [f[0] for f in frames], repeats=max(8, repeats // 4))
             lines.append(

@@ -7,6 +7,7 @@ import json
 import sys
 from pathlib import Path
 
+from rebar_data.perception.focal import TOLERANCE
 from rebar_data.perception.reading import READINGS
 from rebar_data.perception.runtime import RUNTIMES
 
@@ -478,7 +479,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         metavar="FX,FY,CX,CY",
         help="images: the camera's intrinsics in pixels, COCO corner origin (default: the training camera's "
         "field of view, the principal point at the centre); a frame is read resized to the focal length "
-        "the model trained at when its own differs by more than 15%%",
+        f"the model trained at when its own differs by more than {TOLERANCE * 100:.0f}%%",
     )
     d.add_argument(
         "--no-resample",

@@ -29,7 +29,6 @@ little, reading at the wrong scale a lot.
 
 from __future__ import annotations
 
-import cv2
 import numpy as np
 
 # a frame whose focal length is within this share of the trained one is read as it comes (why: the module's text)
@@ -58,6 +57,8 @@ def resample(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False)
     """``image`` resized to ``size`` (height, width): area averaging when it shrinks, bilinear when it
     grows, the nearest pixel with ``nearest`` (a depth image, whose values must not blend across an
     edge). Corner-origin coordinates scale by exactly the ratio of the sizes."""
+    import cv2  # here: the command line reads TOLERANCE without loading OpenCV
+
     h, w = image.shape[:2]
     smooth = cv2.INTER_AREA if size[0] * size[1] < h * w else cv2.INTER_LINEAR
     return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_NEAREST if nearest else smooth)

@@ -25,11 +25,9 @@ def _shipped() -> Detector:
 
 def _frame() -> tuple[np.ndarray, np.ndarray, Truth]:
     """The bench's drawn 640x480 frame (focal length 525 px), its depth and its visible crossings."""
-    from rebar_data.perception.bench import FRAME_HW
-    from rebar_data.perception.synthetic import SyntheticSpec, random_frame
+    from rebar_data.perception.bench import drawn_frame_labelled
 
-    spec = SyntheticSpec(width=FRAME_HW[1], height=FRAME_HW[0], focal_px=525.0, occluder_fraction=0.0)
-    rgb, records, depth = random_frame(spec, np.random.default_rng(0))
+    rgb, records, depth = drawn_frame_labelled()
     vis = [r for r in records if r["visibility"] == 2]
     return (
         rgb,
