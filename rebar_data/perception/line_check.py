@@ -70,6 +70,7 @@ READING = {
 }
 _TAN = float(np.tan(np.deg2rad(CONE_DEG)))
 _MODULO = (np.arange(256) % BINS).astype(np.uint8)  # orientation bins past 180 degrees folded back
+_EVERY_OTHER = np.arange(0, RADIUS_PX, 2)  # the pixels of a half-resolution window read, along each side
 
 
 def logit(p: np.ndarray) -> np.ndarray:
@@ -103,13 +104,15 @@ def bar_directions(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
     centre = np.floor(uv / 2).astype(np.int64)
     top = np.clip(centre[:, 1], 0, h)
     left = np.clip(centre[:, 0], 0, w)
-    # every other pixel of each window: as good a histogram, a quarter of the sums
-    b = np.lib.stride_tricks.sliding_window_view(bins, (2 * r, 2 * r))[top, left][:, ::2, ::2]
-    m = np.lib.stride_tricks.sliding_window_view(mag, (2 * r, 2 * r))[top, left][:, ::2, ::2]
-    b = b.astype(np.int64) + BINS * np.arange(len(uv))[:, None, None]
-    hist = np.bincount(b.ravel(), m.ravel(), len(uv) * BINS)
-    hist = hist.reshape(len(uv), BINS)
-    hist = sum(k * np.roll(hist, s, axis=1) for s, k in ((-2, 1), (-1, 2), (0, 3), (1, 2), (2, 1)))
+    # every other pixel of each window: as good a histogram, a quarter of the sums (gathered alone: cutting
+    # whole windows and then every other pixel of them read four times the memory, 0.9 against 0.6 ms)
+    rows = (top[:, None] + _EVERY_OTHER)[:, :, None]
+    cols = (left[:, None] + _EVERY_OTHER)[:, None, :]
+    b = bins[rows, cols].astype(np.int64) + BINS * np.arange(len(uv))[:, None, None]
+    hist = np.bincount(b.ravel(), mag[rows, cols].ravel(), len(uv) * BINS).reshape(len(uv), BINS)
+    # smoothed over five bins, weights 1 2 3 2 1, around the circle of orientations (summed in this order)
+    ring = np.concatenate([hist[:, -2:], hist, hist[:, :2]], axis=1)  # ring[:, i + 2] is hist[:, i]
+    hist = ring[:, 4:] + 2 * ring[:, 3:-1] + 3 * ring[:, 2:-2] + 2 * ring[:, 1:-3] + ring[:, :-4]
     first = np.argmax(hist, axis=1)
     apart = np.abs((np.arange(BINS)[None, :] - first[:, None] + BINS / 2) % BINS - BINS / 2)
     second = np.argmax(np.where(apart >= BINS * MIN_APART_DEG / 180.0, hist, -1.0), axis=1)

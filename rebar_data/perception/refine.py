@@ -414,23 +414,29 @@ class Refiner:
         x, corners = stage_input(
             image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
         )
-        run = self._int8_run if int8 and self.use_int8_passes and self._int8_run is not None else self._run
-        return corners, self._read(x, self.views if views is None else views, run)
+        return corners, self._read(x, self.views if views is None else views, self._runner(int8))
+
+    def _runner(self, int8: bool) -> Callable[[np.ndarray], np.ndarray]:
+        """The network a pass reads: the int8 copy with ``int8`` (where there is one and ``use_int8_passes``
+        is on), the float one otherwise."""
+        return self._int8_run if int8 and self.use_int8_passes and self._int8_run is not None else self._run
 
     def _placed_at_size(
         self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, views: int | None = None
     ) -> np.ndarray:
         """Where each point's patch places its crossing, read in ``views`` views (None: ``self.views``) at
-        the resolution of :data:`SHRINKS` its box side ``box`` calls for (None: all at full resolution)."""
+        the resolution of :data:`SHRINKS` its box side ``box`` calls for (None: all at full resolution).
+        The patches of every resolution go through the network in one call (each call costs about what
+        ten more patches do)."""
         if box is None:
             corners, out = self._read_at(image, uv, views, int8=True)
             return corners + out[:, :2]
         lo, hi = self.shrink_above_px
         level = (box > lo).astype(int) + (box > hi)
-        placed = np.empty_like(uv)
+        picks, inputs, shifts = [], [], []  # per resolution read: its points, patches, corner-to-image map
         for lv, f in enumerate(SHRINKS):
-            pick = level == lv
-            if not pick.any():
+            pick = np.flatnonzero(level == lv)
+            if not len(pick):
                 continue
             if f == 1.0:
                 img, factors = image, np.ones(2)
@@ -438,8 +444,22 @@ class Refiner:
                 img, factors = shrunk(image, 1.0 / f)
             else:
                 img, factors = shrunk_around(image, uv[pick], 1.0 / f, self.patch_px)
-            corners, out = self._read_at(img, uv[pick] * factors, views, int8=True)
-            placed[pick] = (corners + out[:, :2]) / factors
+            x, corners = stage_input(
+                img, uv[pick] * factors, self.patch_px, border=self.border, context_scale=self.context_scale
+            )
+            picks.append(pick)
+            inputs.append(x)
+            shifts.append((corners, factors))
+        out = self._read(
+            np.concatenate(inputs) if len(inputs) > 1 else inputs[0],
+            self.views if views is None else views,
+            self._runner(True),
+        )
+        placed = np.empty_like(uv)
+        start = 0
+        for pick, (corners, factors) in zip(picks, shifts, strict=True):
+            placed[pick] = (corners + out[start : start + len(pick), :2]) / factors
+            start += len(pick)
         return placed
 
     def _read(self, x: np.ndarray, views: int, run: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:

@@ -121,8 +121,9 @@ class OpenVinoSession:
     """An ONNX file compiled by OpenVINO for the CPU (bfloat16 where the CPU has it), answering the calls
     the project makes of an ONNX Runtime session. A file whose inputs have free dimensions past the first
     (the first stage's image) is compiled for each of the first :data:`SHAPES_KEPT` input shapes it is
-    given, and once more with them free for any other; one free only in the first (a batch of patches) is compiled once and given batches padded to a
-    multiple of :data:`BATCH_STEP`; one with none free is compiled once."""
+    given (the batch of two the detector's mirrored reading gives is a shape of its own), and once more with
+    them and the batch free for any other; one free only in the first (a batch of patches) is compiled once
+    and given batches padded to a multiple of :data:`BATCH_STEP`; one with none free is compiled once."""
 
     def __init__(self, path: Path, threads: int):
         import onnx
@@ -176,10 +177,11 @@ class OpenVinoSession:
             if len(self._compiled) >= SHAPES_KEPT:
                 key = ()  # one compile with the free dimensions left free serves every other shape
             if key not in self._compiled:
-                model = self._model
+                model = self._model.clone()
                 if key:
-                    model = model.clone()
                     model.reshape({k: list(v.shape) for k, v in feed.items()})
+                else:  # any shape, any batch: the detector reads a frame and its mirror image in one call
+                    model.reshape({i.any_name: _batch_free(i.get_partial_shape()) for i in model.inputs})
                 self._compiled[key] = self._compile(model)
         compiled, request = self._compiled[key]
         n = pad = 0
@@ -190,6 +192,13 @@ class OpenVinoSession:
             feed = {k: np.concatenate([v, np.zeros((pad, *v.shape[1:]), v.dtype)]) for k, v in feed.items()}
         out = request.infer(feed, share_inputs=True)  # read in place: no copy of the image or patches
         return [np.array(out[o][:n] if pad else out[o]) for o in compiled.outputs]
+
+
+def _batch_free(shape: Any) -> Any:
+    """An OpenVINO input shape with its first dimension (the batch) left free."""
+    import openvino
+
+    return openvino.PartialShape([openvino.Dimension(), *list(shape)[1:]])
 
 
 def _arg(value: Any) -> _Arg:

@@ -191,6 +191,28 @@ def test_a_refiner_with_sizes_reads_a_large_crossing_again_from_the_shrunk_image
         Refiner(stand_in(40.0), patch_px=size, iterations=1, verifies=True).box_sizes(img, start)
 
 
+def test_the_later_pass_reads_every_resolution_in_one_network_call():
+    """Three spots whose first pass calls for the three resolutions: the later pass cuts each from its own
+    (shrunk) image and sends the three patches through the network in one call, each placed on its spot."""
+    size = 24
+    points = np.array([[30.3, 30.8], [90.6, 34.2], [150.2, 29.7]])
+    img = np.max([_blob(64, 184, p, sigma=3.0) for p in points], axis=0)
+    calls: list[int] = []
+    boxes = iter([40.0, 70.0, 120.0])  # the first pass's box for each spot, in turn
+
+    def run(x: np.ndarray) -> np.ndarray:
+        calls.append(len(x))
+        box = [next(boxes) for _ in x] if len(calls) == 1 else [40.0] * len(x)
+        return np.concatenate(
+            [_centroid_offsets(x), np.zeros((len(x), 1)), np.log(np.array(box)[:, None] / size)], 1
+        ).astype(np.float32)
+
+    r = Refiner(run, patch_px=size, iterations=2, verifies=True, sizes=True, shrink_above_px=(50, 90))
+    uv, _ = r.refine_and_verify(img, points + [[-1.7, 1.2], [1.4, -1.1], [-0.9, -1.3]])
+    assert calls == [3, 3]
+    np.testing.assert_allclose(uv, points, atol=0.15)
+
+
 @pytest.mark.parametrize("height, width", [(480, 640), (484, 644), (481, 641), (30, 36)])
 @pytest.mark.parametrize("scale", [4 / 3, 2.0])
 def test_shrinking_only_around_the_points_cuts_the_patches_the_whole_shrunk_image_gives(height, width, scale):
