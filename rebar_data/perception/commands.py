@@ -6,10 +6,14 @@ import argparse
 import json
 import sys
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 from rebar_data.perception.focal import TOLERANCE
 from rebar_data.perception.reading import READINGS
 from rebar_data.perception.runtime import RUNTIMES
+
+if TYPE_CHECKING:
+    import numpy as np
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 
@@ -170,9 +174,10 @@ def run_detect(args: argparse.Namespace) -> None:
     detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
     detector.resample = not args.no_resample
     if (target / "tables/samples.parquet").exists():
-        if args.camera is not None:
+        if args.camera is not None or args.no_exif:
+            given = f"--camera {args.camera}" if args.camera is not None else "--no-exif"
             raise ConfigError(
-                f"--camera {args.camera}: a dataset's frames carry their own intrinsics; accepted: --camera "
+                f"{given}: a dataset's frames carry their own intrinsics; accepted: {given.split()[0]} "
                 "with an image or a folder of images"
             )
         _detect_dataset(detector, target, args)
@@ -286,14 +291,31 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
     preds, ids = [], []
     for f in files:
         rgb = read_image(f)
-        det = detector.detect(rgb, threshold=threshold, camera=camera, point=args.point or "sight")
+        used, how = camera, "--camera"
+        if camera is None:
+            used, how = _photo_camera(f, rgb, exif=not args.no_exif)
+        det = detector.detect(rgb, threshold=threshold, camera=used, point=args.point or "sight")
         overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
         cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
         preds.append(det)
         ids.append(f.stem)
-        print(f"{f.name}: {len(det)} crossings", file=sys.stderr)
+        print(f"{f.name}: {len(det)} crossings (camera: {how})", file=sys.stderr)
     write_predictions(out / "detections.parquet", ids, preds)
     print(out)
+
+
+def _photo_camera(
+    path: Path, rgb: np.ndarray, *, exif: bool
+) -> tuple[tuple[float, float, float, float] | None, str]:
+    """The intrinsics a photograph is read with when ``--camera`` gives none: its EXIF 35 mm equivalent
+    focal length's (:mod:`~rebar_data.perception.photo`) unless ``exif`` is off, else None (the training
+    camera's field of view); and words saying which, for the command's line per image."""
+    from rebar_data.perception.photo import photo_camera
+
+    found = photo_camera(path, *rgb.shape[:2]) if exif else None
+    if found is None:
+        return None, "the training camera's field of view" + ("" if exif else ", --no-exif")
+    return found.camera, f"EXIF {found.focal_35mm:g} mm equivalent, fx {found.camera[0]:.0f} px"
 
 
 def _added_stage_parser(
@@ -477,9 +499,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument(
         "--camera",
         metavar="FX,FY,CX,CY",
-        help="images: the camera's intrinsics in pixels, COCO corner origin (default: the training camera's "
-        "field of view, the principal point at the centre); a frame is read resized to the focal length "
-        f"the model trained at when its own differs by more than {TOLERANCE * 100:.0f}%%",
+        help="images: the camera's intrinsics in pixels, COCO corner origin (default: from each photograph's "
+        "EXIF 35 mm equivalent focal length, else the training camera's field of view; the principal point "
+        "at the centre); a frame is read resized to the focal length the model trained at when its own "
+        f"differs by more than {TOLERANCE * 100:.0f}%%",
+    )
+    d.add_argument(
+        "--no-exif",
+        action="store_true",
+        help="images: leave the photographs' EXIF focal length unread (the training camera's field of view)",
     )
     d.add_argument(
         "--no-resample",
