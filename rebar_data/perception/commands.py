@@ -288,7 +288,7 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
     camera = _camera_of(args.camera)
     out.mkdir(parents=True, exist_ok=True)
     threshold = args.threshold if args.threshold is not None else OPERATING_THRESHOLD
-    preds, ids = [], []
+    preds, ids, cameras = [], [], {}
     for f in files:
         rgb = read_image(f)
         used, how = camera, "--camera"
@@ -299,8 +299,22 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
         cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
         preds.append(det)
         ids.append(f.stem)
+        h, w = rgb.shape[:2]
+        fx, fy, cx, cy = used if used is not None else detector.default_camera(h, w)
+        cameras[f.stem] = {
+            "file": f.name,
+            "width": w,
+            "height": h,
+            "fx": fx,
+            "fy": fy,
+            "cx": cx,
+            "cy": cy,
+            "from": how,
+        }
         print(f"{f.name}: {len(det)} crossings (camera: {how})", file=sys.stderr)
     write_predictions(out / "detections.parquet", ids, preds)
+    # the intrinsics each image was read with, beside its detections (COCO corner origin, pixels)
+    (out / "cameras.json").write_text(json.dumps(cameras, indent=2) + "\n")
     print(out)
 
 

@@ -107,7 +107,14 @@ def test_detect_reads_a_photographs_focal_length_from_its_exif(rendered, tmp_pat
     px = pixel_metrics([Truth(uv[inside], box[inside] * 2.0)], [found])
     assert inside.sum() >= 10 and px.recall >= 0.9 and px.pck[5.0] >= 0.9, (inside.sum(), px.recall, px.pck)
 
+    import json
+
+    read_with = json.loads((tmp_path / "exif/cameras.json").read_text())["photo"]
+    assert read_with["fx"] == pytest.approx(fx) and (read_with["width"], read_with["height"]) == (960, 720)
+    assert read_with["from"] == "EXIF 38 mm equivalent, fx 1054 px"
     assert main(["detect", str(path), "--out", str(tmp_path / "fov"), "--threads", "1", "--no-exif"]) == 0
+    guess = json.loads((tmp_path / "fov/cameras.json").read_text())["photo"]
+    assert guess["fx"] == pytest.approx(525.0 / 640.0 * 960.0) and guess["cx"] == 480.0
     assert (
         cameras[-1] is None
         and "camera: the training camera's field of view, --no-exif" in capsys.readouterr().err
