@@ -18,7 +18,9 @@ read without resampling) kept 0.727 and 0.470 of their crossings at precision 0.
 so the focal length it gives is within about 2% at 25 mm and better above.
 
 OpenCV's ``imread`` turns an image by its EXIF orientation as it reads it (``read_image``); the diagonal
-and the centre are those of the image as read, so the intrinsics fit the turned image.
+and the centre are those of the image as read, so the intrinsics fit the turned image. A photograph resized
+after it was taken keeps the tag's meaning (the diagonal shrinks with the focal length in pixels); one
+cropped keeps the tag but not the field of view it describes, and needs its intrinsics given.
 """
 
 from __future__ import annotations
