@@ -349,9 +349,8 @@ def run(repeats: int = 100) -> list[str]:
                 f"perception:   the reading: the RGB path {mirrored_ms:.1f} ms mirrored, {single_ms:.1f} ms in the "
                 f"single reading, timed in turn frame by frame ({mirrored_ms / single_ms:.2f}x)"
             )
-        if (
-            det.focal_px is not None
-        ):  # a 1280x960 camera's frames, read at the trained focal length or as they come
+        # a 1280x960 camera's frames, read at the trained focal length or as they come
+        if det.focal_px is not None:
             resampled_ms, as_is_ms = focal_cost(det, [f[0] for f in frames], repeats=max(8, repeats // 4))
             lines.append(
                 f"perception:   a 1280x960 frame (these enlarged twice, intrinsics with them): the RGB path "

@@ -327,9 +327,8 @@ def ap_ceiling(recall: float) -> float:
     detections; AP 0.99 needs recall 0.99 with a precision of 0.9999 up to it, or every crossing found."""
     if not np.isfinite(recall):  # no crossings to find
         return float("nan")
-    return float(np.count_nonzero(recall >= RECALL_THRESHOLDS)) / len(
-        RECALL_THRESHOLDS
-    )  # as COCOeval compares
+    reached = np.count_nonzero(recall >= RECALL_THRESHOLDS)  # as COCOeval compares
+    return float(reached) / len(RECALL_THRESHOLDS)
 
 
 def summary(

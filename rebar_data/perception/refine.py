@@ -411,10 +411,13 @@ class Refiner:
         """The corners the patches around ``uv`` are centred on, and the network's output for them, read in
         ``views`` views (None: ``self.views``), by the int8 copy with ``int8`` (where there is one and
         ``use_int8_passes`` is on)."""
-        x, corners = stage_input(
-            image, uv, self.patch_px, border=self.border, context_scale=self.context_scale
-        )
+        x, corners = self._inputs_at(image, uv)
         return corners, self._read(x, self.views if views is None else views, self._runner(int8))
+
+    def _inputs_at(self, image: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """What this network reads around each of ``uv`` in ``image``, and the corners its patches are
+        centred on (:func:`stage_input` with its patch size, border and context)."""
+        return stage_input(image, uv, self.patch_px, border=self.border, context_scale=self.context_scale)
 
     def _runner(self, int8: bool) -> Callable[[np.ndarray], np.ndarray]:
         """The network a pass reads: the int8 copy with ``int8`` (where there is one and ``use_int8_passes``
@@ -444,9 +447,7 @@ class Refiner:
                 img, factors = shrunk(image, 1.0 / f)
             else:
                 img, factors = shrunk_around(image, uv[pick], 1.0 / f, self.patch_px)
-            x, corners = stage_input(
-                img, uv[pick] * factors, self.patch_px, border=self.border, context_scale=self.context_scale
-            )
+            x, corners = self._inputs_at(img, uv[pick] * factors)
             picks.append(pick)
             inputs.append(x)
             shifts.append((corners, factors))

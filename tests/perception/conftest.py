@@ -63,6 +63,15 @@ def render_one_frame(tmp_path: Path):
     return rgb, truth, labels.box_size_px[visible], (k.fx, k.fy, k.cx, k.cy)
 
 
+@pytest.fixture(scope="session")
+def rendered_frame(tmp_path_factory):
+    """:func:`render_one_frame`, rendered once for every test that reads it: (rgb, visible crossings (N, 2),
+    their box sides, camera). Tests read it and do not change it."""
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setenv("EGL_PLATFORM", "surfaceless")
+        return render_one_frame(tmp_path_factory.mktemp("rendered"))
+
+
 def shipped_model_copy(folder: Path) -> Path:
     """The shipped model's files copied into ``folder`` (a test that changes a model file in place works on
     this); skips the test when no model is shipped yet."""

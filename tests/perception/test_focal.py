@@ -12,8 +12,6 @@ from rebar_data.perception.focal import TOLERANCE, focal_scale, resample, resamp
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.metrics import Truth, match, pixel_metrics
 
-from .conftest import render_one_frame
-
 CAMERA = (525.0, 525.0, 320.0, 240.0)
 
 
@@ -49,21 +47,12 @@ def test_the_scale_brings_the_focal_length_to_the_trained_one():
     assert set(np.unique(resample(depth, (4, 4), nearest=True))) == {0.0, 1.0, 2.0}  # no blend across edges
 
 
-@pytest.fixture(scope="module")
-def rendered(tmp_path_factory):
-    """A freshly rendered 640x480 frame at 525 px (as the tests' other rendered frame), its visible crossings
-    and camera."""
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("EGL_PLATFORM", "surfaceless")
-        return render_one_frame(tmp_path_factory.mktemp("focal"))
-
-
-def test_a_frame_twice_as_large_is_read_at_the_trained_scale_and_answered_in_its_own_pixels(rendered):
+def test_a_frame_twice_as_large_is_read_at_the_trained_scale_and_answered_in_its_own_pixels(rendered_frame):
     """The rendered frame enlarged to 1280x960 with its intrinsics: the first stage reads it at 640x480
     (the trained focal length), and the crossings come back in the large frame's pixels, found as on the
     frame itself. Read as it comes, the first stage reads 1280x960."""
     det = _shipped()
-    rgb, truth, box, camera = rendered
+    rgb, truth, box, camera = rendered_frame
     assert det.focal_px == 525.0 and camera[0] == 525.0
     shapes: list[tuple[int, int]] = []
     run = det._run
@@ -116,7 +105,7 @@ def test_the_depth_image_is_resampled_with_the_frame():
     assert len(without_depth) > 1.5 * len(resampled)  # the depth check ran on the resized depth image
 
 
-def test_detect_on_images_takes_the_camera_and_answers_in_the_images_pixels(rendered, tmp_path, capsys):
+def test_detect_on_images_takes_the_camera_and_answers_in_the_images_pixels(rendered_frame, tmp_path, capsys):
     """`rebar detect IMAGE --camera FX,FY,CX,CY`: the rendered frame saved at 1280x960 with its intrinsics
     gives its crossings in its own pixels; a malformed camera, or one beside a dataset, is refused in one
     line with nothing written."""
@@ -126,7 +115,7 @@ def test_detect_on_images_takes_the_camera_and_answers_in_the_images_pixels(rend
     from rebar_data.cli import main
 
     _shipped()
-    rgb, truth, box, camera = rendered
+    rgb, truth, box, camera = rendered_frame
     image = tmp_path / "frame.png"
     cv2.imwrite(str(image), cv2.cvtColor(resample(rgb, (960, 1280)), cv2.COLOR_RGB2BGR))
     text = ",".join(f"{c:g}" for c in scaled_camera(camera, 2.0, 2.0))

@@ -11,7 +11,7 @@ from rebar_data.perception.export import export_onnx, load_checkpoint, save_chec
 from rebar_data.perception.infer import Detector
 from rebar_data.perception.model import KeypointNet
 
-from .conftest import TINY_MODEL, render_one_frame
+from .conftest import TINY_MODEL
 
 
 @pytest.fixture
@@ -95,13 +95,12 @@ def test_detect_rejects_what_is_not_an_rgb_image(tiny_net):
         det.detect(np.zeros((32, 32, 3), np.uint8), threshold=1.5)
 
 
-def test_shipped_model_detects_the_crossings_of_a_freshly_rendered_frame(tmp_path, monkeypatch):
+def test_shipped_model_detects_the_crossings_of_a_freshly_rendered_frame(rendered_frame):
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
     from rebar_data.perception.metrics import Truth, pixel_metrics
 
-    monkeypatch.setenv("EGL_PLATFORM", "surfaceless")
-    rgb, truth, box, camera = render_one_frame(tmp_path)
+    rgb, truth, box, camera = rendered_frame
     assert len(truth) >= 20
     det = Detector.load(threads=1).detect(rgb, camera=camera)
     px = pixel_metrics([Truth(truth, box)], [det])

@@ -16,8 +16,6 @@ from rebar_data.perception.infer import Detector
 from rebar_data.perception.metrics import Truth, pixel_metrics
 from rebar_data.perception.photo import EXIF_IFD, FOCAL_LENGTH_35MM, focal_35mm, photo_camera
 
-from .conftest import render_one_frame
-
 ORIENTATION = 0x0112
 
 
@@ -68,14 +66,7 @@ def test_a_turned_photograph_gets_the_centre_of_the_image_as_read(tmp_path):
     assert found.camera[0] == pytest.approx(28.0 * 800.0 / math.hypot(36.0, 24.0))
 
 
-@pytest.fixture(scope="module")
-def rendered(tmp_path_factory):
-    with pytest.MonkeyPatch.context() as mp:
-        mp.setenv("EGL_PLATFORM", "surfaceless")
-        return render_one_frame(tmp_path_factory.mktemp("photo"))
-
-
-def test_detect_reads_a_photographs_focal_length_from_its_exif(rendered, tmp_path, capsys, monkeypatch):
+def test_detect_reads_a_photographs_focal_length_from_its_exif(rendered_frame, tmp_path, capsys, monkeypatch):
     """A rendered frame enlarged twice and cut to its central 960x720 (its focal length 1050 px, where the
     field-of-view guess gives 787): saved as a JPEG with a 38 mm equivalent, `rebar detect` reads it with
     that focal length (1054 px) and finds its crossings in its own pixels; ``--no-exif`` and ``--camera``
@@ -86,7 +77,7 @@ def test_detect_reads_a_photographs_focal_length_from_its_exif(rendered, tmp_pat
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
-    rgb, truth, box, camera = rendered
+    rgb, truth, box, camera = rendered_frame
     assert camera == (525.0, 525.0, 320.0, 240.0)
     photo = resample(rgb, (960, 1280))[120:840, 160:1120]
     path = tmp_path / "photo.jpg"
