@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from rebar_data.config import ConfigError
+from rebar_data.perception.behind import flatten_behind
 from rebar_data.perception.crossing_point import CrossingPoint, check_point
 from rebar_data.perception.depth_check import DepthCheck, as_depth_m
 from rebar_data.perception.focal import focal_scale, resample, resampled_size, scaled_camera
@@ -101,6 +102,8 @@ class Detector:
         resample: Whether ``detect`` resizes a frame taken with another focal length to ``focal_px`` before
             reading it (:mod:`rebar_data.perception.focal`; on by default). Positions come back in the
             caller's pixels either way.
+        flatten_behind: Whether ``detect``, given a depth image, first takes what lies far behind the bars
+            in front out of the colour image (:mod:`rebar_data.perception.behind`; on by default).
     """
 
     def __init__(
@@ -139,6 +142,7 @@ class Detector:
         focal = meta.get("focal_px")
         self.focal_px: float | None = float(focal) if focal else None
         self.resample = True
+        self.flatten_behind = True
 
     @classmethod
     def load(
@@ -350,6 +354,8 @@ class Detector:
         """``detect`` on ``image`` at the scale it comes in (``depth_m`` in metres, or None)."""
         h, w = image.shape[:2]
         checked = depth_m is not None and self.depth_check is not None
+        if depth_m is not None and self.flatten_behind:
+            image = flatten_behind(image, depth_m)
         out = self.raw(image, camera=camera)
         if self.line_check is not None and not checked:
             lc = self.line_check
