@@ -10,7 +10,8 @@ The nearest surface (:func:`front_depth`) is the depth image's morphological ope
 maximum, over :data:`WINDOW_PX` squares) at a quarter of the resolution: the bars in front fill each
 window, a tilted or curved mat keeps its own depth (an opening returns a ramp as it is), and anything
 narrower than the window that lies farther (a lower bar seen between the top ones, the ground between
-them) is measured against the bars around it. Pixels without a measurement (0) are kept.
+them) is measured against the bars around it. Pixels without a measurement (0) are kept, and so is what a
+window clipped by the frame's edge finds no bar in front of (a corner beyond the outermost bars).
 
 Why: the errors the detector has left lie where a lower mat or the ground shows through the top mat.
 Measured with the shipped model (2026-11-27, 2 cores; `rebar detect DATASET --split S --out p.parquet

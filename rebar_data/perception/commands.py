@@ -173,7 +173,12 @@ def run_detect(args: argparse.Namespace) -> None:
         )
     detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
     detector.resample = not args.no_resample
+    detector.flatten_behind = args.flatten_behind
     if (target / "tables/samples.parquet").exists():
+        if args.flatten_behind and args.no_depth:
+            raise ConfigError(
+                "--flatten-behind reads the depth images, which --no-depth leaves out; accepted: one of the two"
+            )
         if args.camera is not None or args.no_exif:
             given = f"--camera {args.camera}" if args.camera is not None else "--no-exif"
             raise ConfigError(
@@ -182,6 +187,11 @@ def run_detect(args: argparse.Namespace) -> None:
             )
         _detect_dataset(detector, target, args)
     else:
+        if args.flatten_behind:
+            raise ConfigError(
+                f"--flatten-behind: {target} is read without depth (images given as files have none); accepted: "
+                "--flatten-behind with a dataset that has depth images"
+            )
         _detect_images(detector, target, args)
 
 
@@ -472,6 +482,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         help="leave the dataset's depth images out (the RGB stages and the model's line check, as for "
         "photographs); images "
         "given as files are always detected without depth",
+    )
+    d.add_argument(
+        "--flatten-behind",
+        action="store_true",
+        help="with the dataset's depth images, take what lies far behind the bars in front (lower mat, "
+        "ground) out of each colour image before reading it (rebar_data/perception/behind.py; off by default)",
     )
     d.add_argument(
         "--oks-sigma",

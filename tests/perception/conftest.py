@@ -35,6 +35,7 @@ def render_one_frame(tmp_path: Path):
     from rebar_data.dataset.worker import FrameWorker
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.perception.data import read_image
+    from rebar_data.perception.depth_check import read_depth
 
     smoke = yaml.safe_load((Path(__file__).parents[2] / "pipelines/smoke.yaml").read_text())
     cfg = PipelineConfig.model_validate(
@@ -60,16 +61,28 @@ def render_one_frame(tmp_path: Path):
     visible = labels.visibility == 2
     truth = np.c_[labels.u[visible], labels.v[visible]]
     rgb = read_image(tmp_path / f"images/{sample.split}/{sample.image_id}.png")
-    return rgb, truth, labels.box_size_px[visible], (k.fx, k.fy, k.cx, k.cy)
+    depth = read_depth(tmp_path / f"depth/{sample.split}/{sample.image_id}.png")
+    return rgb, truth, labels.box_size_px[visible], (k.fx, k.fy, k.cx, k.cy), depth
 
 
 @pytest.fixture(scope="session")
-def rendered_frame(tmp_path_factory):
-    """:func:`render_one_frame`, rendered once for every test that reads it: (rgb, visible crossings (N, 2),
-    their box sides, camera). Tests read it and do not change it."""
+def _rendered(tmp_path_factory):
     with pytest.MonkeyPatch.context() as mp:
         mp.setenv("EGL_PLATFORM", "surfaceless")
         return render_one_frame(tmp_path_factory.mktemp("rendered"))
+
+
+@pytest.fixture(scope="session")
+def rendered_frame(_rendered):
+    """:func:`render_one_frame`, rendered once for every test that reads it: (rgb, visible crossings (N, 2),
+    their box sides, camera). Tests read it and do not change it."""
+    return _rendered[:4]
+
+
+@pytest.fixture(scope="session")
+def rendered_depth(_rendered):
+    """The depth image registered to :func:`rendered_frame`'s (float32 metres, 0 = no measurement)."""
+    return _rendered[4]
 
 
 def shipped_model_copy(folder: Path) -> Path:

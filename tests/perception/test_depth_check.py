@@ -178,6 +178,7 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     rgb, depth = read_image(s.path), read_depth(s.depth_path)
     assert det.score_bias_without_depth == det.meta["score_bias_without_depth"]
     own = det.detect(rgb, threshold=1e-4)  # without depth: the RGB stages' own operating point
+    det.flatten_behind = False  # the colour image as it comes with depth too, to compare the two calls
     det.score_bias_without_depth = det.score_bias  # one operating point, to compare the two calls
     # beside the depth check the second stage's verification counts less (the settings' default)
     assert (det.verify_power, det.verify_power_with_depth) == (1.0, 0.5)
