@@ -84,6 +84,26 @@ def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[flo
     )
 
 
+def flatten_cost(det, frames: list[tuple[np.ndarray, np.ndarray]], *, repeats: int) -> tuple[float, float]:
+    """Median ms of the call with the depth image (``frames``: rgb, depth) with what lies behind flattened
+    (``Detector.flatten_behind``; :mod:`~rebar_data.perception.behind`) and without, timed in turn
+    (:func:`_in_turn`); the detector is left as it was."""
+    before = det.flatten_behind
+    depth = {id(rgb): d for rgb, d in frames}
+
+    def call(on: bool) -> Callable[[np.ndarray], object]:
+        def detect(rgb: np.ndarray) -> object:
+            det.flatten_behind = on
+            return det.detect(rgb, depth=depth[id(rgb)])
+
+        return detect
+
+    try:
+        return _in_turn([rgb for rgb, _ in frames], repeats=repeats, on=call(True), off=call(False))
+    finally:
+        det.flatten_behind = before
+
+
 def int8_passes_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
     """Median ms of the RGB path with the second stage's later passes read by its int8 copy and by the
     float file (:func:`_in_turn`); the detector must have the copy."""
@@ -343,6 +363,13 @@ def run(repeats: int = 100) -> list[str]:
                     f"perception:   the line check: the RGB path {with_ms:.1f} ms with it, {without_ms:.1f} ms "
                     f"without (the RGB stages alone), timed in turn frame by frame ({with_ms / without_ms:.2f}x)"
                 )
+        if all(f[1] is not None for f in frames):  # what flattening what lies behind would cost
+            flat_ms, kept_ms = flatten_cost(det, frames, repeats=repeats)
+            lines.append(
+                f"perception:   flattening what lies behind (--flatten-behind, off by default): the call with "
+                f"depth {flat_ms:.1f} ms with it, {kept_ms:.1f} ms without, timed in turn frame by frame "
+                f"({flat_ms / kept_ms:.2f}x)"
+            )
         if det.reading == "mirrored":  # what the mirror image costs, same frames
             mirrored_ms, single_ms = reading_cost(det, [f[0] for f in frames], repeats=repeats)
             lines.append(
