@@ -68,13 +68,17 @@ def front_depth(depth_m: np.ndarray) -> np.ndarray:
     # reduction over the cells' axes gives the same 27 times as slowly)
     cells = cv2.erode(padded, np.ones((CELL_PX, CELL_PX), np.uint8), anchor=(0, 0))[::CELL_PX, ::CELL_PX]
     k = np.ones((WINDOW_PX // CELL_PX,) * 2, np.uint8)
-    opened = cv2.dilate(cv2.erode(cells, k, borderType=cv2.BORDER_REPLICATE), k, borderType=cv2.BORDER_REPLICATE)
+    opened = cv2.dilate(
+        cv2.erode(cells, k, borderType=cv2.BORDER_REPLICATE), k, borderType=cv2.BORDER_REPLICATE
+    )
     finite = np.isfinite(opened)
     # cells with no measurement in reach take no part in the upsampling (inf would spread)
     filled = np.where(finite, opened, 0.0).astype(np.float32)
     up = cv2.resize(filled, (wc * CELL_PX, hc * CELL_PX), interpolation=cv2.INTER_LINEAR)[:h, :w]
     if not finite.all():
-        reach = cv2.resize(finite.astype(np.uint8), (wc * CELL_PX, hc * CELL_PX), interpolation=cv2.INTER_NEAREST)
+        reach = cv2.resize(
+            finite.astype(np.uint8), (wc * CELL_PX, hc * CELL_PX), interpolation=cv2.INTER_NEAREST
+        )
         up = np.where(reach[:h, :w] > 0, up, np.inf).astype(np.float32)
     return up
 
@@ -97,10 +101,11 @@ def flatten_behind(image: np.ndarray, depth_m: np.ndarray, *, gap_m: float = GAP
     small = (max(1, w // CELL_PX), max(1, h // CELL_PX))
     mask = behind.view(np.uint8)
     masked = cv2.bitwise_and(image, image, mask=mask).astype(np.float32)
-    weight = cv2.GaussianBlur(cv2.resize(mask.astype(np.float32), small, interpolation=cv2.INTER_AREA), (0, 0), BLUR_CELLS)
+    weight = cv2.GaussianBlur(
+        cv2.resize(mask.astype(np.float32), small, interpolation=cv2.INTER_AREA), (0, 0), BLUR_CELLS
+    )
     colour = cv2.GaussianBlur(cv2.resize(masked, small, interpolation=cv2.INTER_AREA), (0, 0), BLUR_CELLS)
     fill = colour / np.maximum(weight, 1e-3)[..., None]
     fill = cv2.resize(np.clip(fill + 0.5, 0, 255).astype(np.uint8), (w, h), interpolation=cv2.INTER_LINEAR)
     cv2.copyTo(fill, mask, out)
     return out
-

@@ -37,7 +37,7 @@ def test_the_lower_mat_and_ground_lie_behind_and_a_tilted_top_mat_does_not():
     front = front_depth(depth)
     assert (front[top] <= depth[top] + 0.006).all()
     inner = top.copy()
-    inner[:, : 30] = inner[:, -30:] = False
+    inner[:, :30] = inner[:, -30:] = False
     np.testing.assert_allclose(front[inner], depth[inner], atol=0.006)
     # a plain minimum over the same window would have taken the near side's depth for the far side's front
     assert (depth[top] - np.min(depth[top])).max() > GAP_M
@@ -64,7 +64,9 @@ def test_no_measurement_leaves_the_image_as_it_is():
     assert not np.array_equal(out, rgb)
 
 
-def test_the_shipped_model_reads_a_rendered_frame_with_depth_through_it(rendered_frame, rendered_depth, monkeypatch):
+def test_the_shipped_model_reads_a_rendered_frame_with_depth_through_it(
+    rendered_frame, rendered_depth, monkeypatch
+):
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
     from rebar_data.perception.metrics import Truth, pixel_metrics
@@ -75,7 +77,9 @@ def test_the_shipped_model_reads_a_rendered_frame_with_depth_through_it(rendered
     assert not det.flatten_behind  # off unless asked for (the servo's worst visit: the module text)
     det.flatten_behind = True
     seen = []
-    monkeypatch.setattr(infer, "flatten_behind", lambda image, depth_m: seen.append(1) or flatten_behind(image, depth_m))
+    monkeypatch.setattr(
+        infer, "flatten_behind", lambda image, depth_m: seen.append(1) or flatten_behind(image, depth_m)
+    )
     found = det.detect(rgb, camera=camera, depth=rendered_depth)
     assert seen == [1]
     px = pixel_metrics([Truth(truth, box)], [found])
