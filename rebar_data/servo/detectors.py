@@ -144,11 +144,13 @@ def load_shipped_detector(
     *,
     runtime: str = "auto",
     reading: str = "single",
+    flatten_behind: bool = False,
 ) -> Detector:
     """The shipped crossing detector (``path`` None) or a given model, run by ``runtime``
     (:mod:`rebar_data.perception.runtime`), reading each frame as ``reading`` says
-    (:mod:`rebar_data.perception.reading`) and told the camera's intrinsics when it takes them; one clear
-    ConfigError when it is not available."""
+    (:mod:`rebar_data.perception.reading`), flattening what lies behind the bars in front with
+    ``flatten_behind`` (:mod:`rebar_data.perception.behind`) and told the camera's intrinsics when it takes
+    them; one clear ConfigError when it is not available."""
     try:
         from rebar_data.perception.infer import Detector as ShippedDetector
     except ImportError as e:
@@ -164,6 +166,7 @@ def load_shipped_detector(
             f"detector = 'shipped': no model at {where} ({e}); accepted: train one with `make train`, "
             "give detector_path, or use detector: ground_truth"
         ) from None
+    det.flatten_behind = flatten_behind
     if camera is not None and "camera" in inspect.signature(det.detect).parameters:
         return _WithCamera(det, camera)
     return det

@@ -40,7 +40,11 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
     camera = CameraModel.kinect(suite.camera.fov_x_deg)
     shipped = (
         load_shipped_detector(
-            suite.detector_path, camera, runtime=suite.detector_runtime, reading=suite.detector_reading
+            suite.detector_path,
+            camera,
+            runtime=suite.detector_runtime,
+            reading=suite.detector_reading,
+            flatten_behind=suite.detector_flatten_behind,
         )
         if suite.detector == "shipped"
         else None

@@ -210,7 +210,9 @@ def test_a_suite_pins_what_runs_the_shipped_detector(tmp_path, root, capsys):
         pytest.skip("no model shipped yet (make train ships one)")
     det = load_shipped_detector(None, CameraModel.kinect(), runtime="onnxruntime", reading="mirrored")
     assert det.inner.backend == "onnxruntime" and det.inner.reading == "mirrored"
-    assert load_shipped_detector(None, CameraModel.kinect()).inner.reading == "single"  # the servo's default
+    default = load_shipped_detector(None, CameraModel.kinect()).inner
+    assert default.reading == "single" and not default.flatten_behind  # the servo's defaults
+    assert load_shipped_detector(None, CameraModel.kinect(), flatten_behind=True).inner.flatten_behind
     path = tmp_path / "suite.yaml"
     path.write_text(yaml.safe_dump(suite_dict(detector="shipped", detector_runtime="tensorrt")))
     assert main(["servo", "run", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2
