@@ -104,8 +104,9 @@ class Detector:
             caller's pixels either way.
         flatten_behind: Whether ``detect``, given a depth image, first takes what lies far behind the bars
             in front out of the colour image (:mod:`rebar_data.perception.behind`). Off by default: it
-            places crossings better on every held-out set, but moved the paper servo run's worst visit
-            past its bar (the module text has the figures).
+            places crossings better on every held-out set, but needs the depth image registered to the
+            colour one within about a pixel, and doubled the paper servo run's worst PBVS error (the module
+            text has the figures).
     """
 
     def __init__(
@@ -356,6 +357,7 @@ class Detector:
         """``detect`` on ``image`` at the scale it comes in (``depth_m`` in metres, or None)."""
         h, w = image.shape[:2]
         checked = depth_m is not None and self.depth_check is not None
+        as_it_comes = image  # what the crossing-point stage trained on
         if depth_m is not None and self.flatten_behind:
             image = flatten_behind(image, depth_m)
         out = self.raw(image, camera=camera)
@@ -373,7 +375,7 @@ class Detector:
         # a crossing seen inside the frame stays, wherever its 3D point projects
         det = drop_duplicates(det[inside], DUPLICATE_PX)
         if point == "crossing" and len(det):
-            det[:, :2] = self.crossing_point.points(image, det[:, :2], camera)
+            det[:, :2] = self.crossing_point.points(as_it_comes, det[:, :2], camera)
         return det
 
     def _rgb_and_depth(

@@ -74,7 +74,7 @@ def test_the_shipped_model_reads_a_rendered_frame_with_depth_through_it(
     rgb, truth, box, camera = rendered_frame
     assert behind_mask(rendered_depth).mean() > 0.2  # the frame shows the ground between the bars
     det = Detector.load(threads=1)
-    assert not det.flatten_behind  # off unless asked for (the servo's worst visit: the module text)
+    assert not det.flatten_behind  # off unless asked for (registration, the servo: the module text)
     det.flatten_behind = True
     seen = []
     monkeypatch.setattr(
@@ -85,10 +85,18 @@ def test_the_shipped_model_reads_a_rendered_frame_with_depth_through_it(
     px = pixel_metrics([Truth(truth, box)], [found])
     assert px.recall >= 0.95 and px.precision >= 0.95, (px.recall, px.precision)
     assert px.pck[2.0] >= 0.9 and px.median_px < 1.0, (px.pck, px.median_px)
+    # the crossing-point stage reads the frame as it comes, as it trained
+    read = []
+    points = det.crossing_point.points
+    monkeypatch.setattr(
+        det.crossing_point, "points", lambda image, *a: read.append(image) or points(image, *a)
+    )
+    det.detect(rgb, camera=camera, depth=rendered_depth, point="crossing")
+    assert seen == [1, 1] and len(read) == 1 and np.array_equal(read[0], rgb)
     # switched off, the colour image is read as it comes
     det.flatten_behind = False
     det.detect(rgb, camera=camera, depth=rendered_depth)
-    assert seen == [1]
+    assert seen == [1, 1]
 
 
 def test_detect_flattens_a_datasets_frames_when_asked_and_refuses_it_without_depth(
