@@ -26,18 +26,25 @@ recall at precision 0.99 given the dataset's depth image, as it comes -> flatten
 
 Why it is off by default:
 
-- **Registration.** It needs the depth image registered to the colour one to the pixel. With a Kinect v1's
-  depth noise and disparity steps (:func:`~rebar_data.servo.camera.kinect_depth`) on paper-tunnel's test
-  depth images it still scores 0.990 / 0.978 / 0.992 (0.978 / 0.953 / 0.985 as they come); with that depth
-  also 2 px to the side of the colour image, 0.989 / 0.934 / 0.986, median error 1.26 px (0.979 / 0.950 /
-  0.981, 0.50 px as they come): the fill eats one side of each bar and the crossings move with it. Tried
-  and not adopted: keeping 2 or 3 px around the bars in front (a halo the second stage misplaces; PCK@2px
-  0.970 / 0.956 registered, 0.953 / 0.947 shifted 2 px), and finding the shift from where the flattened
-  region's edges meet the colour image's edges (PCK@2px 0.975 registered, 0.956 shifted 2 px, but AP@0.5
-  0.957 there).
-- **The servo.** `make eval`'s paper run with it: IBVS / PBVS worst true lateral error 1.03 / 0.49 mm
-  (0.97 / 0.24 mm without), past the 1.0 mm bar; the four visits' mean 0.43 / 0.20 mm with it, 0.41 / 0.20 without. The
-  worst visit is 1 px from the true crossing with and without it.
+- **Registration.** It needs the depth image registered to the colour one within about a pixel. With a
+  Kinect v1's depth noise and disparity steps (:func:`~rebar_data.servo.camera.kinect_depth`) on
+  paper-tunnel's test depth images it still scores 0.990 / 0.978 / 0.991 (0.978 / 0.953 / 0.985 as they
+  come). With that depth 1 px to the side of the colour image, 0.990 / 0.974 / 0.987 (median error 0.69 px
+  against 0.50 as they come); 2 px to the side, 0.989 / 0.934 / 0.986, median error 1.26 px (0.979 / 0.950
+  / 0.981, 0.50 px as they come): the fill eats one side of each bar and the crossings move with it.
+  Tried and not adopted: keeping 2 or 3 px around the bars in front (a halo the second stage misplaces;
+  PCK@2px 0.970 / 0.956 registered, 0.953 / 0.947 shifted 2 px); moving the flattened region by the
+  offset (within 3 px) that lands its edges on the colour image's edges (PCK@2px 0.975 registered, 0.956
+  shifted 2 px, AP@0.5 0.957 there); and, with that offset, reading a frame found 2 px or more off as it
+  comes. The offset named paper-tunnel's shift well (2 px: -2 in 65-67 of 120 frames, -1 in 18), but on
+  the Cycles frames, registered exactly, it named 2-3 px in 5 of 48 (cycles-train-tunnel-e) and 6 of 24
+  (crossval-planar); cycles-train-tunnel-e scored 0.963 / 0.939 / 0.975 so.
+- **The servo.** `make eval`'s suites with it on (`Detector.flatten_behind` set; a suite's
+  ``detector_flatten_behind``): paper IBVS / PBVS worst true lateral error 0.98 / 0.50 mm (0.97 / 0.24
+  without; the bars 1.0 / 2.0 mm), paper-lower-mat 1.44 / 0.51 mm (1.80 / 1.51 without), random the same
+  (its detector is not the network). The paper run's worst visit lies 1 px from the true crossing with and
+  without it, and moved to 1.03 mm with a first version of the fill (blurred at full resolution) that
+  scored the same on the datasets.
 
 The windows and gap tried, on paper-tunnel test / crossval-planar PCK@2px: a plain minimum over 61 px (no
 maximum after it) took the near side of a tilted mat for its front and removed the far side's bars (0.982

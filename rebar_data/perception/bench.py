@@ -58,15 +58,20 @@ def _in_turn(
 
 
 def _switched(
-    det, frames: list[np.ndarray], *, repeats: int, switch: Callable[[bool], None]
+    det,
+    frames: list[np.ndarray],
+    *,
+    repeats: int,
+    switch: Callable[[bool], None],
+    depth: dict[int, np.ndarray] | None = None,
 ) -> tuple[float, float]:
-    """:func:`_in_turn` of ``det.detect`` without depth with ``switch(True)`` and with ``switch(False)``;
-    ``switch(True)`` again at the end."""
+    """:func:`_in_turn` of ``det.detect`` with ``switch(True)`` and with ``switch(False)``, without depth
+    (``depth`` None) or with ``depth[id(rgb)]``; ``switch(True)`` again at the end."""
 
     def with_switch(on: bool) -> Callable[[np.ndarray], object]:
         def detect(rgb: np.ndarray) -> object:
             switch(on)
-            return det.detect(rgb)
+            return det.detect(rgb, depth=None if depth is None else depth[id(rgb)])
 
         return detect
 
@@ -87,19 +92,16 @@ def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[flo
 def flatten_cost(det, frames: list[tuple[np.ndarray, np.ndarray]], *, repeats: int) -> tuple[float, float]:
     """Median ms of the call with the depth image (``frames``: rgb, depth) with what lies behind flattened
     (``Detector.flatten_behind``; :mod:`~rebar_data.perception.behind`) and without, timed in turn
-    (:func:`_in_turn`); the detector is left as it was."""
+    (:func:`_switched`); the detector is left as it was."""
     before = det.flatten_behind
-    depth = {id(rgb): d for rgb, d in frames}
-
-    def call(on: bool) -> Callable[[np.ndarray], object]:
-        def detect(rgb: np.ndarray) -> object:
-            det.flatten_behind = on
-            return det.detect(rgb, depth=depth[id(rgb)])
-
-        return detect
-
     try:
-        return _in_turn([rgb for rgb, _ in frames], repeats=repeats, on=call(True), off=call(False))
+        return _switched(
+            det,
+            [rgb for rgb, _ in frames],
+            repeats=repeats,
+            switch=lambda on: setattr(det, "flatten_behind", on),
+            depth={id(rgb): d for rgb, d in frames},
+        )
     finally:
         det.flatten_behind = before
 
