@@ -9,6 +9,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from rebar_data.config import ConfigError
+from rebar_data.perception import behind
 from rebar_data.perception.bench import DetectorLatency, detector_latency, latency_frames
 from rebar_data.perception.data import check_dataset, load_split, read_info, renderer_engine, stated_oks_sigma
 from rebar_data.perception.evaluate import BORDER_BAND_PX, LOWER_MAT_COLUMN, at_crossing_points, predict
@@ -30,6 +31,7 @@ from rebar_data.timing import machine_description
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
 CARD_NAME = "MODEL_CARD.md"
+FLATTENED = "what lies behind flattened (`--flatten-behind`)"  # the rows read so
 RENDERER_NAMES = {"cycles": "Blender Cycles", "open3d": "Open3D"}
 
 
@@ -557,6 +559,12 @@ def write_card(
                 "- `without depth`: the same images given to `detect` without their depth images, as a folder of",
                 f"  photographs would be: {rgb_path.replace('the RGB', 'the two RGB')}, at their own operating point. The other rows",
                 "  (but `first stage alone`) give the detector each image's depth image, as the robot's RGB-D camera does.",
+                f"- `{FLATTENED}`: given the depth image, every pixel more than {behind.GAP_M:g} m behind the nearest surface",
+                "  around it (the mat beneath, the ground) is first replaced by the blurred colour of such pixels nearby",
+                "  (`Detector.flatten_behind`, off by default: it needs the depth image registered to the colour one",
+                "  within a pixel; README, the detector section).",
+                "- `with depth` rows of another renderer's sets: the same frames given with their depth images; its",
+                "  `RGB only` rows leave them out.",
             ]
             if dc
             else []
@@ -610,6 +618,20 @@ def _census_lines(rows: dict[str, dict]) -> list[str]:
     ]
 
 
+def _flattened_predictions(detector: Detector, samples: Sequence, *, progress: bool) -> list | None:
+    """The detections with each sample's depth image and what lies behind the bars in front flattened
+    (``Detector.flatten_behind``, :mod:`~rebar_data.perception.behind`), or None when the detector has no
+    depth check or a sample has no depth image. The detector's setting is left as it was."""
+    if detector.depth_check is None or not samples or any(s.depth_path is None for s in samples):
+        return None
+    before = detector.flatten_behind
+    detector.flatten_behind = True
+    try:
+        return predict(detector, samples, progress=progress)
+    finally:
+        detector.flatten_behind = before
+
+
 def evaluation_rows(
     detector: Detector,
     run_dir: Path,
@@ -644,6 +666,11 @@ def evaluation_rows(
         preds = predict(detector, test, progress=progress)
         for name, m in breakdown(root, test, preds, sigma=res["oks_sigma"]).items():
             rows[f"{res['dataset'].get('name')} test, {name}"] = m
+        flat = _flattened_predictions(detector, test, progress=progress)
+        if flat is not None:
+            rows[f"{res['dataset'].get('name')} test, {FLATTENED}"] = score(
+                test, flat, sigma=res["oks_sigma"]
+            )
     if random_split and (root / "tables/samples.parquet").exists():
         samples, seen = random_frames(root)
         preds = predict(detector, samples, progress=progress)
@@ -672,6 +699,13 @@ def evaluation_rows(
         for name, m in breakdown(path, samples, preds, sigma=sigma).items():
             if name.startswith("scenes"):  # where its misses and false detections lie
                 rows[f"{label}, {engine} renderer, RGB only, {name}"] = m
+        if detector.depth_check is not None and all(s.depth_path is not None for s in samples):
+            # the same frames with their depth images, as an RGB-D camera gives them, and flattened behind
+            rows[f"{label}, {engine} renderer, with depth"] = score(
+                samples, predict(detector, samples, progress=progress), sigma=sigma
+            )
+            flat = _flattened_predictions(detector, samples, progress=progress)
+            rows[f"{label}, {engine} renderer, with depth, {FLATTENED}"] = score(samples, flat, sigma=sigma)
         crossing = load_splits(path, truth="crossing")
         rows[f"{label}, {engine} renderer, RGB only, vs 3D crossing points"] = score(
             crossing, preds, sigma=sigma

@@ -16,6 +16,9 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     assert "| drawn test, first stage alone |" in card and "rebar_keypoint.refine.onnx" in card
     # where the test split's errors lie: the frames' inside (the drawn set has no lower-mat column)
     assert "| drawn test, crossings >= 8 px inside the frame |" in card and "lower mat |" not in card
+    # the test split again with its depth images and what lies behind flattened, and what that row means
+    assert "| drawn test, what lies behind flattened (`--flatten-behind`) |" in card
+    assert "- `what lies behind flattened (`--flatten-behind`)`: given the depth image" in card
     # the second stage's verification is described where the model and its training are
     assert "sigmoid(first-stage logit + 1 log p; 0.5 log p beside the depth check)" in card
     assert "farther than 6 px from every" in card
@@ -59,6 +62,13 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     vs_3d = rows["other v0.0.1, cycles renderer, RGB only, vs 3D crossing points"]
     assert rgb["n_gt"] == vs_3d["n_gt"] == rows["own v0.0.1 (all splits)"]["n_gt"] > 0
     assert rgb["mean_px"] != vs_3d["mean_px"]
+    # and with its depth images, as they come and with what lies behind flattened: the same crossings
+    from rebar_data.perception.card import FLATTENED
+
+    with_depth = rows["other v0.0.1, cycles renderer, with depth"]
+    flat = rows[f"other v0.0.1, cycles renderer, with depth, {FLATTENED}"]
+    assert with_depth["n_gt"] == flat["n_gt"] == rgb["n_gt"]
+    assert det.flatten_behind is False  # the scoring leaves the detector's setting as it was
     # split by the lower mat, as the test split's breakdown is: together they hold every crossing
     split = {k: m for k, m in rows.items() if k.startswith("other v0.0.1, cycles renderer, RGB only, scenes")}
     assert sum(m["n_gt"] for m in split.values()) == rgb["n_gt"] and split
