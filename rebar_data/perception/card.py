@@ -563,7 +563,7 @@ def write_card(
                 "  around it (the mat beneath, the ground) is first replaced by the blurred colour of such pixels nearby",
                 "  (`Detector.flatten_behind`, off by default: it needs the depth image registered to the colour one",
                 "  within a pixel; README, the detector section).",
-                "- `with depth` rows of another renderer's sets: the same frames given with their depth images; its",
+                "- `with depth` rows of another renderer's sets: the same frames given with their depth images; their",
                 "  `RGB only` rows leave them out.",
             ]
             if dc
