@@ -666,6 +666,12 @@ def evaluation_rows(
         preds = predict(detector, test, progress=progress)
         for name, m in breakdown(root, test, preds, sigma=res["oks_sigma"]).items():
             rows[f"{res['dataset'].get('name')} test, {name}"] = m
+        if detector.depth_check is not None and any(s.depth_path is not None for s in test):
+            # from RGB alone as well, split by scene: where the RGB path's errors lie
+            rgb = predict(detector, test, depth=False, progress=progress)
+            for name, m in breakdown(root, test, rgb, sigma=res["oks_sigma"]).items():
+                if name.startswith("scenes"):
+                    rows[f"{res['dataset'].get('name')} test, without depth, {name}"] = m
         flat = _flattened_predictions(detector, test, progress=progress)
         if flat is not None:
             rows[f"{res['dataset'].get('name')} test, {FLATTENED}"] = score(

@@ -69,6 +69,17 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     flat = rows[f"other v0.0.1, cycles renderer, with depth, {FLATTENED}"]
     assert with_depth["n_gt"] == flat["n_gt"] == rgb["n_gt"]
     assert det.flatten_behind is False  # the scoring leaves the detector's setting as it was
+    # a run trained on a dataset that records the lower mat: its test split also from RGB alone, by scene
+    run = tmp_path / "run"
+    run.mkdir()
+    res = json.loads((trained_run.out_dir / "results.json").read_text())
+    res["dataset"] = {**res["dataset"], "name": "own", "path": str(own)}
+    (run / "results.json").write_text(json.dumps(res))
+    own_rows = evaluation_rows(det, run, random_split=False)
+    by_scene = {k: m for k, m in own_rows.items() if k.startswith("own test, without depth, scenes")}
+    assert (
+        by_scene and sum(m["n_gt"] for m in by_scene.values()) == own_rows[f"own test, {FLATTENED}"]["n_gt"]
+    )
     # split by the lower mat, as the test split's breakdown is: together they hold every crossing
     split = {k: m for k, m in rows.items() if k.startswith("other v0.0.1, cycles renderer, RGB only, scenes")}
     assert sum(m["n_gt"] for m in split.values()) == rgb["n_gt"] and split
