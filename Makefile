@@ -57,7 +57,8 @@ smoke: setup | $(DATA)
 # images each, 7-11 minutes each), and
 # ship it with its model card, scored also on the planar-slab set (another config, built when missing: 90
 # images, a minute) and on the Cycles-rendered cross-renderer sets, from RGB alone, with depth and with what lies
-# behind flattened (built when missing: about 20 minutes; 26 on a CPU without AVX-512). See the model card for the training time on 2 cores.
+# behind flattened (built when missing: about 20 minutes; 26 on a CPU without AVX-512). See the model card for
+# the training time on 2 cores.
 # An interrupted run resumes from runs/train/paper-tunnel/last.pt; a finished one is re-scored and re-shipped.
 SUPPLEMENTS := paper-tunnel-lower-mat wide-tunnel-a wide-tunnel-b wide-planar-a wide-planar-b
 REFINE_SUPPLEMENTS := cycles-train-tunnel cycles-train-planar cycles-train-tunnel-b cycles-train-planar-b \

@@ -93,8 +93,7 @@ def flatten_cost(det, frames: list[tuple[np.ndarray, np.ndarray]], *, repeats: i
     """Median ms of the call with the depth image (``frames``: rgb, depth) with what lies behind flattened
     (``Detector.flatten_behind``; :mod:`~rebar_data.perception.behind`) and without, timed in turn
     (:func:`_switched`); the detector is left as it was."""
-    before = det.flatten_behind
-    try:
+    with det.flattening():
         return _switched(
             det,
             [rgb for rgb, _ in frames],
@@ -102,8 +101,6 @@ def flatten_cost(det, frames: list[tuple[np.ndarray, np.ndarray]], *, repeats: i
             switch=lambda on: setattr(det, "flatten_behind", on),
             depth={id(rgb): d for rgb, d in frames},
         )
-    finally:
-        det.flatten_behind = before
 
 
 def int8_passes_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:

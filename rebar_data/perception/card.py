@@ -624,12 +624,8 @@ def _flattened_predictions(detector: Detector, samples: Sequence, *, progress: b
     depth check or a sample has no depth image. The detector's setting is left as it was."""
     if detector.depth_check is None or not samples or any(s.depth_path is None for s in samples):
         return None
-    before = detector.flatten_behind
-    detector.flatten_behind = True
-    try:
+    with detector.flattening():
         return predict(detector, samples, progress=progress)
-    finally:
-        detector.flatten_behind = before
 
 
 def evaluation_rows(
@@ -705,12 +701,12 @@ def evaluation_rows(
         for name, m in breakdown(path, samples, preds, sigma=sigma).items():
             if name.startswith("scenes"):  # where its misses and false detections lie
                 rows[f"{label}, {engine} renderer, RGB only, {name}"] = m
-        if detector.depth_check is not None and all(s.depth_path is not None for s in samples):
+        flat = _flattened_predictions(detector, samples, progress=progress)
+        if flat is not None:
             # the same frames with their depth images, as an RGB-D camera gives them, and flattened behind
             rows[f"{label}, {engine} renderer, with depth"] = score(
                 samples, predict(detector, samples, progress=progress), sigma=sigma
             )
-            flat = _flattened_predictions(detector, samples, progress=progress)
             rows[f"{label}, {engine} renderer, with depth, {FLATTENED}"] = score(samples, flat, sigma=sigma)
         crossing = load_splits(path, truth="crossing")
         rows[f"{label}, {engine} renderer, RGB only, vs 3D crossing points"] = score(

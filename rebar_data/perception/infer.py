@@ -240,6 +240,16 @@ class Detector:
         finally:
             self.refiner, self.depth_check, self.line_check = refiner, depth_check, line_check
 
+    @contextmanager
+    def flattening(self, on: bool = True) -> Iterator[Detector]:
+        """Within the block, ``flatten_behind`` is ``on`` (:mod:`rebar_data.perception.behind`); afterwards it
+        is as it was."""
+        before, self.flatten_behind = self.flatten_behind, on
+        try:
+            yield self
+        finally:
+            self.flatten_behind = before
+
     def default_camera(self, height: int, width: int) -> tuple[float, float, float, float]:
         """Intrinsics assumed when the caller gives none: principal point at the image centre and the
         training data's focal length for this image width."""
