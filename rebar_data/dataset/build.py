@@ -29,6 +29,7 @@ from rebar_data.dataset.config import PipelineConfig, load_pipeline
 from rebar_data.dataset.layout import DatasetInfo
 from rebar_data.dataset.plan import Plan, Sample, make_plan
 from rebar_data.dataset.worker import FrameRecord, FrameWorker, init_process, run_in_process
+from rebar_data.dataset.writers.card import write_card
 from rebar_data.dataset.writers.coco import write_coco
 from rebar_data.dataset.writers.manifest import write_manifest
 from rebar_data.dataset.writers.tables import keypoints_table, samples_table, write_tables
@@ -293,11 +294,12 @@ def finalize(
     keypoints = keypoints_table(plan, records, rm)
     write_tables(staging, samples, keypoints)
     write_yolo(staging, samples, keypoints)
-    write_data_yaml(staging, final)
+    write_data_yaml(staging, final, oks_sigma=ds.oks_sigma)
     info = make_info(cfg, plan, records)
     coco_info = {"description": f"{cfg.name} v{cfg.version}", "version": cfg.version}
     write_coco(staging, samples, keypoints, coco_info)
     info.write(staging / layout.INFO)
+    write_card(staging, info)
     shutil.rmtree(staging / RECORDS)
     (staging / PLAN_FILE).unlink()
     write_manifest(staging)

@@ -67,7 +67,7 @@ def validate_dataset(path: Path) -> list[str]:
         return f.lines
     info_dict = _check_info(path, f)
     _check_manifest(path, f)
-    _check_data_yaml(path, f)
+    _check_data_yaml(path, info_dict, f)
     samples = _check_table(path, layout.SAMPLES, "samples", f)
     keypoints = _check_table(path, layout.KEYPOINTS, "keypoints", f)
     if samples is not None and keypoints is not None:
@@ -109,19 +109,25 @@ def _check_manifest(path: Path, f: Failures) -> None:
         f.add("manifest", f"{rel} is not in the manifest")
 
 
-def _check_data_yaml(path: Path, f: Failures) -> None:
+def _check_data_yaml(path: Path, info: dict, f: Failures) -> None:
     p = path / layout.DATA_YAML
     if not p.exists():
         f.add("data.yaml", "missing")
         return
-    d = yaml.safe_load(p.read_text()) or {}
-    for key in ("path", "train", "val", "test", "names", "kpt_shape", "flip_idx"):
-        if key not in d:
-            f.add("data.yaml", f"lacks '{key}'")
-    if d.get("kpt_shape") != [1, 3]:
-        f.add("data.yaml", f"kpt_shape = {d.get('kpt_shape')!r}; expected [1, 3]")
-    if d.get("flip_idx") != [0]:
-        f.add("data.yaml", f"flip_idx = {d.get('flip_idx')!r}; expected [0]")
+    try:
+        d = yaml.safe_load(p.read_text())
+    except yaml.YAMLError as e:
+        f.add("data.yaml", f"is not valid YAML: {' '.join(str(e).split())}")
+        return
+    names = d.get("names") if isinstance(d, dict) else None
+    if isinstance(names, dict):  # YAML reads the class ids as integers; JSON Schema keys are strings
+        d = {**d, "names": {str(k): v for k, v in names.items()}}
+    for err in sorted(jsonschema.Draft202012Validator(json_schema("data_yaml")).iter_errors(d), key=str):
+        where = "/".join(str(x) for x in err.absolute_path) or "(top level)"
+        f.add("data.yaml", f"{where}: {err.message}")
+    sigma = info.get("oks_sigma")
+    if isinstance(d, dict) and "kpt_oks_sigmas" in d and d["kpt_oks_sigmas"] != [sigma]:
+        f.add("data.yaml", f"kpt_oks_sigmas = {d['kpt_oks_sigmas']!r}; expected [{sigma}] (info.json)")
 
 
 def _check_table(path: Path, rel: str, name: str, f: Failures) -> pa.Table | None:

@@ -14,8 +14,9 @@ from pathlib import Path
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetInfo
-from rebar_data.publish.rows import DATA_DIR, HF_SPLITS, KEYPOINT_FIELDS, ROW_FIELDS
+from rebar_data.publish.rows import DATA_DIR, KEYPOINT_FIELDS, ROW_FIELDS
 
 CROISSANT_VERSION = "http://mlcommons.org/croissant/1.1"
 CONTEXT = {
@@ -60,6 +61,8 @@ CONTEXT = {
     "transform": "cr:transform",
 }
 PARQUET = "application/x-parquet"
+# Croissant's well-known split of each of the dataset's splits
+SPLIT_URLS = {"train": "cr:TrainingSplit", "val": "cr:ValidationSplit", "test": "cr:TestSplit"}
 
 
 def data_type(t: pa.DataType) -> str:
@@ -148,7 +151,7 @@ def default_record_set(schema: pa.Schema) -> list[dict]:
             "@type": "cr:Field",
             "@id": "default/split",
             "name": "split",
-            "description": "the split of the record (the shard's name): train, validation or test",
+            "description": "the split of the record (the shard's name): train, val or test",
             "dataType": "sc:Text",
             "references": {"field": {"@id": "splits/split_name"}},
             "source": {
@@ -156,7 +159,7 @@ def default_record_set(schema: pa.Schema) -> list[dict]:
                 "extract": {"fileProperty": "fullpath"},
                 "transform": {
                     # the split is the shard's name; the regex also accepts the bare name it yields
-                    "regex": f"^(?:.*/)?({'|'.join(HF_SPLITS.values())})(?:-[0-9]+-of-[0-9]+\\.parquet)?$"
+                    "regex": f"^(?:.*/)?({'|'.join(layout.SPLITS)})(?:-[0-9]+-of-[0-9]+\\.parquet)?$"
                 },
             },
         },
@@ -178,7 +181,7 @@ def default_record_set(schema: pa.Schema) -> list[dict]:
         "@type": "cr:RecordSet",
         "@id": "splits",
         "name": "splits",
-        "description": "the splits of the default record set (the source dataset's val is validation)",
+        "description": "the splits of the default record set, named as in the source dataset",
         "dataType": "cr:Split",
         "key": {"@id": "splits/split_name"},
         "field": [
@@ -188,9 +191,16 @@ def default_record_set(schema: pa.Schema) -> list[dict]:
                 "name": "split_name",
                 "description": "the name of the split",
                 "dataType": "sc:Text",
-            }
+            },
+            {
+                "@type": "cr:Field",
+                "@id": "splits/split_url",
+                "name": "split_url",
+                "description": "Croissant's well-known split it is",
+                "dataType": "sc:URL",
+            },
         ],
-        "data": [{"splits/split_name": s} for s in HF_SPLITS.values()],
+        "data": [{"splits/split_name": s, "splits/split_url": SPLIT_URLS[s]} for s in layout.SPLITS],
     }
     default = {
         "@type": "cr:RecordSet",

@@ -3,8 +3,8 @@
 One row per image: the PNG itself (a ``datasets`` Image feature, a struct of ``bytes`` and ``path``),
 the camera (intrinsics and pose), where the frame comes from (scene, trajectory) and every crossing in
 the image (visibility 1 or 2) with its pixel position, visibility, box and 3D point. Shards are named
-``data/<split>-NNNNN-of-MMMMM.parquet``; the Hugging Face split names are ``train``, ``validation`` and
-``test`` (the dataset's ``val`` is ``validation`` here, the name ``datasets`` gives ``val`` files anyway).
+``data/<split>-NNNNN-of-MMMMM.parquet`` with the dataset's own split names, ``train``, ``val`` and ``test``,
+the names every other view of the bundle uses (the card's ``configs`` declare them to ``datasets``).
 The schema carries ``datasets``' feature metadata for the image column, so ``datasets`` decodes it to a
 PIL image while every other column is read as its Arrow type.
 """
@@ -19,9 +19,9 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+from rebar_data.dataset import layout
 from rebar_data.dataset.writers.yolo import clipped_box
 
-HF_SPLITS = {"train": "train", "val": "validation", "test": "test"}
 DATA_DIR = "data"
 SHARD_MAX_BYTES = 256 * 1024 * 1024  # image bytes per shard; the Hub's viewer and loaders like < 500 MB
 ROW_GROUP_ROWS = 64
@@ -89,7 +89,7 @@ ROW_SCHEMA = pa.schema([(n, t) for n, t, _ in ROW_FIELDS]).with_metadata(
 @dataclass(frozen=True)
 class Shard:
     path: str  # relative to the bundle
-    split: str  # Hugging Face split name
+    split: str  # train, val or test
     rows: int
 
 
@@ -137,7 +137,7 @@ def write_shards(
     rows_of = samples.sort_by("image_id").to_pylist()
     shards: list[Shard] = []
     (out / DATA_DIR).mkdir(parents=True, exist_ok=True)
-    for split, hf_split in HF_SPLITS.items():
+    for split in layout.SPLITS:
         rows = [s for s in rows_of if s["split"] == split]
         if not rows:
             continue
@@ -151,11 +151,11 @@ def write_shards(
             groups[-1].append(s)
             size += nbytes
         for i, group in enumerate(groups):
-            rel = f"{DATA_DIR}/{hf_split}-{i:05d}-of-{len(groups):05d}.parquet"
+            rel = f"{DATA_DIR}/{split}-{i:05d}-of-{len(groups):05d}.parquet"
             table = pa.Table.from_pylist(
                 [_row(s, kp.get(s["image_id"], []), (dataset / s["file_name"]).read_bytes()) for s in group],
                 schema=ROW_SCHEMA,
             )
             pq.write_table(table, out / rel, compression="zstd", row_group_size=ROW_GROUP_ROWS)
-            shards.append(Shard(rel, hf_split, table.num_rows))
+            shards.append(Shard(rel, split, table.num_rows))
     return shards

@@ -97,3 +97,77 @@ def test_images_hash_matches_the_samples_table(tiny_dataset):
     s = pq.read_table(tiny_dataset / "tables/samples.parquet").to_pydict()
     for fn, digest in zip(s["file_name"], s["image_sha256"], strict=True):
         assert hashlib.sha256((tiny_dataset / fn).read_bytes()).hexdigest() == digest
+
+
+def test_data_yaml_tells_ultralytics_the_datasets_oks_sigma(tiny_dataset, tmp_path):
+    import shutil
+
+    import yaml
+
+    data = yaml.safe_load((tiny_dataset / "data.yaml").read_text())
+    info = DatasetInfo.read(tiny_dataset)
+    # without kpt_oks_sigmas Ultralytics scores one keypoint with sigma 1/K = 1.0
+    assert data["kpt_oks_sigmas"] == [info.oks_sigma] and data["kpt_shape"] == [1, 3]
+    assert data["flip_idx"] == [0] and data["names"] == {0: "rebar_crossing"}
+    assert {data[s] for s in ("train", "val", "test")} == {"images/train", "images/val", "images/test"}
+
+    broken = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, broken)
+    for value in (None, [1.0], [0.04, 0.04]):
+        changed = {k: v for k, v in data.items() if k != "kpt_oks_sigmas"}
+        if value is not None:
+            changed["kpt_oks_sigmas"] = value
+        (broken / "data.yaml").write_text(yaml.safe_dump(changed, sort_keys=False))
+        failures = [f for f in validate_dataset(broken) if f.startswith("data.yaml")]
+        assert failures and "kpt_oks_sigmas" in failures[0], (value, failures)
+
+
+def test_dataset_card_states_the_dataset_and_its_cocoeval_snippet_scores_the_labels_as_perfect(
+    tiny_dataset, tmp_path
+):
+    import json
+    import re
+    import shutil
+    import subprocess
+    import sys
+
+    text = (tiny_dataset / "README.md").read_text()
+    info = DatasetInfo.read(tiny_dataset)
+    k = info.intrinsics
+    for fact in (
+        "# tiny v0.0.1",
+        "160x120",
+        f"fx {k['fx']}, fy {k['fy']}, cx {k['cx']}, cy {k['cy']}",
+        f"sigma {info.oks_sigma} with area {info.oks_area}",
+        info.conventions["visibility"],
+        info.config_hash,
+        "`intersection`",
+        "labels/<split>/<image_id>.txt",
+        "depth/<split>/<image_id>.png",
+    ):
+        assert fact in text, fact
+    for s in ("train", "val", "test"):
+        c = info.counts[s]
+        row = f"| `{s}` | {c['images']} | {c['keypoints']} | {c['visible']} | {c['occluded']} | {c['outside']} |"
+        assert row in text
+    man = pq.read_table(tiny_dataset / "meta/manifest.parquet").to_pydict()
+    assert "README.md" in man["path"]  # hashed like every other file; validate checks it
+
+    snippet = next(b for b in re.findall(r"```python\n(.*?)```", text, re.S) if "COCOeval" in b)
+    work = tmp_path / "eval"
+    shutil.copytree(tiny_dataset / "annotations", work / "annotations")
+    gt = json.loads((work / "annotations/val.json").read_text())
+    per_image: dict[int, int] = {}
+    for a in gt["annotations"]:
+        per_image[a["image_id"]] = per_image.get(a["image_id"], 0) + 1
+    assert max(per_image.values()) > 20  # more than COCOeval's default maxDets: the snippet must count them
+    dets = [
+        {k: a[k] for k in ("image_id", "category_id", "keypoints")} | {"score": 1.0}
+        for a in gt["annotations"]
+    ]
+    (work / "predictions.json").write_text(json.dumps(dets))
+    (work / "score.py").write_text(snippet)
+    run = subprocess.run([sys.executable, "score.py"], cwd=work, capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    ap, ap50 = (float(x) for x in re.search(r"AP ([0-9.]+) .*AP@0.5 ([0-9.]+)", run.stdout).groups())
+    assert ap == pytest.approx(1.0) and ap50 == pytest.approx(1.0), run.stdout

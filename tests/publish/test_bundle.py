@@ -2,6 +2,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 import shutil
 
 import numpy as np
@@ -13,7 +14,11 @@ from rebar_data.cli import main
 from rebar_data.config import ConfigError
 from rebar_data.publish.bundle import publish_dataset
 
-HF_OF = {"train": "train", "val": "validation", "test": "test"}
+SPLITS = ("train", "val", "test")  # the same names in every view: files, rows, Croissant, card
+
+
+def _text(v) -> str:
+    return v.decode() if isinstance(v, bytes) else str(v)
 
 
 def _tables(ds):
@@ -27,14 +32,14 @@ def test_bundle_loads_in_datasets_with_rows_that_match_the_source_tables(bundle,
     datasets = pytest.importorskip("datasets")
     d = datasets.load_dataset(str(bundle), cache_dir=str(tmp_path / "hf"))
     S, K = _tables(source_dataset)
-    assert sorted(d) == ["test", "train", "validation"]
+    assert sorted(d) == sorted(SPLITS)
     assert sum(len(d[s]) for s in d) == len(S) == 12
     seen = set()
     for split in d:
         for row in d[split]:
             iid = row["image_id"]
             src = S.loc[iid]
-            assert HF_OF[src.split] == split
+            assert src.split == split
             assert row["image"].size == (src.width, src.height) and row["image"].mode == "RGB"
             png = np.asarray(row["image"])
             assert png.shape == (src.height, src.width, 3) and png.std() > 0
@@ -58,8 +63,9 @@ def test_bundle_loads_in_datasets_with_rows_that_match_the_source_tables(bundle,
     assert seen == set(S.index)
     raw = d["train"].cast_column("image", datasets.Image(decode=False))[0]
     assert raw["image"]["bytes"] == (source_dataset / raw["file_name"]).read_bytes()
-    by_dir = datasets.load_dataset("parquet", data_dir=str(bundle / "data"), cache_dir=str(tmp_path / "hf2"))
-    assert {s: len(by_dir[s]) for s in by_dir} == {s: len(d[s]) for s in d}
+    files = {s: str(bundle / f"data/{s}-*.parquet") for s in SPLITS}  # as the card says
+    by_files = datasets.load_dataset("parquet", data_files=files, cache_dir=str(tmp_path / "hf2"))
+    assert {s: len(by_files[s]) for s in by_files} == {s: len(d[s]) for s in d}
 
 
 def test_croissant_validates_and_its_record_sets_read_the_files(bundle, source_dataset):
@@ -70,7 +76,9 @@ def test_croissant_validates_and_its_record_sets_read_the_files(bundle, source_d
     S, K = _tables(source_dataset)
     assert len(records) == len(S)
     splits = {r["default/image_id"].decode(): r["default/split"].decode() for r in records}
-    assert splits == {iid: HF_OF[s] for iid, s in S.split.items()}
+    assert splits == dict(S.split.items())
+    split_rows = {_text(r["splits/split_name"]): _text(r["splits/split_url"]) for r in ds.records("splits")}
+    assert set(split_rows) == set(SPLITS) and split_rows["val"].endswith("ValidationSplit"), split_rows
     first = records[0]
     assert first["default/image"].size == (160, 120)
     iid = first["default/image_id"].decode()
@@ -131,7 +139,9 @@ def test_card_has_the_hub_header_and_says_how_the_data_was_made(bundle, source_d
     assert meta["license"] == "cc-by-4.0" and meta["size_categories"] == ["n<1K"]
     assert "keypoint-detection" in meta["task_categories"]
     files = {f["split"]: f["path"] for f in meta["configs"][0]["data_files"]}
-    assert files == {s: f"data/{s}-*.parquet" for s in ("train", "validation", "test")}
+    assert files == {s: f"data/{s}-*.parquet" for s in SPLITS}
+    assert "validation" not in (bundle / "croissant.json").read_text()
+    assert sorted(p.name.split("-")[0] for p in (bundle / "data").glob("*.parquet")) == sorted(SPLITS)
     info = json.loads((source_dataset / "meta/info.json").read_text())
     for section in (
         "## How it was made",
@@ -145,6 +155,13 @@ def test_card_has_the_hub_header_and_says_how_the_data_was_made(bundle, source_d
     for fact in (info["config_hash"], info["generator"]["git_commit"], f"Seed {info['seed']}", "sigma 0.04"):
         assert fact in body
     assert "Published 2026-01-01" in body and "passed on this data" in body
+    # repeatability as measured: labels and tables exact, a few shadowed RGB frames off by a grey level or two
+    assert "byte-identical labels and images" not in body
+    assert "grey levels" in body and "--workers 1" in body and "--workers 2" in body
+    # the COCOeval snippet is the dataset card's, word for word
+    snippet = next(b for b in re.findall(r"```python\n(.*?)```", body, re.S) if "COCOeval" in b)
+    assert f"kpt_oks_sigmas = np.array([{info['oks_sigma']}])" in snippet and "maxDets" in snippet
+    assert snippet in (source_dataset / "README.md").read_text()
     assert (bundle / "audit/contact_sheet.png").stat().st_size > 0
 
 

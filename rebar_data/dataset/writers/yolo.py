@@ -50,9 +50,13 @@ def write_yolo(out: Path, samples: pa.Table, keypoints: pa.Table) -> None:
         path.write_text(yolo_lines({k: np.asarray(v, float) for k, v in d.items()}, w, h))
 
 
-def write_data_yaml(out: Path, final_dir: Path) -> None:
-    """``path`` is the dataset's final absolute location (Ultralytics resolves relative paths against
-    its own datasets folder, not the YAML file); ``rebar dataset publish`` rewrites it."""
+def write_data_yaml(out: Path, final_dir: Path, *, oks_sigma: float) -> None:
+    """Ultralytics' pose dataset file.
+
+    ``path`` is the dataset's final absolute location (Ultralytics resolves relative paths against its
+    own datasets folder, not the YAML file); ``rebar dataset publish`` rewrites it. ``kpt_oks_sigmas``
+    carries the dataset's ``oks_sigma``: without it Ultralytics scores a single keypoint with sigma 1.0.
+    """
     data = {
         "path": str(Path(final_dir).resolve()),
         "train": "images/train",
@@ -61,5 +65,6 @@ def write_data_yaml(out: Path, final_dir: Path) -> None:
         "names": {0: layout.CATEGORY},
         "kpt_shape": [1, 3],
         "flip_idx": [0],
+        "kpt_oks_sigmas": [float(oks_sigma)],
     }
     (out / layout.DATA_YAML).write_text(yaml.safe_dump(data, sort_keys=False))
