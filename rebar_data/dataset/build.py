@@ -1,9 +1,13 @@
 """``rebar dataset build``: plan, render and label in parallel, then write every format and finalise.
 
 The build works in a staging folder beside the target (``<root>/<name>/.v<version>.partial``) and
-renames it into place only when everything is written, so an interrupted build never leaves a folder
-that looks finished. Finished trajectories are kept in the staging folder; ``--resume`` continues from
-them and ends with the same dataset as an uninterrupted build.
+swaps it into place only when everything is written (``outputs.replace_folder``), so an interrupted build
+never leaves a folder that looks finished and ``--force`` never leaves the path without a dataset.
+Finished trajectories are kept in the staging folder; ``--resume`` continues from them and ends with the
+same dataset as an uninterrupted build. One build at a time writes a dataset: the build holds an
+``OutputLock`` on the dataset's folder from before it looks at the staging folder until it ends, so a
+second build is told which live process writes there, and a staging folder with no live holder is an
+interrupted build. Ctrl-C ends the workers quietly and leaves a staging folder that ``--resume`` continues.
 """
 
 from __future__ import annotations
@@ -13,10 +17,13 @@ import multiprocessing as mp
 import os
 import pickle
 import shutil
+import signal
 import subprocess
 import sys
+import threading
 import time
 from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import Protocol
 
@@ -35,10 +42,12 @@ from rebar_data.dataset.writers.manifest import write_manifest
 from rebar_data.dataset.writers.tables import keypoints_table, samples_table, write_tables
 from rebar_data.dataset.writers.yolo import write_data_yaml, write_yolo
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
+from rebar_data.outputs import OutputLock, input_file, output_folder, replace_folder, restore_interrupted_swap
 from rebar_data.render.engines import check_engine, engine_record
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample
 
+COMMAND = "rebar dataset build"
 PLAN_FILE = "plan.json"
 RECORDS = "records"
 
@@ -54,7 +63,7 @@ class TaskRunner(Protocol):
     backend that runs the same tasks ends with the same dataset.
     """
 
-    label: str  # how the summary line names the workers, such as "2 workers"
+    label: str  # how the summary line names the workers, such as "2 workers" (set once it knows)
 
     def __call__(
         self, cfg: PipelineConfig, rm: RebarMesh, staging: Path, tasks: list[Task]
@@ -66,12 +75,22 @@ class LocalRunner:
 
     def __init__(self, workers: int):
         self.workers = workers
-        self.label = f"{workers} workers"
+        self.label = plural(workers, "worker")
 
     def __call__(
         self, cfg: PipelineConfig, rm: RebarMesh, staging: Path, tasks: list[Task]
     ) -> Iterator[tuple[str, list[FrameRecord]]]:
+        self.label = plural(_processes(self.workers, tasks), "worker")
         return _run_tasks(cfg, rm, staging, tasks, self.workers)
+
+
+class BuildInterrupted(KeyboardInterrupt):
+    """Ctrl-C stopped a build; the message is the one-line summary (what was done, how to go on)."""
+
+
+def plural(n: int, noun: str) -> str:
+    """``1 worker``, ``2 workers``."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def git_commit() -> str:
@@ -100,14 +119,97 @@ def staging_dir(final: Path) -> Path:
     return final.parent / f".{final.name}.partial"
 
 
-def prepare_staging(cfg: PipelineConfig, final: Path, *, force: bool, resume: bool) -> Path:
-    """Check what is on disk against the flags; return the staging folder to work in."""
-    staging = staging_dir(final)
-    if final.exists() and not force:
+def finishing_dir(final: Path) -> Path:
+    """Where ``finalize`` keeps the records and plan out of the dataset's files until the swap is done."""
+    return final.parent / f".{final.name}.finishing"
+
+
+def check_workers(workers: int | None, *, backend: str = "local") -> None:
+    """``--workers`` within bounds: 1 to the machine's cores for local processes, 1 or more Ray actors."""
+    if workers is None:
+        return
+    if backend == "ray":
+        if workers < 1:
+            raise ConfigError(f"--workers {workers}: not a number of Ray actors; accepted: 1 or more")
+        return
+    cores = os.cpu_count() or 1
+    if not 1 <= workers <= cores:
         raise ConfigError(
-            f"{final} already exists; accepted: --force to rebuild it, or a new version in the config"
+            f"--workers {workers}: out of range; accepted: 1 to {cores} (this machine's cores; one worker "
+            "already keeps two cores busy)"
         )
+
+
+def check_paths(config: str | Path, out_root: str | Path) -> Path:
+    """The pipeline is a readable text file and ``--out`` a folder (new or not) there is a place to write;
+    one ConfigError line otherwise, before any work. Returns the pipeline's path."""
+    path = input_file(
+        config, arg="pipeline", what="a pipeline YAML file such as pipelines/smoke.yaml", text=True
+    )
+    out = Path(out_root)
+    if out.exists() and not out.is_dir():
+        raise ConfigError(f"--out {out}: is a file; accepted: a folder to hold datasets, new or existing")
+    return path
+
+
+def is_dataset_of(folder: Path, cfg: PipelineConfig) -> bool:
+    """``folder`` is a dataset this command wrote for ``cfg``: its meta/info.json names the same name and
+    version (the only folders ``--force`` may replace)."""
+    try:
+        info = json.loads((Path(folder) / layout.INFO).read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(info, dict) and (info.get("name"), info.get("version")) == (cfg.name, cfg.version)
+
+
+def check_final(cfg: PipelineConfig, final: Path, *, force: bool) -> None:
+    """The dataset's folder may be written: new, or with ``force`` this build's own earlier dataset, and
+    the folder it lies in is writable (the build works beside it and swaps it in)."""
+    output_folder(final, arg="--out", command=COMMAND, owned=lambda p: is_dataset_of(p, cfg))
+    if final.exists() and not os.access(final.parent, os.W_OK | os.X_OK):
+        raise ConfigError(f"--out {final.parent}: not writable; accepted: a folder you may write to")
+    if final.exists() and not force:
+        staging = staging_dir(final)
+        flags = f"--force --resume to finish the rebuild at {staging}, " if staging.exists() else ""
+        raise ConfigError(
+            f"{final} already exists; accepted: {flags}--force to rebuild it, or a new version in the config"
+        )
+
+
+def _is_staging(staging: Path) -> bool:
+    """A staging folder this command made (it writes the plan first), or an empty one."""
+    if not staging.is_dir():
+        return False
+    return (staging / PLAN_FILE).exists() or (staging / RECORDS).is_dir() or not any(staging.iterdir())
+
+
+def _recover_finishing(final: Path) -> None:
+    """Put back what an interrupted ``finalize`` had moved aside: the records and plan into the staging
+    folder when the swap had not happened, nothing (they are dropped) when it had."""
+    aside, staging = finishing_dir(final), staging_dir(final)
+    if not aside.exists():
+        return
     if staging.exists():
+        for name in (RECORDS, PLAN_FILE):
+            if (aside / name).exists() and not (staging / name).exists():
+                (aside / name).rename(staging / name)
+    shutil.rmtree(aside)
+
+
+def prepare_staging(cfg: PipelineConfig, final: Path, *, force: bool, resume: bool) -> Path:
+    """Check what is on disk against the flags; return the staging folder to work in.
+
+    Call it holding the dataset's ``OutputLock``: a staging folder then is an interrupted build's.
+    """
+    restore_interrupted_swap(final)
+    _recover_finishing(final)
+    check_final(cfg, final, force=force)
+    staging = staging_dir(final)
+    if staging.exists():
+        if not _is_staging(staging):
+            raise ConfigError(
+                f"{staging} holds files that `{COMMAND}` did not write; accepted: move that folder away"
+            )
         if resume:
             plan = json.loads((staging / PLAN_FILE).read_text()) if (staging / PLAN_FILE).exists() else {}
             if plan.get("config_hash") != cfg.config_hash():
@@ -121,8 +223,11 @@ def prepare_staging(cfg: PipelineConfig, final: Path, *, force: bool, resume: bo
             raise ConfigError(
                 f"an interrupted build is at {staging}; accepted: --resume to continue it or --force to start over"
             )
-    (staging / RECORDS).mkdir(parents=True, exist_ok=True)
-    (staging / PLAN_FILE).write_text(json.dumps({"config_hash": cfg.config_hash()}, sort_keys=True))
+    staging.mkdir(parents=True, exist_ok=True)
+    plan_tmp = staging / f".{PLAN_FILE}.tmp"
+    plan_tmp.write_text(json.dumps({"config_hash": cfg.config_hash()}, sort_keys=True))
+    plan_tmp.replace(staging / PLAN_FILE)
+    (staging / RECORDS).mkdir(exist_ok=True)
     return staging
 
 
@@ -142,10 +247,28 @@ def _save_records(staging: Path, trajectory_id: str, records: list[FrameRecord])
     tmp.replace(path)
 
 
+def _processes(workers: int, tasks: list) -> int:
+    """How many renderers ``_run_tasks`` starts: one in this process, or a pool of up to ``workers``."""
+    return 1 if workers <= 1 or len(tasks) <= 1 else min(workers, len(tasks))
+
+
+@contextmanager
+def _sigint_ignored() -> Iterator[None]:
+    """Ctrl-C ignored for the block (in the main thread), so that processes started in it inherit that."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def _run_tasks(
     cfg: PipelineConfig, rm: RebarMesh, staging: Path, tasks: list, workers: int
 ) -> Iterator[tuple[str, list[FrameRecord]]]:
-    if workers <= 1 or len(tasks) <= 1:
+    if _processes(workers, tasks) == 1:
         worker = FrameWorker(cfg, staging, rm)
         try:
             for tid, scene, samples in tasks:
@@ -154,10 +277,17 @@ def _run_tasks(
             worker.close()
         return
     # spawn, not fork: a process forked after EGL and Filament were initialised in the parent can hang.
-    # Each worker rebuilds the mesh from the config (deterministic, under a second).
+    # Each worker rebuilds the mesh from the config (deterministic, under a second). Workers ignore Ctrl-C
+    # from their start (inherited) and in their initializer: the terminal sends it to every process of the
+    # group, and this process alone answers it, ending the workers (terminate) when it stops the build.
     ctx = mp.get_context("spawn")
-    with ctx.Pool(min(workers, len(tasks)), initializer=init_process, initargs=(cfg, staging, None)) as pool:
+    with _sigint_ignored():
+        pool = ctx.Pool(_processes(workers, tasks), initializer=init_process, initargs=(cfg, staging, None))
+    try:
         yield from pool.imap_unordered(run_in_process, tasks)
+    finally:
+        pool.terminate()
+        pool.join()
 
 
 def build_dataset(
@@ -171,15 +301,24 @@ def build_dataset(
 ) -> Path:
     """Build the dataset described by ``config`` under ``out_root`` and return its folder.
 
-    ``runner`` runs the shards (default: the local backend with ``workers`` processes); the plan, the
-    staging folder, resume and finalize are the same whatever runs them.
+    ``runner`` runs the shards (default: the local backend with ``workers`` processes, 1 to the machine's
+    cores); the checks, the lock, the plan, the staging folder, resume and finalize are the same whatever
+    runs them. Ctrl-C raises ``BuildInterrupted`` (a ``KeyboardInterrupt``) with a one-line summary.
     """
+    config = check_paths(config, out_root)
+    if runner is None:
+        check_workers(workers)
     cfg = load_pipeline(config)
     check_engine(cfg.render)
     final = layout.dataset_dir(Path(out_root), cfg.name, cfg.version).resolve()
-    workers = workers or os.cpu_count() or 1
-    runner = runner or LocalRunner(workers)
-    staging = prepare_staging(cfg, final, force=force, resume=resume)
+    check_final(cfg, final, force=force)  # before the lock, which makes the dataset's parent folder
+    runner = runner or LocalRunner(workers or os.cpu_count() or 1)
+    with OutputLock(final, command=COMMAND):
+        staging = prepare_staging(cfg, final, force=force, resume=resume)
+        return _build(cfg, runner, staging, final, resume_flags="--force --resume" if force else "--resume")
+
+
+def _build(cfg: PipelineConfig, runner: TaskRunner, staging: Path, final: Path, *, resume_flags: str) -> Path:
     t0 = time.perf_counter()
     rm = build_rebar_mesh(cfg.mesh_config())
     plan = make_plan(cfg, rm)
@@ -197,19 +336,37 @@ def build_dataset(
         unit="img",
         file=sys.stderr,
     )
-    for tid, records in runner(cfg, rm, staging, tasks):
-        _save_records(staging, tid, records)
-        done[tid] = records
-        bar.update(len(records))
+    results = runner(cfg, rm, staging, tasks)
+    try:
+        for tid, records in results:
+            _save_records(staging, tid, records)
+            done[tid] = records
+            bar.update(len(records))
+    except KeyboardInterrupt:
+        bar.close()
+        saved = sum(len(v) for v in done.values())
+        raise BuildInterrupted(
+            f"interrupted after {saved} of {len(plan.samples)} images; `{resume_flags}` continues it"
+        ) from None
+    finally:
+        close = getattr(results, "close", None)  # ends the workers however the loop ended
+        if close is not None:
+            close()
     bar.close()
     _remove_stray_temp_files(staging)
     records = {r.image_id: r for recs in done.values() for r in recs}
-    info = finalize(cfg, rm, plan, records, staging, final)
+    try:
+        info = finalize(cfg, rm, plan, records, staging, final)
+    except KeyboardInterrupt:
+        raise BuildInterrupted(
+            f"interrupted while writing the dataset's files; `{resume_flags}` finishes it"
+        ) from None
     dt = time.perf_counter() - t0
     c = info.counts
+    visible = sum(c[s]["visible"] for s in layout.SPLITS)
     print(
-        f"{len(records)} images (train {c['train']['images']}, val {c['val']['images']}, test {c['test']['images']}), "
-        f"{sum(c[s]['visible'] for s in layout.SPLITS)} visible keypoints, {dt:.1f} s "
+        f"{plural(len(records), 'image')} (train {c['train']['images']}, val {c['val']['images']}, "
+        f"test {c['test']['images']}), {plural(visible, 'visible keypoint')}, {dt:.1f} s "
         f"({(len(records) - n_done) / max(dt, 1e-9):.2f} img/s with {runner.label})",
         file=sys.stderr,
     )
@@ -287,7 +444,11 @@ def finalize(
     staging: Path,
     final: Path,
 ) -> DatasetInfo:
-    """Write tables, YOLO, COCO, info and manifest into ``staging``, then rename it to ``final``."""
+    """Write tables, YOLO, COCO, info and manifest into ``staging``, then swap it in at ``final``.
+
+    The records and plan are moved out of the staging folder (not deleted) before the manifest is taken
+    and dropped after the swap, so a build stopped here is still resumable (``prepare_staging``).
+    """
     k = intrinsics_from_config(cfg.camera)
     ds = cfg.dataset
     samples = samples_table(plan, records, k, depth=ds.store_depth, instances=ds.store_instances)
@@ -300,10 +461,11 @@ def finalize(
     write_coco(staging, samples, keypoints, coco_info)
     info.write(staging / layout.INFO)
     write_card(staging, info)
-    shutil.rmtree(staging / RECORDS)
-    (staging / PLAN_FILE).unlink()
+    aside = finishing_dir(final)
+    aside.mkdir(exist_ok=True)
+    for name in (RECORDS, PLAN_FILE):
+        (staging / name).rename(aside / name)
     write_manifest(staging)
-    if final.exists():
-        shutil.rmtree(final)
-    staging.rename(final)
+    replace_folder(staging, final)
+    shutil.rmtree(aside)
     return info

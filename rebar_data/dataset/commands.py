@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -18,27 +19,33 @@ def dataset_folder(p: str) -> Path:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from rebar_data.dataset.build import build_dataset
+    from rebar_data.dataset.build import BuildInterrupted, build_dataset
 
-    if args.backend == "ray":
-        from rebar_data.dataset.ray_backend import BackendError, build_dataset_ray
+    try:
+        if args.backend == "ray":
+            from rebar_data.dataset.ray_backend import BackendError, build_dataset_ray
 
-        try:
-            out = build_dataset_ray(
-                args.config,
-                args.out,
-                address=args.address,
-                actors=args.workers,
-                force=args.force,
-                resume=args.resume,
+            try:
+                out = build_dataset_ray(
+                    args.config,
+                    args.out,
+                    address=args.address,
+                    actors=args.workers,
+                    force=args.force,
+                    resume=args.resume,
+                )
+            except BackendError as e:
+                print(f"error: {e}", file=sys.stderr)
+                return 1
+        else:
+            if args.address:
+                raise ConfigError(f"--address {args.address} is for the Ray backend; accepted: --backend ray")
+            out = build_dataset(
+                args.config, args.out, workers=args.workers, force=args.force, resume=args.resume
             )
-        except BackendError as e:
-            print(f"error: {e}", file=sys.stderr)
-            return 1
-    else:
-        if args.address:
-            raise ConfigError(f"--address {args.address} is for the Ray backend; accepted: --backend ray")
-        out = build_dataset(args.config, args.out, workers=args.workers, force=args.force, resume=args.resume)
+    except BuildInterrupted as e:  # Ctrl-C: the summary line, and the shell's status for SIGINT
+        print(e, file=sys.stderr)
+        return 130
     print(out)
     return 0
 
@@ -82,9 +89,16 @@ def register(sub: argparse._SubParsersAction) -> None:
     b.add_argument("config", help="pipeline YAML, such as pipelines/paper-tunnel.yaml")
     b.add_argument("--out", required=True, help="root folder; the dataset goes to OUT/<name>/v<version>")
     b.add_argument(
-        "--workers", type=int, default=None, help="worker processes or Ray actors (default: all cores)"
+        "--workers",
+        type=int,
+        default=None,
+        help=f"worker processes, 1 to {os.cpu_count() or 1} (this machine's cores; default: all of them; "
+        "one worker already keeps two cores busy); with --backend ray, Ray actors, 1 or more (default: one "
+        "per CPU of the cluster)",
     )
-    b.add_argument("--force", action="store_true", help="rebuild a version that exists (replaced at the end)")
+    b.add_argument(
+        "--force", action="store_true", help="rebuild a version this command built (swapped in at the end)"
+    )
     b.add_argument("--resume", action="store_true", help="continue an interrupted build of the same config")
     b.add_argument(
         "--backend",

@@ -22,7 +22,7 @@ from pathlib import Path
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
-from rebar_data.dataset.build import Task, build_dataset
+from rebar_data.dataset.build import Task, build_dataset, check_paths, check_workers, plural
 from rebar_data.dataset.config import PipelineConfig, load_pipeline
 from rebar_data.dataset.worker import FrameRecord, FrameWorker
 from rebar_data.geometry.build import RebarMesh
@@ -127,7 +127,7 @@ class RayRunner:
         try:
             n = self.actors or int(ray.cluster_resources().get("CPU", 1))
             n = max(1, min(n, len(tasks)))
-            self.label = f"{n} Ray actors"
+            self.label = plural(n, "Ray actor")
             actor_cls = ray.remote(
                 num_cpus=1, max_restarts=self.max_restarts, max_task_retries=self.max_task_retries
             )(RenderActor)
@@ -204,7 +204,12 @@ def build_dataset_ray(
     force: bool = False,
     resume: bool = False,
 ) -> Path:
-    """``build_dataset`` with its shards run on a Ray cluster; the same dataset, byte for byte, in its labels."""
+    """``build_dataset`` with its shards run on a Ray cluster; the same dataset, byte for byte, in its labels.
+
+    The driver (this process) holds the dataset's lock, as a local build does.
+    """
+    check_paths(config, out_root)
+    check_workers(actors, backend="ray")
     load_pipeline(config)  # a broken pipeline is the first thing reported, before Ray or the cluster
     import_ray()
     runner = RayRunner(address=address, actors=actors)

@@ -8,6 +8,7 @@ depend on which worker did what.
 from __future__ import annotations
 
 import os
+import signal
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -120,7 +121,9 @@ _WORKER: FrameWorker | None = None
 
 
 def init_process(cfg: PipelineConfig, staging: Path, rm: RebarMesh | None) -> None:
+    """Set up a pool worker: its renderer, and Ctrl-C ignored (the build's process ends the workers)."""
     global _WORKER
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ.setdefault("EGL_PLATFORM", "surfaceless")
     # one rasteriser thread per worker process: the workers already use every core, and Mesa's llvmpipe
     # would otherwise start a thread per core in each of them

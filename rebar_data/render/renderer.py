@@ -19,7 +19,12 @@ visible changes except which way the environment faces.
 from __future__ import annotations
 
 import os
+import shutil
+import sys
+import tempfile
 from collections import OrderedDict
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -69,9 +74,78 @@ def _offscreen(width: int, height: int):
         import gc
 
         gc.collect()
-    _OFFSCREEN = (width, height, rendering.OffscreenRenderer(width, height))
+    with _quiet_start():
+        _OFFSCREEN = (width, height, rendering.OffscreenRenderer(width, height))
     _SHADOWS_WARM = False
     return _OFFSCREEN[2]
+
+
+@contextmanager
+def _quiet_start() -> Iterator[None]:
+    """Keep the renderer's start-up text out of the user's output: Filament's and EGL's lines on stdout,
+    Open3D's info line, and Mesa's ``error: XDG_RUNTIME_DIR is invalid or not set`` on stderr (answered by
+    a private folder for the start when the variable is unset). File descriptors 1 and 2 go to a temporary
+    file for the block only; what was captured is shown on stderr if the start fails."""
+    import open3d as o3d
+
+    level = o3d.utility.get_verbosity_level()
+    o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
+    runtime_dir = None
+    if not os.environ.get("XDG_RUNTIME_DIR"):
+        runtime_dir = tempfile.mkdtemp(prefix="rebar-runtime-")  # mode 0700, as the variable requires
+        os.environ["XDG_RUNTIME_DIR"] = runtime_dir
+    try:
+        with _fds_captured() as captured:
+            try:
+                yield
+            except BaseException:
+                sys.stderr.write(captured())
+                raise
+    finally:
+        o3d.utility.set_verbosity_level(level)
+        if runtime_dir is not None:
+            os.environ.pop("XDG_RUNTIME_DIR", None)
+            shutil.rmtree(runtime_dir, ignore_errors=True)
+
+
+@contextmanager
+def _fds_captured() -> Iterator:
+    """Native writes to fds 1 and 2 go to a temporary file for the block; yields a function that reads it
+    (after the block's fds are back). Without fds 1 and 2 (a daemon) the block runs as it is."""
+    sys.stdout.flush()
+    sys.stderr.flush()
+    try:
+        saved = (os.dup(1), os.dup(2))
+    except OSError:
+        yield lambda: ""
+        return
+    with tempfile.TemporaryFile() as log:
+        os.dup2(log.fileno(), 1)
+        os.dup2(log.fileno(), 2)
+
+        def captured() -> str:
+            _restore(saved)
+            log.seek(0)
+            return log.read().decode(errors="replace")
+
+        try:
+            yield captured
+        finally:
+            _restore(saved)
+            for fd in saved:
+                os.close(fd)
+
+
+def _restore(saved: tuple[int, int]) -> None:
+    """Flush C's stdio buffers into the capture, then point fds 1 and 2 back (idempotent)."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).fflush(None)
+    except (OSError, AttributeError):
+        pass
+    os.dup2(saved[0], 1)
+    os.dup2(saved[1], 2)
 
 
 def _resources() -> Path:
