@@ -189,7 +189,17 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
     if p.is_dir():
         raise ConfigError(f"{p}: is a folder; accepted: a YAML config file")
     try:
-        data = yaml.safe_load(p.read_text())
+        text = p.read_bytes().decode("utf-8")
+    except UnicodeDecodeError:
+        text = "\0"
+    except OSError as e:
+        raise ConfigError(
+            f"{p}: cannot be read ({e.strerror}); accepted: a YAML config file you may read"
+        ) from None
+    if "\0" in text:
+        raise ConfigError(f"{p}: not a text file; accepted: a YAML config file such as pipelines/smoke.yaml")
+    try:
+        data = yaml.safe_load(text)
     except yaml.YAMLError as e:
         mark = getattr(e, "problem_mark", None)
         where = f" at line {mark.line + 1}" if mark else ""

@@ -116,16 +116,23 @@ def output_folder(
     arg: str,
     command: str,
     owned: Callable[[Path], bool] | None = None,
+    swapped: bool = False,
 ) -> Path:
     """An output folder ``command`` may write: new, empty, or provably its own earlier output.
 
     ``owned`` decides for a folder without the mark (a layout only this command writes); without it only
-    ``OWNER_FILE`` does. Nothing is created here.
+    ``OWNER_FILE`` does. ``swapped``: the folder is written beside it and swapped in (``replace_folder``),
+    so the folder that holds it must be writable too. Nothing is created here.
     """
     p = Path(path)
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{arg} {p}: is a file; accepted: a new folder or an earlier `{command}` output")
     _check_writable(p, arg)
+    if swapped and p.exists() and not os.access(p.absolute().parent, os.W_OK | os.X_OK):
+        raise ConfigError(
+            f"{arg} {p}: its folder {p.absolute().parent} is not writable, where the new output is made and "
+            "swapped in; accepted: a folder in a place you may write to"
+        )
     if p.is_dir():
         if not os.access(p, os.W_OK | os.X_OK):
             raise ConfigError(f"{arg} {p}: not writable; accepted: a folder you may write to")

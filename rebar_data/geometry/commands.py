@@ -3,31 +3,66 @@
 from __future__ import annotations
 
 import argparse
-import shutil
 import sys
 import tempfile
 from pathlib import Path
 
+COMMAND = "rebar mesh"
+MESH_FILES = ("mesh.json", "mesh.glb", "bars.parquet", "crossings.parquet")
+RECORDING_ID = b"rebar_mesh"  # the recording's application id, near the start of the file
+
+
+def is_mesh_folder(folder: Path) -> bool:
+    """``folder`` has the layout of an earlier `rebar mesh` output (written before outputs carried a mark)."""
+    return all((folder / name).is_file() for name in MESH_FILES)
+
+
+def is_mesh_recording(path: Path) -> bool:
+    """``path`` is a Rerun recording that `rebar mesh --rrd` wrote."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return False
+    return head.startswith(b"RRF") and RECORDING_ID in head
+
 
 def run_mesh(args: argparse.Namespace) -> None:
+    from rebar_data.config import ConfigError
     from rebar_data.dataset.config import load_mesh_config
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.geometry.export import write_mesh_outputs
+    from rebar_data.outputs import OutputLock, mark_output, output_file, output_folder, replace_folder
 
+    def check_out() -> Path:
+        return output_folder(args.out, arg="--out", command=COMMAND, owned=is_mesh_folder, swapped=True)
+
+    out = check_out()
+    rrd = None
+    if args.rrd:
+        rrd = output_file(
+            args.rrd,
+            arg="--rrd",
+            what="a .rrd file, new or an earlier `rebar mesh` recording",
+            owned=is_mesh_recording,
+        )
+        if rrd.suffix != ".rrd":
+            raise ConfigError(f"--rrd {rrd}: is not a .rrd file name; accepted: a file name ending in .rrd")
     cfg = load_mesh_config(args.config)
     rm = build_rebar_mesh(cfg)
-    out = Path(args.out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    # write beside the target and rename, so an interrupted run never leaves a folder that looks finished
-    with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.tmp-") as tmp:
-        write_mesh_outputs(rm, Path(tmp) / "mesh")
-        if out.exists():
-            shutil.rmtree(out)
-        Path(tmp, "mesh").rename(out)
-    if args.rrd:
+    with OutputLock(out, command=COMMAND):
+        check_out()  # again under the lock: another writer may have finished there meanwhile
+        # write beside the target and swap, so an interrupted run never leaves a folder that looks finished
+        with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.tmp-") as tmp:
+            staging = Path(tmp) / "mesh"
+            write_mesh_outputs(rm, staging)
+            mark_output(staging, COMMAND)
+            replace_folder(staging, out)
+    if rrd is not None:
         from rebar_data.geometry.recording import write_mesh_recording
 
-        write_mesh_recording(rm, Path(args.rrd))
+        with OutputLock(rrd, command=COMMAND, arg="--rrd"):
+            write_mesh_recording(rm, rrd)
     print(
         f"{len(rm.bars)} bars, {len(rm.crossings)} crossings, {len(rm.mesh.faces)} triangles", file=sys.stderr
     )
@@ -37,6 +72,13 @@ def run_mesh(args: argparse.Namespace) -> None:
 def register(sub: argparse._SubParsersAction) -> None:
     m = sub.add_parser("mesh", help="build a rebar mesh: GLB, PLY, bars and crossings tables")
     m.add_argument("config", help="pipeline YAML, such as pipelines/paper-tunnel.yaml")
-    m.add_argument("--out", required=True, help="output folder")
-    m.add_argument("--rrd", help="also write a Rerun recording of the mesh and crossings")
+    m.add_argument(
+        "--out",
+        required=True,
+        help="output folder: new, empty, or an earlier `rebar mesh` output, which is replaced whole",
+    )
+    m.add_argument(
+        "--rrd",
+        help="also write a Rerun recording of the mesh and crossings (a new .rrd file, or an earlier one)",
+    )
     m.set_defaults(func=run_mesh)

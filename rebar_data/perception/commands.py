@@ -4,10 +4,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
+import tempfile
+from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from rebar_data.cli import bounded
 from rebar_data.perception.focal import TOLERANCE
 from rebar_data.perception.reading import READINGS
 from rebar_data.perception.runtime import RUNTIMES
@@ -16,12 +20,75 @@ if TYPE_CHECKING:
     import numpy as np
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
+DETECT = "rebar detect"
+ADAPT = "rebar adapt"
+ADD_CROSSING_POINT = "rebar add-crossing-point"
+WRITTEN_BY = "written_by"  # the key naming the command, in a Parquet file's metadata and a JSON record
+PREDICTION_COLUMNS = ["image_id", "u", "v", "score"]
+EPOCHS = bounded(int, 1)
+THRESHOLD = bounded(float, 0, 1)
+THREADS = bounded(int, 1, 256)
+
+
+def _detect_wrote_predictions(path: Path) -> bool:
+    """``path`` is a predictions file `rebar detect` wrote: its mark in the Parquet metadata, or (files
+    from before the mark) exactly its columns."""
+    import pyarrow.parquet as pq
+
+    try:
+        schema = pq.read_schema(path)
+    except Exception:  # not a Parquet file at all
+        return False
+    meta = schema.metadata or {}
+    return meta.get(WRITTEN_BY.encode()) == DETECT.encode() or schema.names == PREDICTION_COLUMNS
+
+
+def _detect_wrote_metrics(path: Path) -> bool:
+    """``path`` is a metrics file `rebar detect` wrote: its mark, or (files from before the mark) the
+    record's own keys."""
+    try:
+        record = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    if not isinstance(record, dict):
+        return False
+    return record.get(WRITTEN_BY) == DETECT or {"split", "dataset", "truth", "point", "runtime"} <= set(
+        record
+    )
+
+
+def _detect_wrote_overlays(folder: Path) -> bool:
+    """``folder`` has the layout of an earlier `rebar detect` on images (from before the mark):
+    detections.parquet, cameras.json and overlays."""
+    names = {p.name: p for p in folder.iterdir()}
+    return (
+        "cameras.json" in names
+        and "detections.parquet" in names
+        and all(n in ("cameras.json", "detections.parquet") or n.endswith(".png") for n in names)
+    )
+
+
+def _adapt_folder(folder: Path) -> bool:
+    """``folder`` has the layout of an earlier `rebar adapt` (not a training run, which has config.json)."""
+    return (
+        (folder / "best.pt").is_file()
+        and not (folder / "config.json").exists()
+        and any((folder / n).exists() for n in ("adapt_last.pt", "adapted.pt", "rebar_keypoint.onnx"))
+    )
+
+
+def _crossing_point_folder(folder: Path) -> bool:
+    """``folder`` has the layout of an earlier `rebar add-crossing-point` (not a training run)."""
+    return not (folder / "config.json").exists() and any(
+        (folder / n).is_file() for n in ("crossing_last.pt", "best.crossing.pt")
+    )
 
 
 def run_train(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError, read_yaml
+    from rebar_data.outputs import outside_inputs
     from rebar_data.perception.data import check_dataset, read_info
-    from rebar_data.perception.train import resolve_config, train
+    from rebar_data.perception.train import check_run_folder, resolve_config, train
 
     root = check_dataset(args.dataset)
     if args.eval and not args.ship:
@@ -35,6 +102,9 @@ def run_train(args: argparse.Namespace) -> None:
         if args.out
         else Path("runs/train") / str(read_info(root).get("name") or root.parent.name)
     )
+    check_run_folder(out)
+    inputs = [root, *(args.eval or ()), *(args.supplement or ()), *(args.refine_supplement or ())]
+    outside_inputs(out, [*inputs, *(args.line_supplement or ())], arg="--out")
     result = train(
         root,
         out,
@@ -85,16 +155,40 @@ def _added_stage_inputs(args: argparse.Namespace, *, model_settings: bool = Fals
     return root, info, model, cfg, extra, records
 
 
+def _training_out(args: argparse.Namespace, command: str, owned, inputs) -> Path:
+    """``--out`` of a command that trains in a folder and resumes there: new, empty, or its own earlier
+    one, and outside every input."""
+    from rebar_data.outputs import output_folder, outside_inputs
+
+    outside_inputs(Path(args.out), inputs, arg="--out")
+    return output_folder(args.out, arg="--out", command=command, owned=owned)
+
+
+@contextmanager
+def _writing(out: Path, command: str, owned):
+    """Hold ``out``'s one-writer lock, make the folder and leave ``command``'s mark in it."""
+    from rebar_data.outputs import OutputLock, mark_output, output_folder
+
+    with OutputLock(out, command=command):
+        output_folder(out, arg="--out", command=command, owned=owned)  # again under the lock
+        out.mkdir(parents=True, exist_ok=True)
+        mark_output(out, command)
+        yield out
+
+
 def run_add_crossing_point(args: argparse.Namespace) -> None:
     from rebar_data.perception.crossing_point_train import attach
     from rebar_data.perception.data import load_split
 
+    out = _training_out(
+        args, ADD_CROSSING_POINT, _crossing_point_folder, [args.dataset, *(args.supplement or ())]
+    )
     root, _, model, cfg, extra, _ = _added_stage_inputs(args)
     samples = load_split(root, "train") + extra
-    out = Path(args.out)
-    stage = attach(
-        model, samples, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=not args.quiet
-    )
+    with _writing(out, ADD_CROSSING_POINT, _crossing_point_folder):
+        stage = attach(
+            model, samples, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=not args.quiet
+        )
     print(f"crossing-point stage beside {model}: {stage}", file=sys.stderr)
     print(stage)
 
@@ -143,38 +237,42 @@ def run_adapt(args: argparse.Namespace) -> None:
     from rebar_data.perception.infer import resolve_model_path
     from rebar_data.perception.train import resolve_config, supplement_images
 
+    out = _training_out(args, ADAPT, _adapt_folder, [args.dataset, *args.frames])
     root = check_dataset(args.dataset)
     model = resolve_model_path(args.model)
     # None: the settings the model trained with (adapt_model reads them from the file it loads)
     cfg = resolve_config(read_yaml(args.config), {}, source=str(args.config)) if args.config else None
     extra, frames = supplement_images(args.frames, trained_on=read_info(root).get("name"))
-    out = adapt_model(
-        model,
-        load_split(root, "train"),
-        extra,
-        Path(args.out),
-        cfg,
-        data=[str(f["path"]) for f in frames],
-        log=None if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
-        progress=not args.quiet,
-    )
+    with _writing(out, ADAPT, _adapt_folder):
+        out = adapt_model(
+            model,
+            load_split(root, "train"),
+            extra,
+            out,
+            cfg,
+            data=[str(f["path"]) for f in frames],
+            log=None if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
+            progress=not args.quiet,
+        )
     print(f"adapted {model} on {len(extra)} frames: {out}", file=sys.stderr)
     print(out)
 
 
-def run_detect(args: argparse.Namespace) -> None:
+def run_detect(args: argparse.Namespace) -> int:
     from rebar_data.config import ConfigError
-    from rebar_data.perception.infer import Detector
+    from rebar_data.outputs import input_file, input_folder
+    from rebar_data.perception.infer import Detector, resolve_model_path
 
     target = Path(args.input)
+    accepted = "a dataset folder, an image or a folder of images"
     if not target.exists():
-        raise ConfigError(
-            f"{target}: no such dataset, image or folder; accepted: a dataset folder, an image or a folder of images"
-        )
-    detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
-    detector.resample = not args.no_resample
-    detector.flatten_behind = args.flatten_behind
-    if (target / "tables/samples.parquet").exists():
+        raise ConfigError(f"{target}: no such dataset, image or folder; accepted: {accepted}")
+    if target.is_dir():
+        input_folder(target, arg="input", what=accepted)
+    else:
+        input_file(target, arg="input", what=accepted)
+    dataset = (target / "tables/samples.parquet").exists()
+    if dataset:
         if args.flatten_behind and args.no_depth:
             raise ConfigError(
                 "--flatten-behind reads the depth images, which --no-depth leaves out; accepted: one of the two"
@@ -185,14 +283,28 @@ def run_detect(args: argparse.Namespace) -> None:
                 f"{given}: a dataset's frames carry their own intrinsics; accepted: {given.split()[0]} "
                 "with an image or a folder of images"
             )
-        _detect_dataset(detector, target, args)
+        _dataset_outputs(target, args)
     else:
         if args.flatten_behind:
             raise ConfigError(
                 f"--flatten-behind: {target} is read without depth (images given as files have none); accepted: "
                 "--flatten-behind with a dataset that has depth images"
             )
-        _detect_images(detector, target, args)
+        if args.metrics:
+            raise ConfigError(
+                f"--metrics {args.metrics}: images given as files have no labels to score; accepted: "
+                "--metrics with a dataset"
+            )
+        _image_files(target)
+        _images_out(target, args)
+        _camera_of(args.camera)
+    resolve_model_path(args.model)  # a wrong --model is named before anything loads
+    detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
+    detector.resample = not args.no_resample
+    detector.flatten_behind = args.flatten_behind
+    if dataset:
+        return _detect_dataset(detector, target, args)
+    return _detect_images(detector, target, args)
 
 
 def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
@@ -213,56 +325,124 @@ def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
     return camera
 
 
-def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> None:
+def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path | None]:
+    """``--out`` and ``--metrics`` of a dataset's predictions: each new or `rebar detect`'s own earlier
+    file, outside the dataset, and not the same file."""
     from rebar_data.config import ConfigError
-    from rebar_data.perception.data import SPLITS, stated_oks_sigma
-    from rebar_data.perception.evaluate import LOW_THRESHOLD, load_splits, predict, score, write_predictions
-    from rebar_data.perception.false_detections import false_detection_census, format_census
-    from rebar_data.perception.metrics import format_summary
+    from rebar_data.outputs import output_file, outside_inputs
 
     out = Path(args.out)
     if out.suffix != ".parquet":
         raise ConfigError(
             f"--out {out}: predictions on a dataset go to a .parquet file, such as pred.parquet"
         )
+    outside_inputs(out, [root], arg="--out")
+    output_file(
+        out,
+        arg="--out",
+        what="a new .parquet file, or one an earlier `rebar detect` wrote",
+        owned=_detect_wrote_predictions,
+    )
     if args.oks_sigma is not None and not args.oks_sigma > 0:
         raise ConfigError(
             f"--oks-sigma {args.oks_sigma} is not accepted; accepted: a number above 0, such as 0.04"
         )
+    if not args.metrics:
+        return out, None
+    outside_inputs(Path(args.metrics), [root], arg="--metrics")
+    metrics = output_file(
+        args.metrics,
+        arg="--metrics",
+        what="a new JSON file, or one an earlier `rebar detect` wrote",
+        owned=_detect_wrote_metrics,
+    )
+    if metrics.resolve() == out.resolve():
+        raise ConfigError(f"--metrics {metrics}: is --out as well; accepted: another file than --out")
+    return out, metrics
+
+
+def _replace_file(path: Path, write) -> None:
+    """``write(tmp)`` to a file beside ``path``, then rename it over ``path``: a reader finds the whole
+    old file or the whole new one."""
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+
+
+def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> None:
+    """The predictions file, with `rebar detect`'s mark in its Parquet metadata."""
+    import pyarrow.parquet as pq
+
+    from rebar_data.perception.evaluate import write_predictions
+
+    def write(tmp: Path) -> None:
+        table = pq.read_table(write_predictions(tmp, image_ids, preds))
+        meta = {**(table.schema.metadata or {}), WRITTEN_BY.encode(): DETECT.encode()}
+        pq.write_table(table.replace_schema_metadata(meta), tmp)
+
+    _replace_file(path, write)
+
+
+def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
+    from rebar_data.config import ConfigError
+    from rebar_data.outputs import OutputLock
+    from rebar_data.perception.data import SPLITS, stated_oks_sigma
+    from rebar_data.perception.evaluate import LOW_THRESHOLD, load_splits, predict, score
+    from rebar_data.perception.false_detections import false_detection_census, format_census
+    from rebar_data.perception.metrics import format_summary
+
     samples = load_splits(root, SPLITS if args.split == "all" else (args.split,), truth=args.truth)
     if not samples:
         raise ConfigError(f"{root}: the {args.split} split has no images; accepted: a split with images")
     threshold = args.threshold if args.threshold is not None else LOW_THRESHOLD
     point = args.point or args.truth
-    preds = predict(
-        detector, samples, threshold=threshold, depth=not args.no_depth, progress=not args.quiet, point=point
-    )
-    write_predictions(out, [s.image_id for s in samples], preds)
-    sigma = args.oks_sigma if args.oks_sigma is not None else stated_oks_sigma(root)
-    metrics = score(samples, preds, sigma=sigma)
-    against = "" if args.truth == "sight" else " (against the projected 3D crossing points)"
-    found = "" if point == args.truth else f", the detector's {point} points"
-    print(f"{args.split}{against}{found}: {format_summary(metrics)}", file=sys.stderr)
-    # where the confident false detections lie; against the 3D points most detections of sight points lie
-    # beyond the gate, so the census is taken against the labels alone
-    census = false_detection_census(root, samples, preds) if args.truth == "sight" else None
-    if census is not None:
-        print(format_census(census), file=sys.stderr)
-    if args.metrics:
-        record = {
-            "split": args.split,
-            "dataset": str(root),
-            "truth": args.truth,
-            "point": point,
-            "runtime": _runtime_words(detector),
-            "reading": detector.reading,
-            "resample": detector.resample,
-            **metrics,
-        }
+    with ExitStack() as held:
+        out, metrics_path = _dataset_outputs(root, args)
+        held.enter_context(OutputLock(out, command=DETECT))
+        if metrics_path is not None:
+            held.enter_context(OutputLock(metrics_path, command=DETECT, arg="--metrics"))
+        _dataset_outputs(root, args)  # again under the locks: another writer may have finished meanwhile
+        preds = predict(
+            detector,
+            samples,
+            threshold=threshold,
+            depth=not args.no_depth,
+            progress=not args.quiet,
+            point=point,
+        )
+        _write_marked_predictions(out, [s.image_id for s in samples], preds)
+        sigma = args.oks_sigma if args.oks_sigma is not None else stated_oks_sigma(root)
+        metrics = score(samples, preds, sigma=sigma)
+        against = "" if args.truth == "sight" else " (against the projected 3D crossing points)"
+        found = "" if point == args.truth else f", the detector's {point} points"
+        print(f"{args.split}{against}{found}: {format_summary(metrics)}", file=sys.stderr)
+        # where the confident false detections lie; against the 3D points most detections of sight points lie
+        # beyond the gate, so the census is taken against the labels alone
+        census = false_detection_census(root, samples, preds) if args.truth == "sight" else None
         if census is not None:
-            record["false_detections"] = census
-        Path(args.metrics).write_text(json.dumps(record, indent=2) + "\n")
+            print(format_census(census), file=sys.stderr)
+        if metrics_path is not None:
+            record = {
+                "split": args.split,
+                "dataset": str(root),
+                "truth": args.truth,
+                "point": point,
+                "runtime": _runtime_words(detector),
+                "reading": detector.reading,
+                "resample": detector.resample,
+                WRITTEN_BY: DETECT,
+                **metrics,
+            }
+            if census is not None:
+                record["false_detections"] = census
+            text = json.dumps(record, indent=2) + "\n"
+            _replace_file(metrics_path, lambda tmp: tmp.write_text(text))
     print(out)
+    return 0
 
 
 def _runtime_words(detector) -> str:
@@ -272,14 +452,9 @@ def _runtime_words(detector) -> str:
     return "PyTorch, float32" if detector.backend == "torch" else runtime_description(detector.backend)
 
 
-def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
-    import cv2
-
+def _image_files(target: Path) -> list[Path]:
+    """The images to read: ``target`` itself, or every image file in the folder ``target``."""
     from rebar_data.config import ConfigError
-    from rebar_data.perception.data import read_image
-    from rebar_data.perception.evaluate import write_predictions
-    from rebar_data.perception.metrics import OPERATING_THRESHOLD
-    from rebar_data.perception.plots import draw_overlay
 
     files = (
         sorted(p for p in target.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
@@ -290,42 +465,87 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> None:
         raise ConfigError(
             f"{target}: holds no images ({', '.join(IMAGE_SUFFIXES)}); accepted: an image or a folder of them"
         )
+    return files
+
+
+def _images_out(target: Path, args: argparse.Namespace) -> Path:
+    """``--out`` for images: a folder, new, empty or `rebar detect`'s own earlier one, outside the input."""
+    from rebar_data.config import ConfigError
+    from rebar_data.outputs import output_folder, outside_inputs
+
     out = Path(args.out)
     if out.suffix == ".parquet":
         raise ConfigError(
             f"--out {out}: for images, --out is a folder for the overlays and detections.parquet"
         )
+    outside_inputs(out, [target], arg="--out")
+    output_folder(out, arg="--out", command=DETECT, owned=_detect_wrote_overlays, swapped=True)
+    if target.is_file() and out.resolve() == target.parent.resolve():
+        raise ConfigError(
+            f"--out {out}: is the folder of the input {target}, whose files would be overwritten; accepted: "
+            "a folder outside every input"
+        )
+    return out
+
+
+def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
+    """Overlays, detections.parquet and cameras.json of every image, in a folder swapped in whole at the
+    end; an image that cannot be read is named and skipped, and the command then ends with status 1."""
+    from rebar_data.config import ConfigError
+    from rebar_data.outputs import OutputLock, mark_output, replace_folder
+    from rebar_data.perception.data import read_image
+    from rebar_data.perception.metrics import OPERATING_THRESHOLD
+
+    files = _image_files(target)
     camera = _camera_of(args.camera)
-    out.mkdir(parents=True, exist_ok=True)
     threshold = args.threshold if args.threshold is not None else OPERATING_THRESHOLD
-    preds, ids, cameras = [], [], {}
-    for f in files:
-        rgb = read_image(f)
-        used, how = camera, "--camera"
-        if camera is None:
-            used, how = _photo_camera(f, rgb, exif=not args.no_exif)
-        det = detector.detect(rgb, threshold=threshold, camera=used, point=args.point or "sight")
-        overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
-        cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
-        preds.append(det)
-        ids.append(f.stem)
-        h, w = rgb.shape[:2]
-        fx, fy, cx, cy = used if used is not None else detector.default_camera(h, w)
-        cameras[f.stem] = {
-            "file": f.name,
-            "width": w,
-            "height": h,
-            "fx": fx,
-            "fy": fy,
-            "cx": cx,
-            "cy": cy,
-            "from": how,
-        }
-        print(f"{f.name}: {len(det)} crossings (camera: {how})", file=sys.stderr)
-    write_predictions(out / "detections.parquet", ids, preds)
-    # the intrinsics each image was read with, beside its detections (COCO corner origin, pixels)
-    (out / "cameras.json").write_text(json.dumps(cameras, indent=2) + "\n")
-    print(out)
+    final = Path(args.out)
+    unread: list[Path] = []
+    with OutputLock(final, command=DETECT):
+        _images_out(target, args)  # again under the lock: another writer may have finished meanwhile
+        with tempfile.TemporaryDirectory(dir=final.parent, prefix=f".{final.name}.tmp-") as tmp:
+            out = Path(tmp) / "detect"
+            out.mkdir()
+            preds, ids, cameras = [], [], {}
+            for f in files:
+                try:
+                    rgb = read_image(f)
+                except ConfigError as e:
+                    unread.append(f)
+                    print(f"skipped {e}", file=sys.stderr)
+                    continue
+                det, cameras[f.stem] = _detect_image(detector, f, rgb, out, camera, threshold, args)
+                preds.append(det)
+                ids.append(f.stem)
+            _write_marked_predictions(out / "detections.parquet", ids, preds)
+            # the intrinsics each image was read with, beside its detections (COCO corner origin, pixels)
+            (out / "cameras.json").write_text(json.dumps(cameras, indent=2) + "\n")
+            mark_output(out, DETECT)
+            replace_folder(out, final)
+    print(final)
+    if unread:
+        print(f"error: {len(unread)} of {len(files)} images could not be read", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _detect_image(detector, f: Path, rgb: np.ndarray, out: Path, camera, threshold: float, args) -> tuple:
+    """Detect in one image and draw its overlay into ``out``; returns the detections and the camera it
+    was read with."""
+    import cv2
+
+    from rebar_data.perception.plots import draw_overlay
+
+    used, how = camera, "--camera"
+    if camera is None:
+        used, how = _photo_camera(f, rgb, exif=not args.no_exif)
+    det = detector.detect(rgb, threshold=threshold, camera=used, point=args.point or "sight")
+    overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
+    cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
+    h, w = rgb.shape[:2]
+    fx, fy, cx, cy = used if used is not None else detector.default_camera(h, w)
+    print(f"{f.name}: {len(det)} crossings (camera: {how})", file=sys.stderr)
+    return det, {"file": f.name, "width": w, "height": h, "fx": fx, "fy": fy, "cx": cx, "cy": cy, "from": how}
 
 
 def _photo_camera(
@@ -360,12 +580,14 @@ def register(sub: argparse._SubParsersAction) -> None:
     t = sub.add_parser("train", help="train the crossing detector on a dataset (CPU; resumable)")
     t.add_argument("dataset", help="dataset folder ROOT/<name>/v<version>/, as `rebar dataset build` prints")
     t.add_argument(
-        "--out", help="run folder (default runs/train/<dataset name>); an existing run there resumes"
+        "--out",
+        help="run folder (default runs/train/<dataset name>): new, empty, or an earlier run, which resumes "
+        "(a folder holding other files is refused; one training writes a run at a time)",
     )
     t.add_argument(
         "--config", help="YAML of training settings (fields of TrainConfig: epochs, batch_size, ...)"
     )
-    t.add_argument("--epochs", type=int, help="epochs (overrides the config)")
+    t.add_argument("--epochs", type=EPOCHS, help=f"epochs, {EPOCHS} (overrides the config)")
     t.add_argument(
         "--supplement",
         action="append",
@@ -407,7 +629,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     a.add_argument("dataset", help="the dataset the model trained on (its train split trains the stage)")
     a.add_argument("--model", help="the model's .onnx file (default: the shipped model)")
-    a.add_argument("--out", required=True, help="folder for the stage's checkpoint (resumes there)")
+    a.add_argument(
+        "--out",
+        required=True,
+        help="folder for the stage's checkpoint: new, empty, or an earlier one of this command (resumes "
+        "there)",
+    )
     a.add_argument(
         "--supplement", action="append", metavar="DATASET", help="as for `rebar train` (repeatable)"
     )
@@ -448,7 +675,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     p.add_argument("--model", help="the model's .onnx file (default: the shipped model)")
     p.add_argument(
-        "--out", required=True, help="folder for the adapted model, rebar_keypoint.onnx (resumes there)"
+        "--out",
+        required=True,
+        help="folder for the adapted model, rebar_keypoint.onnx: new, empty, or an earlier `rebar adapt` "
+        "folder (resumes there)",
     )
     p.add_argument(
         "--config", help="YAML of training settings (default: the model's own; its adapt and seed)"
@@ -460,7 +690,12 @@ def register(sub: argparse._SubParsersAction) -> None:
         "detect", help="detect crossings in a dataset split (to Parquet) or in images (overlays)"
     )
     d.add_argument("input", help="a dataset folder, an image, or a folder of images")
-    d.add_argument("--out", required=True, help="PRED.parquet for a dataset; a folder for images")
+    d.add_argument(
+        "--out",
+        required=True,
+        help="PRED.parquet for a dataset; a folder for images (new, empty, or an earlier one of `rebar detect`, "
+        "which is replaced; never inside the input)",
+    )
     d.add_argument(
         "--split",
         default="test",
@@ -472,10 +707,15 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     d.add_argument(
         "--threshold",
-        type=float,
-        help="lowest score written (default 0.05 for a dataset, so curves are complete; 0.5 for images)",
+        type=THRESHOLD,
+        help=f"lowest score written, {THRESHOLD} (default 0.05 for a dataset, so curves are complete; 0.5 for "
+        "images)",
     )
-    d.add_argument("--metrics", help="also write the split's metrics to this JSON file (dataset input)")
+    d.add_argument(
+        "--metrics",
+        help="also write the split's metrics to this JSON file, new or an earlier one of `rebar detect` "
+        "(dataset input)",
+    )
     d.add_argument(
         "--no-depth",
         action="store_true",
@@ -492,8 +732,9 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument(
         "--oks-sigma",
         type=float,
-        help="score OKS AP at this sigma instead of the one the dataset states (info.json); 1.0 is "
-        "Ultralytics' default for a single keypoint, the sigma behind the paper's mAP@0.5 (dataset input)",
+        help="score OKS AP at this sigma (a number above 0) instead of the one the dataset states "
+        "(info.json); 1.0 is Ultralytics' default for a single keypoint, the sigma behind the paper's "
+        "mAP@0.5 (dataset input)",
     )
     d.add_argument(
         "--truth",
@@ -510,7 +751,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "labels' convention); crossing, where the 3D crossing point projects, from the model's "
         "crossing-point stage; default: as --truth for a dataset, sight for images",
     )
-    d.add_argument("--threads", type=int, default=2, help="CPU threads (default 2)")
+    d.add_argument("--threads", type=THREADS, default=2, help=f"CPU threads, {THREADS} (default 2)")
     d.add_argument(
         "--runtime",
         choices=RUNTIMES,

@@ -35,6 +35,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError, format_validation_error
 from rebar_data.dataset.writers.manifest import sha256_file
+from rebar_data.outputs import OutputLock, mark_output, output_folder
 from rebar_data.perception.adapt_train import ADAPTED, adapt_first_stage, adapt_settings
 from rebar_data.perception.config import TrainConfig
 from rebar_data.perception.crossing_point_train import CrossingNet, train_crossing_point
@@ -92,6 +93,7 @@ from rebar_data.perception.refine_train import load as load_refiner
 from rebar_data.perception.refine_train import quantize_onnx as quantize_int8
 from rebar_data.perception.refine_train import save as save_refiner
 
+COMMAND = "rebar train"
 EARLY_STOP_METRIC = "val_oks_ap"
 # settings newer than some run folders, at the value that trains as those runs did
 NEWER_FIELDS = {"other_renderer_repeats": 0}
@@ -146,6 +148,17 @@ def resolve_config(
         raise
 
 
+def is_run_folder(folder: Path) -> bool:
+    """``folder`` has a run folder's layout (runs from before the mark): config.json and a checkpoint."""
+    return (folder / "config.json").is_file() and any((folder / n).is_file() for n in ("last.pt", "best.pt"))
+
+
+def check_run_folder(out: str | Path) -> Path:
+    """``out`` as a run may be written there: new, empty, or an earlier run (which resumes, or with
+    ``resume`` off starts afresh); a folder holding anything else is refused (a ConfigError naming it)."""
+    return output_folder(out, arg="--out", command=COMMAND, owned=is_run_folder)
+
+
 def train(
     dataset_path: str | Path,
     out_dir: str | Path,
@@ -163,7 +176,8 @@ def train(
 
     Args:
         dataset_path: A dataset folder (``ROOT/<name>/v<version>/``) with train, val and test splits.
-        out_dir: The run folder (created; an existing run there resumes when ``resume``).
+        out_dir: The run folder (created; an existing run there resumes when ``resume``). A folder that
+            holds other files is refused, and one run writes a folder at a time (its lock).
         config: Settings; defaults are what ``make train`` uses.
         epochs: Overrides ``config.epochs``.
         batch_size: Overrides ``config.batch_size``.
@@ -184,7 +198,7 @@ def train(
     """
     cfg = resolve_config(config, {"epochs": epochs, "batch_size": batch_size})
     root = check_dataset(dataset_path)
-    out = Path(out_dir)
+    out = check_run_folder(out_dir)
     info = read_info(root)
     sigma = float(info.get("oks_sigma", DEFAULT_OKS_SIGMA))
     train_samples = load_split(root, "train")
@@ -198,29 +212,32 @@ def train(
         check_depth(train_samples)
     val_samples = load_split(root, "val")
     test_samples = load_split(root, "test")
-    out.mkdir(parents=True, exist_ok=True)
     threads_before = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads)
-    try:
-        return _run(
-            cfg,
-            root,
-            out,
-            info,
-            sigma,
-            train_samples,
-            val_samples,
-            test_samples,
-            supplements=supplement_meta,
-            refine_extra=refine_extra,
-            refine_supplements=refine_meta,
-            line_extra=line_extra,
-            line_supplements=line_meta,
-            resume=resume,
-            progress=progress,
-        )
-    finally:
-        torch.set_num_threads(threads_before)
+    with OutputLock(out, command=COMMAND):
+        check_run_folder(out)  # again under the lock: another run may have written there meanwhile
+        out.mkdir(parents=True, exist_ok=True)
+        mark_output(out, COMMAND)
+        torch.set_num_threads(cfg.threads)
+        try:
+            return _run(
+                cfg,
+                root,
+                out,
+                info,
+                sigma,
+                train_samples,
+                val_samples,
+                test_samples,
+                supplements=supplement_meta,
+                refine_extra=refine_extra,
+                refine_supplements=refine_meta,
+                line_extra=line_extra,
+                line_supplements=line_meta,
+                resume=resume,
+                progress=progress,
+            )
+        finally:
+            torch.set_num_threads(threads_before)
 
 
 def supplement_images(

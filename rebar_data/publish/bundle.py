@@ -4,7 +4,8 @@ The bundle holds the ready-to-train Parquet shards (Hugging Face layout, images 
 card (``README.md``), Croissant metadata (``croissant.json``), the YOLO and COCO views, the full source
 tables, the build's ``meta/info.json``, the audit report and ``SHA256SUMS``. Only a dataset that
 validates and passes its audit is published. Like a build, the bundle is written to a staging folder
-and renamed into place, so an interrupted publish never leaves a folder that looks finished.
+and swapped into place, so an interrupted publish never leaves a folder that looks finished; an existing
+``--out`` is replaced only when it holds an earlier bundle (and ``--force`` says so), one publish at a time.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import datetime as dt
 import json
 import os
 import shutil
+import tempfile
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -22,10 +24,12 @@ from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
 from rebar_data.dataset.writers.manifest import sha256_file
+from rebar_data.outputs import OutputLock, output_folder, replace_folder
 from rebar_data.publish.card import LICENSES, citation, dataset_card, license_url
 from rebar_data.publish.croissant import croissant_metadata
 from rebar_data.publish.rows import write_shards
 
+COMMAND = "rebar dataset publish"
 CARD = "README.md"
 CROISSANT = "croissant.json"
 CHECKSUMS = "SHA256SUMS"
@@ -152,6 +156,27 @@ def write_checksums(bundle: Path) -> int:
     return len(lines)
 
 
+def is_bundle(folder: Path) -> bool:
+    """``folder`` holds a bundle `rebar dataset publish` wrote: its card, Croissant file and checksums, the
+    checksums listing the Croissant file."""
+    sums = folder / CHECKSUMS
+    try:
+        listed = f"  {CROISSANT}\n" in sums.read_text()
+    except (OSError, UnicodeDecodeError):
+        return False
+    return listed and (folder / CROISSANT).is_file() and (folder / CARD).is_file()
+
+
+def check_out(out: Path, *, force: bool) -> Path:
+    """``out`` as a bundle may be written there: new, empty, or (with ``force``) an earlier bundle."""
+    output_folder(out, arg="--out", command=COMMAND, owned=is_bundle, swapped=True)
+    if out.exists() and any(out.iterdir()) and not force:
+        raise ConfigError(
+            f"--out {out}: holds an earlier bundle; accepted: --force to replace it, or a new folder"
+        )
+    return out
+
+
 def publish_dataset(
     dataset: str | Path,
     out: str | Path,
@@ -166,7 +191,7 @@ def publish_dataset(
     Args:
         license_id: a Hugging Face license id (see ``card.LICENSES``).
         maps: also ship the depth and instance maps (as PNG files).
-        force: replace ``out`` when it exists.
+        force: replace ``out`` when it holds an earlier bundle (a folder holding anything else is refused).
         allow_failed_audit: publish a dataset whose audit failed (the card says so).
     """
     src = Path(dataset).resolve()
@@ -175,16 +200,24 @@ def publish_dataset(
         raise ConfigError(f"--license {license_id}: unknown; accepted: {', '.join(LICENSES)}")
     if out == src or src in out.parents or out in src.parents:
         raise ConfigError(f"--out {out}: inside or around the dataset; accepted: a folder outside {src}")
-    if out.exists() and any(out.iterdir()) and not force:
-        raise ConfigError(
-            f"{out} already exists and is not empty; accepted: --force to replace it, or a new folder"
-        )
+    check_out(out, force=force)
     info, audit = check_source(src, allow_failed_audit=allow_failed_audit)
+    with OutputLock(out, command=COMMAND):
+        check_out(out, force=force)  # again under the lock: another publish may have finished meanwhile
+        staging = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
+        try:
+            _write_bundle(src, staging, info, audit, license_id=license_id, maps=maps)
+            replace_folder(staging, out)
+        except BaseException:
+            shutil.rmtree(staging, ignore_errors=True)
+            raise
+    return out
 
-    staging = out.parent / f".{out.name}.partial"
-    if staging.exists():
-        shutil.rmtree(staging)
-    staging.mkdir(parents=True)
+
+def _write_bundle(
+    src: Path, staging: Path, info: DatasetInfo, audit: dict, *, license_id: str, maps: bool
+) -> None:
+    """Every file of the bundle of ``src`` into the empty folder ``staging``."""
     samples = pq.read_table(src / layout.SAMPLES)
     keypoints = pq.read_table(src / layout.KEYPOINTS)
     shards = write_shards(src, staging, samples, keypoints)
@@ -219,7 +252,3 @@ def publish_dataset(
     )
     (staging / CROISSANT).write_text(json.dumps(croissant, indent=2) + "\n")
     write_checksums(staging)
-    if out.exists():
-        shutil.rmtree(out)
-    staging.rename(out)
-    return out

@@ -49,10 +49,18 @@ def add_commands(dsub: argparse._SubParsersAction) -> None:
     p.add_argument(
         "path", help="a built dataset folder such as data/smoke/v0.1.0 (validated and audited first)"
     )
-    p.add_argument("--out", required=True, help="folder to write the bundle to (printed last)")
+    p.add_argument(
+        "--out",
+        required=True,
+        help="folder to write the bundle to (printed last): new, empty, or an earlier bundle with --force",
+    )
     p.add_argument("--license", default="cc-by-4.0", choices=list(LICENSES), help="license of the data")
     p.add_argument("--maps", action="store_true", help="also ship the depth and instance maps")
-    p.add_argument("--force", action="store_true", help="replace --out when it exists")
+    p.add_argument(
+        "--force",
+        action="store_true",
+        help="replace --out when it holds an earlier bundle (a folder holding anything else is refused)",
+    )
     p.add_argument(
         "--allow-failed-audit",
         action="store_true",

@@ -12,9 +12,11 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pyarrow as pa
 import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError, NonNegative, Strict, read_yaml, validate
+from rebar_data.outputs import input_folder
 
 DEFAULT_THRESHOLDS = Path(__file__).resolve().parents[2] / "eval" / "thresholds.yaml"
 
@@ -86,12 +88,18 @@ def _measures(rows: list[dict]) -> dict[str, float]:
 
 def check_run(run_dir: str | Path, thresholds: Thresholds) -> tuple[list[str], list[str]]:
     """Lines describing each mode, and one line per bar that fails (empty when everything holds)."""
-    run = Path(run_dir)
+    run = input_folder(run_dir, arg="run", what="a folder written by `rebar servo run`")
     for name in ("episodes.parquet", "summary.json"):
         if not (run / name).exists():
             raise ConfigError(f"{run}: no {name}; accepted: a folder written by `rebar servo run`")
-    suite = json.loads((run / "summary.json").read_text())["suite"]
-    rows = pq.read_table(run / "episodes.parquet").to_pylist()
+    try:
+        suite = json.loads((run / "summary.json").read_bytes())["suite"]
+        rows = pq.read_table(run / "episodes.parquet").to_pylist()
+    except (OSError, ValueError, KeyError, TypeError, pa.ArrowException) as e:
+        raise ConfigError(
+            f"{run}: its summary.json or episodes.parquet cannot be read ({type(e).__name__}); accepted: a "
+            "folder written by `rebar servo run`"
+        ) from None
     bars = thresholds.for_suite(suite)
     info, failures = [], []
     for mode in ("ibvs", "pbvs"):

@@ -5,6 +5,10 @@ from __future__ import annotations
 import argparse
 import sys
 
+from rebar_data.cli import bounded
+
+EPISODES = bounded(int, 1)
+
 
 def run_servo(args: argparse.Namespace) -> int:
     from rebar_data.servo.run import run_suite
@@ -42,8 +46,15 @@ def register(sub: argparse._SubParsersAction) -> None:
         "run", help="run a suite: episodes.parquet, steps.parquet, summary.json, report.md, .rrd"
     )
     r.add_argument("suite", help="suite YAML, such as eval/ci.yaml")
-    r.add_argument("--out", required=True, help="output folder (replaced when it exists)")
-    r.add_argument("--episodes", type=int, default=None, help="run only the first N episodes")
+    r.add_argument(
+        "--out",
+        required=True,
+        help="output folder: new, empty, or an earlier run's, which is replaced whole (any other folder is "
+        "refused)",
+    )
+    r.add_argument(
+        "--episodes", type=EPISODES, default=None, help=f"run only the first N episodes (N: {EPISODES})"
+    )
     r.add_argument("--quiet", action="store_true", help="no progress lines")
     r.set_defaults(func=run_servo)
     c = ss.add_parser("check", help="compare a run with the regression bars; exit 1 on a regression")

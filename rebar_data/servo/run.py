@@ -2,15 +2,15 @@
 
 ``DIR/episodes.parquet`` (one row per target visit), ``DIR/steps.parquet`` (one row per control step),
 ``DIR/summary.json``, ``DIR/report.md`` with its plots, and ``DIR/episode_<k>.rrd`` Rerun recordings.
-Outputs are written to a temporary folder beside ``DIR`` and renamed into place at the end, so an
-interrupted run never leaves a folder that looks finished.
+Outputs are written to a temporary folder beside ``DIR`` and swapped into place at the end, so an
+interrupted run never leaves a folder that looks finished. An existing ``DIR`` is replaced only when it is
+an earlier run's (its mark, or summary.json and episodes.parquet); anything else there is refused.
 """
 
 from __future__ import annotations
 
 import json
 import platform
-import shutil
 import sys
 import tempfile
 import time
@@ -23,6 +23,7 @@ import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset.config import load_pipeline
+from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_folder
 from rebar_data.servo.camera import CameraModel
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.detectors import GroundTruthDetector, load_shipped_detector
@@ -33,6 +34,18 @@ from rebar_data.servo.world import ServoWorld, build_world_mesh, check_reachable
 
 RANDOM_EPISODE_OFFSET = 1000
 MAX_START_DRAWS = 50
+COMMAND = "rebar servo run"
+
+
+def is_run_folder(folder: Path) -> bool:
+    """``folder`` has an earlier run's layout (runs written before they carried a mark)."""
+    return (folder / "summary.json").is_file() and (folder / "episodes.parquet").is_file()
+
+
+def check_out(out: str | Path) -> Path:
+    """``out`` as a run may write it: new, empty, or an earlier run's folder (its inputs are files, which
+    a folder never overwrites)."""
+    return output_folder(out, arg="--out", command=COMMAND, owned=is_run_folder, swapped=True)
 
 
 def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> ServoContext:
@@ -128,11 +141,17 @@ def run_suite(
     progress: bool = True,
     limit_episodes: int | None = None,
 ) -> dict:
-    """Run every episode of a suite and write the outputs to ``out``; returns the summary."""
+    """Run every episode of a suite and write the outputs to ``out``; returns the summary.
+
+    ``out`` is replaced only when it is an earlier run's folder (see :func:`check_out`); ``limit_episodes``
+    runs the first episodes only (1 or more).
+    """
+    if limit_episodes is not None and limit_episodes < 1:
+        raise ConfigError(f"--episodes {limit_episodes}: runs nothing; accepted: an integer >= 1")
+    out = check_out(out)
     suite = load_suite(suite_path)
     # the pipeline the world's mesh comes from is checked whole before anything is written
     load_pipeline(resolve_path(suite.world.mesh_config, suite_path))
-    out = Path(out)
     t0 = time.perf_counter()
     ctx = build_context(suite, suite_path)
     try:
@@ -147,7 +166,12 @@ def _run_episodes(suite, ctx, out: Path, t0: float, recorder_factory, progress: 
     if limit_episodes is not None:
         plan = plan[:limit_episodes]
     # only now, with the model loaded and every start pose reachable, does the run write anything
-    out.parent.mkdir(parents=True, exist_ok=True)
+    with OutputLock(out, command=COMMAND):
+        check_out(out)  # again under the lock: another writer may have finished there meanwhile
+        return _write_run(suite, ctx, plan, out, t0, recorder_factory, progress)
+
+
+def _write_run(suite, ctx, plan, out: Path, t0: float, recorder_factory, progress: bool) -> dict:
     with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.tmp-") as tmp:
         tmpdir = Path(tmp) / "run"
         tmpdir.mkdir()
@@ -171,9 +195,8 @@ def _run_episodes(suite, ctx, out: Path, t0: float, recorder_factory, progress: 
                 rec.close()
             bar(k, results[-1])
         summary = write_outputs(suite, ctx, results, tmpdir, wall_s=time.perf_counter() - t0)
-        if out.exists():
-            shutil.rmtree(out)
-        tmpdir.rename(out)
+        mark_output(tmpdir, COMMAND)
+        replace_folder(tmpdir, out)
     return summary
 
 

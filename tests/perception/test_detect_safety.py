@@ -1,0 +1,148 @@
+"""`rebar detect`: never writes into its input or over what it did not write, and reads past a bad image."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pyarrow as pa
+import pyarrow.parquet as pq
+import pytest
+
+from rebar_data.cli import main
+from rebar_data.outputs import OWNER_FILE
+from rebar_data.perception.evaluate import load_splits
+from tests.read_only import read_only_fixture  # noqa: F401  (the read_only fixture)
+
+from .conftest import shipped_model_copy
+
+
+@pytest.fixture
+def model(tmp_path):
+    (tmp_path / "model").mkdir()
+    return shipped_model_copy(tmp_path / "model")
+
+
+@pytest.fixture
+def photos(drawn_dataset, tmp_path):
+    """A folder of three photographs (drawn dataset frames)."""
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for s in load_splits(drawn_dataset)[:3]:
+        shutil.copy(s.path, folder / s.path.name)
+    return folder
+
+
+def _snapshot(folder):
+    return {p.name: p.read_bytes() for p in sorted(folder.iterdir())}
+
+
+def _one_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and err.startswith("error: "), err
+    return err
+
+
+def test_out_in_the_input_is_refused_and_the_photographs_kept(photos, model, capsys):
+    before = _snapshot(photos)
+    for out in (photos, photos / "overlays"):
+        assert main(["detect", str(photos), "--out", str(out), "--model", str(model)]) == 2
+        err = _one_line(capsys)
+        assert "--out" in err and "lies in the input" in err, err
+        assert _snapshot(photos) == before
+    one = sorted(photos.iterdir())[0]
+    assert main(["detect", str(one), "--out", str(photos), "--model", str(model)]) == 2
+    assert "--out" in _one_line(capsys)
+    assert _snapshot(photos) == before
+
+
+def test_an_images_out_is_replaced_only_when_detect_wrote_it(photos, model, tmp_path, capsys):
+    user = tmp_path / "user"
+    user.mkdir()
+    (user / "holiday.png").write_bytes(b"a photograph")
+    assert main(["detect", str(photos), "--out", str(user), "--model", str(model)]) == 2
+    assert "did not write" in _one_line(capsys)
+    assert _snapshot(user) == {"holiday.png": b"a photograph"}
+
+    out = tmp_path / "overlays"
+    assert main(["detect", str(photos), "--out", str(out), "--model", str(model), "--quiet"]) == 0
+    assert json.loads((out / OWNER_FILE).read_text())["command"] == "rebar detect"
+    (out / "stale.png").write_bytes(b"from an earlier run")
+    assert main(["detect", str(photos), "--out", str(out), "--model", str(model), "--quiet"]) == 0
+    assert not (out / "stale.png").exists() and len(list(out.glob("*.png"))) == 3
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model", "overlays", "photos", "user"]
+
+    f = tmp_path / "overlays.txt"
+    f.write_text("notes")
+    capsys.readouterr()
+    assert main(["detect", str(photos), "--out", str(f), "--model", str(model)]) == 2
+    assert "is a file" in _one_line(capsys) and f.read_text() == "notes"
+
+
+def test_a_read_only_out_is_one_line(photos, model, tmp_path, capsys, read_only):
+    ro = read_only(tmp_path / "ro")
+    assert main(["detect", str(photos), "--out", str(ro / "overlays"), "--model", str(model)]) == 2
+    assert "not writable" in _one_line(capsys)
+    assert main(["detect", str(photos), "--out", str(ro), "--model", str(model)]) == 2
+    assert "not writable" in _one_line(capsys)
+    assert list(ro.iterdir()) == []
+
+
+def test_an_unreadable_image_is_named_and_the_rest_are_detected(photos, model, tmp_path, capsys):
+    names = sorted(p.name for p in photos.iterdir())
+    broken = photos / names[1]
+    broken.write_bytes(b"\x89PNG\r\n\x1a\n not really")  # the second of three
+    out = tmp_path / "overlays"
+    assert main(["detect", str(photos), "--out", str(out), "--model", str(model), "--threshold", "0.01"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert sum(names[1] in line for line in err) == 1, err
+    assert err[-1] == "error: 1 of 3 images could not be read", err
+    stems = {n.rsplit(".", 1)[0] for n in names}
+    good = stems - {names[1].rsplit(".", 1)[0]}
+    assert set(json.loads((out / "cameras.json").read_text())) == good
+    assert {p.stem for p in out.glob("*.png")} == good
+    ids = set(pq.read_table(out / "detections.parquet").column("image_id").to_pylist())
+    assert ids and ids <= good
+
+
+def test_dataset_outputs_are_checked_before_any_work(drawn_dataset, model, tmp_path, capsys, read_only):
+    def detect(*args: str) -> int:
+        return main(["detect", str(drawn_dataset), "--model", str(model), "--no-depth", "--quiet", *args])
+
+    folder = tmp_path / "pred.parquet"
+    folder.mkdir()
+    assert detect("--out", str(folder)) == 2
+    assert "--out" in (err := _one_line(capsys)) and "is a folder" in err, err
+    assert detect("--out", str(tmp_path / "p.parquet"), "--metrics", str(tmp_path)) == 2
+    assert "--metrics" in (err := _one_line(capsys)) and "is a folder" in err, err
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    assert detect("--out", str(blocker / "p.parquet")) == 2
+    assert "--out" in _one_line(capsys)
+    ro = read_only(tmp_path / "ro")
+    assert detect("--out", str(ro / "p.parquet")) == 2
+    assert "--out" in (err := _one_line(capsys)) and "not writable" in err, err
+    assert detect("--out", str(drawn_dataset / "pred.parquet")) == 2
+    assert "lies in the input" in _one_line(capsys)
+    assert not (drawn_dataset / "pred.parquet").exists()
+
+    theirs = tmp_path / "theirs.parquet"
+    pq.write_table(pa.table({"id": [1, 2], "label": ["a", "b"]}), theirs)
+    notes = tmp_path / "notes.json"
+    notes.write_text('{"mine": true}\n')
+    assert detect("--out", str(theirs)) == 2
+    assert "--out" in (err := _one_line(capsys)) and "did not write" in err, err
+    assert pq.read_table(theirs).column_names == ["id", "label"]
+    out, metrics = tmp_path / "p.parquet", tmp_path / "m.json"
+    assert detect("--out", str(out), "--metrics", str(notes)) == 2
+    assert "--metrics" in (err := _one_line(capsys)) and "did not write" in err, err
+    assert notes.read_text() == '{"mine": true}\n' and not out.exists()
+
+    # its own files are replaced, and say who wrote them
+    for _ in range(2):
+        assert detect("--out", str(out), "--metrics", str(metrics), "--split", "val") == 0
+    assert pq.read_schema(out).metadata[b"written_by"] == b"rebar detect"
+    assert json.loads(metrics.read_text())["written_by"] == "rebar detect"
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "file", "m.json", "model", "notes.json", "p.parquet", "pred.parquet", "ro", "theirs.parquet"
+    ]  # fmt: skip
