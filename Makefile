@@ -29,9 +29,10 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --upgrade pip
 	# torch first: the CPU wheel, so that the package's torch requirement never pulls a CUDA build
 	$(PY) -m pip install -q torch==2.13.0
-	# the ray extra too: the tests prove the Ray backend builds what the local one does; and cycles
-	# (Blender's bpy, a 519 MB wheel): the tests render with it and score the shipped detector on its frames
-	$(PY) -m pip install -q -e ".[dev,ray,cycles]"
+	# the ray extra too: the tests prove the Ray backend builds what the local one does; cycles
+	# (Blender's bpy, a 519 MB wheel): the tests render with it and score the shipped detector on its frames;
+	# and ifc (IfcOpenShell): the tests write and read IFC rebar models
+	$(PY) -m pip install -q -e ".[dev,ray,cycles,ifc]"
 	@touch $(STAMP)
 
 $(DATA):
