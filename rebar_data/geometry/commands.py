@@ -27,6 +27,19 @@ def is_mesh_recording(path: Path) -> bool:
     return head.startswith(b"RRF") and RECORDING_ID in head
 
 
+def require_ifcopenshell(what: str) -> None:
+    """IfcOpenShell (the ``ifc`` extra) is installed, or one line saying how to install it."""
+    from rebar_data.config import ConfigError
+
+    try:
+        import ifcopenshell  # noqa: F401
+    except ImportError:
+        raise ConfigError(
+            f"{what} needs IfcOpenShell, which is not installed; accepted: install it with "
+            '`pip install -e ".[ifc]"` (make setup does)'
+        ) from None
+
+
 def run_mesh(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError
     from rebar_data.dataset.config import load_mesh_config
@@ -48,6 +61,23 @@ def run_mesh(args: argparse.Namespace) -> None:
         )
         if rrd.suffix != ".rrd":
             raise ConfigError(f"--rrd {rrd}: is not a .rrd file name; accepted: a file name ending in .rrd")
+    ifc = None
+    if args.ifc:
+        require_ifcopenshell("--ifc")
+        from rebar_data.geometry.ifc_write import is_mesh_ifc
+
+        ifc = output_file(
+            args.ifc,
+            arg="--ifc",
+            what="a .ifc file, new or an earlier `rebar mesh` IFC file",
+            owned=is_mesh_ifc,
+        )
+        if ifc.suffix.lower() != ".ifc":
+            raise ConfigError(f"--ifc {ifc}: is not a .ifc file name; accepted: a file name ending in .ifc")
+        if ifc.absolute().is_relative_to(out.absolute()):
+            raise ConfigError(
+                f"--ifc {ifc}: lies in --out {out}, which is replaced whole; accepted: a path outside --out"
+            )
     cfg = load_mesh_config(args.config)
     rm = build_rebar_mesh(cfg)
     with OutputLock(out, command=COMMAND):
@@ -63,6 +93,11 @@ def run_mesh(args: argparse.Namespace) -> None:
 
         with OutputLock(rrd, command=COMMAND, arg="--rrd"):
             write_mesh_recording(rm, rrd)
+    if ifc is not None:
+        from rebar_data.geometry.ifc_write import write_ifc
+
+        with OutputLock(ifc, command=COMMAND, arg="--ifc"):
+            write_ifc(rm, ifc, project_name=Path(args.config).stem)
     print(
         f"{len(rm.bars)} bars, {len(rm.crossings)} crossings, {len(rm.mesh.faces)} triangles", file=sys.stderr
     )
@@ -80,5 +115,10 @@ def register(sub: argparse._SubParsersAction) -> None:
     m.add_argument(
         "--rrd",
         help="also write a Rerun recording of the mesh and crossings (a new .rrd file, or an earlier one)",
+    )
+    m.add_argument(
+        "--ifc",
+        help="also write the bars as an IFC4 file (IfcReinforcingBar, swept disk solids; no tie wire), a new "
+        ".ifc file or an earlier one; needs the ifc extra",
     )
     m.set_defaults(func=run_mesh)
