@@ -121,6 +121,69 @@ class TunnelSegmentMesh(MeshBase):
         return self.extrados_arc_m / self.angle_rad
 
 
+_GLOBAL_ID = re.compile(r"^[0-9A-Za-z_$]{22}$")
+_IFC_CLASS = re.compile(r"^Ifc[A-Za-z0-9]+$")
+
+
+class IfcMesh(Strict):
+    """Bars read from an IFC building model: each IfcSweptDiskSolid of a selected element is one bar.
+
+    ``ifc_path`` is read relative to the pipeline file. The filters narrow the elements: ``ifc_classes``
+    (the element classes taken, subclasses included), ``storeys`` (names or GlobalIds of the storeys that
+    contain them), ``global_ids`` (the elements themselves) and ``bbox_m`` (``[[x, y, z], [x, y, z]]``, the
+    model's world frame in metres: bars whose centerline passes through the box, kept whole). A bar without
+    a centerline the reader understands stops the build, unless ``skip_unreadable`` lets it go on (the bars
+    left out are listed in mesh.json). Two bars cross where their centerlines come within the two radii
+    plus ``crossing_tolerance_m`` at an angle of at least ``min_crossing_angle_deg`` (lapped bars run side
+    by side and do not cross).
+    """
+
+    kind: Literal["ifc"]
+    ifc_path: Annotated[str, Field(min_length=1)]
+    ifc_classes: list[str] = Field(
+        default_factory=lambda: ["IfcReinforcingBar", "IfcReinforcingMesh"], min_length=1
+    )
+    storeys: Annotated[list[str], Field(min_length=1)] | None = None
+    global_ids: Annotated[list[str], Field(min_length=1)] | None = None
+    bbox_m: tuple[Vec3, Vec3] | None = None
+    skip_unreadable: bool = False
+    crossing_tolerance_m: NonNegative = 0.005
+    min_crossing_angle_deg: Annotated[float, Field(gt=0, le=90)] = 10.0
+
+    @model_validator(mode="after")
+    def _names(self) -> IfcMesh:
+        for i, name in enumerate(self.ifc_classes):
+            if not _IFC_CLASS.match(name):
+                raise ValueError(
+                    f"ifc_classes[{i}] = {name!r} is not an IFC class name; accepted: names such as "
+                    "IfcReinforcingBar, IfcReinforcingMesh, IfcTendon"
+                )
+        for i, gid in enumerate(self.global_ids or []):
+            if not _GLOBAL_ID.match(gid):
+                raise ValueError(
+                    f"global_ids[{i}] = {gid!r} is not a GlobalId; accepted: 22 characters of 0-9, A-Z, a-z, "
+                    "_ and $ (IFC's compressed GUID)"
+                )
+        if self.bbox_m is not None and not all(a < b for a, b in zip(*self.bbox_m, strict=True)):
+            raise ValueError(
+                f"bbox_m = {[list(c) for c in self.bbox_m]} is not accepted: its first corner must be below "
+                "its second on every axis ([[x_min, y_min, z_min], [x_max, y_max, z_max]])"
+            )
+        return self
+
+    def path(self, config_dir: Path | None) -> Path:
+        """The IFC file: ``ifc_path`` as given when absolute, else relative to the pipeline's folder."""
+        p = Path(self.ifc_path).expanduser()
+        if p.is_absolute():
+            return p
+        if config_dir is None:
+            raise ConfigError(
+                f"mesh.ifc_path = {self.ifc_path!r} is relative to the pipeline file, which this command "
+                "does not know; accepted: an absolute path here"
+            )
+        return Path(config_dir) / p
+
+
 def _check_fits(spacing_name: str, spacing: float, extent_name: str, extent: float, end_cover: float) -> None:
     usable = extent - 2 * end_cover
     if spacing > usable:
@@ -170,7 +233,7 @@ class MeshConfig(Strict):
     """What ``rebar mesh`` needs: the grid, its realism options, its pose and the seed."""
 
     seed: Annotated[int, Field(ge=0)] = 0
-    mesh: Annotated[PlanarMesh | TunnelSegmentMesh, Field(discriminator="kind")]
+    mesh: Annotated[PlanarMesh | TunnelSegmentMesh | IfcMesh, Field(discriminator="kind")]
     realism: Realism = Realism()
     pose: Pose = Pose()
 
@@ -248,7 +311,7 @@ def _lookup(data: Any, path: list) -> Any:
 
 
 # values of the ``kind`` discriminators; pydantic puts the chosen one into error locations
-UNION_TAGS = {"planar", "tunnel_segment", "orbit_arc", "straight_pass", "approach", "random_look_at"}
+UNION_TAGS = {"planar", "tunnel_segment", "ifc", "orbit_arc", "straight_pass", "approach", "random_look_at"}
 
 
 def _is_union_tag(x: object) -> bool:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import cached_property
+from pathlib import Path
 
 import numpy as np
 import trimesh
@@ -46,9 +47,28 @@ class RebarMesh:
         return self.part_bar_id[self.triangle_part_id]
 
 
-def build_rebar_mesh(cfg: MeshConfig) -> RebarMesh:
+def build_rebar_mesh(cfg: MeshConfig, *, config_dir: Path | None = None) -> RebarMesh:
+    """The mesh ``cfg`` describes. ``config_dir``: the pipeline file's folder, which a relative
+    ``mesh.ifc_path`` is read from."""
+    if cfg.mesh.kind == "ifc":
+        return _build_ifc_mesh(cfg, config_dir)
     layout = build_layout(cfg)
     crossings = find_crossings(layout, cfg.mesh.crossing_tolerance_m)
     parts = build_parts(layout.bars, crossings, cfg.realism, layout.rngs["tie_wire"])
+    mesh, part_of_tri = merge(parts)
+    return RebarMesh(cfg, layout, crossings, parts, mesh, part_of_tri)
+
+
+def _build_ifc_mesh(cfg: MeshConfig, config_dir: Path | None) -> RebarMesh:
+    """Bars read from an IFC model: the same tube sweep for every piece (a ball at each sharp joint of a
+    bar's pieces, so a polyline stirrup's corners are solid) and the same exact solver for the crossings."""
+    from rebar_data.geometry.crossings import find_piece_crossings
+    from rebar_data.geometry.ifc_read import ifc_layout
+    from rebar_data.geometry.solids import joint_balls
+
+    layout = ifc_layout(cfg, config_dir)
+    crossings = find_piece_crossings(layout, cfg.mesh.crossing_tolerance_m, cfg.mesh.min_crossing_angle_deg)
+    parts = build_parts(layout.bars, crossings, cfg.realism, layout.rngs["tie_wire"])
+    parts += joint_balls(layout.bars, first_part_id=len(parts))
     mesh, part_of_tri = merge(parts)
     return RebarMesh(cfg, layout, crossings, parts, mesh, part_of_tri)

@@ -45,7 +45,13 @@ def run_mesh(args: argparse.Namespace) -> None:
     from rebar_data.dataset.config import load_mesh_config
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.geometry.export import write_mesh_outputs
-    from rebar_data.outputs import OutputLock, mark_output, output_file, output_folder, replace_folder
+    from rebar_data.outputs import (
+        OutputLock,
+        mark_output,
+        output_file,
+        output_folder,
+        replace_folder,
+    )
 
     def check_out() -> Path:
         return output_folder(args.out, arg="--out", command=COMMAND, owned=is_mesh_folder, swapped=True)
@@ -79,7 +85,20 @@ def run_mesh(args: argparse.Namespace) -> None:
                 f"--ifc {ifc}: lies in --out {out}, which is replaced whole; accepted: a path outside --out"
             )
     cfg = load_mesh_config(args.config)
-    rm = build_rebar_mesh(cfg)
+    config_dir = Path(args.config).parent
+    if cfg.mesh.kind == "ifc":
+        require_ifcopenshell("mesh.kind: ifc")
+        source = cfg.mesh.path(config_dir)
+        if source.resolve().is_relative_to(out.resolve()):
+            raise ConfigError(
+                f"--out {out}: holds the model mesh.ifc_path reads ({source}), and it would be replaced; "
+                "accepted: a folder that does not hold the input"
+            )
+        if ifc is not None and ifc.resolve() == source.resolve():
+            raise ConfigError(
+                f"--ifc {ifc}: is the model mesh.ifc_path reads, which it would overwrite; accepted: another file"
+            )
+    rm = build_rebar_mesh(cfg, config_dir=config_dir)
     with OutputLock(out, command=COMMAND):
         check_out()  # again under the lock: another writer may have finished there meanwhile
         # write beside the target and swap, so an interrupted run never leaves a folder that looks finished
@@ -98,8 +117,14 @@ def run_mesh(args: argparse.Namespace) -> None:
 
         with OutputLock(ifc, command=COMMAND, arg="--ifc"):
             write_ifc(rm, ifc, project_name=Path(args.config).stem)
+    n_bars = len({b.bar_id for b in rm.bars})
+    skipped = len(rm.layout.ifc.skipped) if rm.layout.ifc is not None else 0
     print(
-        f"{len(rm.bars)} bars, {len(rm.crossings)} crossings, {len(rm.mesh.faces)} triangles", file=sys.stderr
+        f"{n_bars} bars, {len(rm.crossings)} crossings, {len(rm.mesh.faces)} triangles"
+        + (
+            f"; {skipped} IFC element{'s' * (skipped != 1)} not read (listed in mesh.json)" if skipped else ""
+        ),
+        file=sys.stderr,
     )
     print(out)
 

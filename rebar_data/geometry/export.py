@@ -70,7 +70,13 @@ def bars_table(rm: RebarMesh) -> pa.Table:
             ("sweep_rad", pa.float64()),
         ]
     )
-    return pa.table(cols, schema=schema)
+    table = pa.table(cols, schema=schema)
+    src = rm.layout.ifc
+    if src is not None:  # read from IFC: where each piece comes from
+        table = table.append_column("piece", pa.array(src.piece, pa.int16()))
+        table = table.append_column("global_id", pa.array(src.global_id, pa.string()))
+        table = table.append_column("ifc_class", pa.array(src.ifc_class, pa.string()))
+    return table
 
 
 def crossings_table(rm: RebarMesh) -> pa.Table:
@@ -95,6 +101,11 @@ def crossings_table(rm: RebarMesh) -> pa.Table:
     for name, pts in (("a", c.point_a), ("b", c.point_b)):
         for k, ax in enumerate("xyz"):
             cols[f"{ax}_{name}"] = pa.array(pts[:, k])
+    src = rm.layout.ifc
+    if src is not None:  # read from IFC: the two bars' GlobalIds
+        gid = np.array(src.global_id, dtype=object)
+        cols["global_id_a"] = pa.array(gid[c.piece_a].tolist() if n else [], pa.string())
+        cols["global_id_b"] = pa.array(gid[c.piece_b].tolist() if n else [], pa.string())
     return pa.table(cols)
 
 
@@ -137,4 +148,15 @@ def write_mesh_outputs(rm: RebarMesh, out: Path) -> None:
         "seed": rm.config.seed,
         "config": rm.config.model_dump(mode="json"),
     }
+    src = rm.layout.ifc
+    if src is not None:  # read from IFC: bars are counted whole; the pieces, the file and what was left out
+        summary["bars"] = len({b.bar_id for b in rm.bars})
+        summary["centerline_pieces"] = len(rm.bars)
+        summary["ifc"] = {
+            "path": src.path,
+            "sha256": src.sha256,
+            "schema": src.schema,
+            "elements": src.elements,
+            "skipped": src.skipped,
+        }
     (out / "mesh.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")

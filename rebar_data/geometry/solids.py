@@ -100,7 +100,10 @@ def tube(
 
 def tie_wire(crossings: Crossings, index: int, bars: list[Bar], wire_diameter: float) -> trimesh.Trimesh:
     """A torus of wire looped diagonally around the two bars of one crossing."""
-    a, b = bars[crossings.bar_a[index]], bars[crossings.bar_b[index]]
+    if crossings.piece_a is not None:  # bars of several pieces: the pieces the crossing lies on
+        a, b = bars[crossings.piece_a[index]], bars[crossings.piece_b[index]]
+    else:
+        a, b = bars[crossings.bar_a[index]], bars[crossings.bar_b[index]]
     n = crossings.normal[index]
     ta = a.curve.tangent(a.curve.project(crossings.point_a[index]))
     tb = b.curve.tangent(b.curve.project(crossings.point_b[index]))
@@ -162,3 +165,19 @@ def merge(parts: list[Part]) -> tuple[trimesh.Trimesh, np.ndarray]:
         part_of_tri[run_index[k] // 3 : run_index[k + 1] // 3] = id_to_part[int(orig)]
     mesh = trimesh.Trimesh(np.asarray(g.vert_properties, np.float64)[:, :3], faces, process=False)
     return mesh, part_of_tri
+
+
+def joint_balls(pieces: list[Bar], *, first_part_id: int, smooth_cos: float = 1.0 - 1e-9) -> list[Part]:
+    """A ball of the bar's radius where two consecutive pieces of one bar meet at an angle (a polyline's
+    corner), filling the wedge their flat end caps leave open. Smooth joints (a bend's arc) need none."""
+    parts = []
+    for prev, cur in zip(pieces, pieces[1:], strict=False):
+        if prev.bar_id != cur.bar_id:
+            continue
+        a, b = prev.curve, cur.curve
+        if np.dot(a.tangent(a.length), b.tangent(0.0)) >= smooth_cos:
+            continue
+        ball = mf.Manifold.sphere(prev.radius_m / np.cos(np.pi / RING_SIDES), RING_SIDES)
+        mesh = _to_trimesh(ball.translate(tuple(float(x) for x in a.end)))
+        parts.append(Part(first_part_id + len(parts), "bar", prev.bar_id, -1, mesh))
+    return parts

@@ -38,6 +38,22 @@ class Bar:
 
 
 @dataclass(frozen=True)
+class IfcSource:
+    """Where the pieces of a mesh read from IFC come from: one entry per piece of ``MeshLayout.bars``
+    (a bar of several pieces repeats its ``bar_id``), and what the reader left out."""
+
+    path: str
+    sha256: str  # of the file read
+    schema: str
+    elements: int  # elements the filters selected
+    global_id: list[str]
+    ifc_class: list[str]
+    piece: list[int]  # index of the piece along its bar
+    role: list[str | None]
+    skipped: list[dict] = field(default_factory=list)  # global_id, ifc_class, reason
+
+
+@dataclass(frozen=True)
 class MeshLayout:
     """The bars of a mesh in the world, with the pose that put them there and the element's normals."""
 
@@ -46,6 +62,7 @@ class MeshLayout:
     kind: str
     axis_point: np.ndarray | None = None  # tunnel only, in the mesh frame
     rngs: dict[str, np.random.Generator] = field(default_factory=dict, repr=False)
+    ifc: IfcSource | None = None  # a mesh read from IFC (kind "ifc")
 
     def outward_normal(self, points_world: np.ndarray) -> np.ndarray:
         """Outward unit normal of the element's surface at (or beside) world points, shape (N, 3)."""
