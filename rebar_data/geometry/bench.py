@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 
-from rebar_data.config import PAPER_PIPELINE
+from rebar_data.config import PAPER_PIPELINE, MeshConfig
 from rebar_data.dataset.config import load_mesh_config
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
@@ -36,6 +36,102 @@ def _sampled_crossings(layout, step_m: float, reach_m: float) -> tuple[int, floa
     return n, step_m / 2
 
 
+def tiled_slab_bars(n_bars: int, *, panel_m: float = 5.0, spacing_m: float = 0.2, diameter_m: float = 0.012):
+    """A large floor plate as an IFC model's bars: square panels side by side (``panel_m``, 0.2 m gaps), each
+    with two mats (top and bottom) of straight bars at ``spacing_m`` both ways, until ``n_bars`` bars.
+
+    Returns :class:`~rebar_data.geometry.ifc_write.BarRecord` s for :func:`~rebar_data.geometry.ifc_write.ifc_model`.
+    Each panel crosses only itself: ``(per_panel / 4) ** 2 * 2`` crossings a whole panel.
+    """
+    from rebar_data.geometry.curves import Line
+    from rebar_data.geometry.ifc_write import BarRecord, global_id
+
+    per_mat_dir = int(np.floor((panel_m - 0.1) / spacing_m)) + 1
+    along = (np.arange(per_mat_dir) - (per_mat_dir - 1) / 2.0) * spacing_m
+    half = panel_m / 2.0 - 0.05
+    columns = 10
+    bars = []
+    panel = 0
+    while len(bars) < n_bars:
+        ox, oy = (panel % columns) * (panel_m + 0.2), (panel // columns) * (panel_m + 0.2)
+        for layer, z0 in enumerate((0.1, -0.1)):
+            sign = 1.0 if z0 > 0 else -1.0
+            for direction in (0, 1):
+                z = z0 - sign * direction * diameter_m
+                for u in along:
+                    if len(bars) == n_bars:
+                        break
+                    if direction == 0:
+                        a, b = np.array([ox - half, oy + u, z]), np.array([ox + half, oy + u, z])
+                    else:
+                        a, b = np.array([ox + u, oy - half, z]), np.array([ox + u, oy + half, z])
+                    k = len(bars)
+                    bars.append(
+                        BarRecord(
+                            k, [Line(a, b)], diameter_m, direction, layer, global_id(f"bench/{n_bars}/{k}")
+                        )
+                    )
+        panel += 1
+    return bars
+
+
+def _all_pairs_candidates(layout, pad: float) -> int:
+    """The generated meshes' candidate search (every pair's padded boxes at once): pairs it keeps."""
+    from rebar_data.geometry.crossings import _bounds
+
+    boxes = [_bounds(b, b.radius_m + pad) for b in layout.bars]
+    lo = np.array([bx[0] for bx in boxes]).reshape(-1, 3)
+    hi = np.array([bx[1] for bx in boxes]).reshape(-1, 3)
+    overlap = np.all((lo[:, None, :] <= hi[None, :, :]) & (lo[None, :, :] <= hi[:, None, :]), axis=-1)
+    return int(np.triu(overlap, k=1).sum())
+
+
+def _plate_figures(n_bars: int, folder) -> tuple[str, float, float]:
+    """One floor plate written, read and crossed: its figures' line and the two candidate searches' times."""
+    from rebar_data.config import IfcMesh
+    from rebar_data.geometry.crossings import candidate_pairs, find_piece_crossings
+    from rebar_data.geometry.ifc_read import ifc_layout
+    from rebar_data.geometry.ifc_write import ifc_model
+
+    path = folder / f"plate-{n_bars}.ifc"
+    t0 = time.perf_counter()
+    ifc_model(tiled_slab_bars(n_bars), file_name=path.name).write(str(path))
+    t_write = time.perf_counter() - t0
+    cfg = MeshConfig.model_validate({"mesh": IfcMesh(kind="ifc", ifc_path=str(path)).model_dump()})
+    mesh = cfg.mesh
+    t_read, layout = _timed(lambda: ifc_layout(cfg, None), repeat=1)
+    t_cross, crossings = _timed(
+        lambda: find_piece_crossings(layout, mesh.crossing_tolerance_m, mesh.min_crossing_angle_deg), repeat=1
+    )
+    pads = np.array([b.radius_m for b in layout.bars]) + mesh.crossing_tolerance_m / 2
+    t_tree, (ii, _) = _timed(lambda: candidate_pairs([b.curve for b in layout.bars], pads))
+    t_pairs, n_pairs = _timed(lambda: _all_pairs_candidates(layout, mesh.crossing_tolerance_m / 2), repeat=1)
+    line = (
+        f"IFC floor plate, {n_bars} bars ({path.stat().st_size / 1e6:.1f} MB): write {t_write:.2f} s, read "
+        f"{t_read:.2f} s, crossings {t_cross:.2f} s ({len(crossings)} crossings; candidate pairs: k-d tree "
+        f"{len(ii)} in {t_tree * 1e3:.0f} ms, all-pairs boxes {n_pairs} in {t_pairs * 1e3:.0f} ms)"
+    )
+    return line, t_tree, t_pairs
+
+
+def ifc_bench(n_bars: int = 5000) -> list[str]:
+    """Write an ``n_bars`` floor plate to IFC, read it (``mesh.kind: ifc``) and find its crossings; the k-d tree
+    candidate search against the all-pairs box test, on this model and on one of half the bars."""
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        half_line, half_tree, half_pairs = _plate_figures(n_bars // 2, Path(tmp))
+        line, tree, pairs = _plate_figures(n_bars, Path(tmp))
+    return [
+        half_line,
+        line,
+        f"candidate search, {n_bars // 2} -> {n_bars} bars: k-d tree {tree / half_tree:.1f}x the time, all-pairs "
+        f"boxes {pairs / half_pairs:.1f}x (linear 2x, quadratic 4x); the k-d tree {pairs / tree:.1f}x faster at "
+        f"{n_bars}",
+    ]
+
+
 def run() -> list[str]:
     cfg = load_mesh_config(PAPER_PIPELINE)
     t_layout, layout = _timed(lambda: build_layout(cfg))
@@ -52,4 +148,13 @@ def run() -> list[str]:
         f"analytic crossings vs 5 mm sampling search: {t_naive / t_cross:.1f}x faster "
         f"({t_cross * 1e3:.0f} ms vs {t_naive * 1e3:.0f} ms; {len(crossings)} vs {n_naive} found; "
         f"exact to 1e-15 m vs up to {err * 1e3:.1f} mm off)",
+        *_ifc_lines(),
     ]
+
+
+def _ifc_lines() -> list[str]:
+    try:
+        import ifcopenshell  # noqa: F401
+    except ImportError:
+        return ["IFC floor plate: skipped (IfcOpenShell, the ifc extra, is not installed)"]
+    return ifc_bench()
