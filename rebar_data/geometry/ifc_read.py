@@ -4,7 +4,8 @@ Each IfcSweptDiskSolid in the body of a selected element (IfcReinforcingBar and 
 is one bar. Its directrix becomes centerline pieces: an IfcPolyline gives lines; an IfcTrimmedCurve of an
 IfcCircle (trimmed by parameter in the file's plane angle unit, or by points) or a whole IfcCircle gives an
 arc; an IfcIndexedPolyCurve gives lines for its IfcLineIndex segments and arcs through the three points of its
-IfcArcIndex segments; an IfcCompositeCurve gives its segments' pieces in order. Geometry is taken in the
+IfcArcIndex segments; an IfcCompositeCurve gives its segments' pieces in order; an
+IfcSweptDiskSolidPolygonal's FilletRadius rounds its polyline's corners into arcs. Geometry is taken in the
 file's length unit through the element's IfcLocalPlacement chain and, for an element drawn by its type, the
 IfcMappedItem's MappingTarget after its MappingOrigin, and is turned into metres in the model's one world
 frame. The diameter is twice the solid's Radius (scaled likewise), or the element's or its type's
@@ -298,6 +299,41 @@ def directrix_pieces(curve, angle_rad: float = 1.0) -> list[Curve]:
     raise Unreadable(f"a directrix of {kind}")
 
 
+def filleted(pieces: list[Curve], radius: float) -> list[Curve]:
+    """Consecutive straight pieces with each corner rounded to ``radius`` (IfcSweptDiskSolidPolygonal's
+    FilletRadius): the legs cut back where the arc touches them, the arc turning in their plane."""
+    if radius <= 0.0 or len(pieces) < 2:
+        return pieces
+    if any(c.kind != "line" for c in pieces):
+        raise Unreadable("a FilletRadius on a directrix with arcs")
+    starts = [c.start for c in pieces]
+    ends = [c.end for c in pieces]
+    arcs: list[Arc | None] = []
+    for k in range(len(pieces) - 1):
+        u, v = pieces[k].direction, pieces[k + 1].direction
+        turn = float(np.arccos(np.clip(np.dot(u, v), -1.0, 1.0)))
+        if turn < 1e-9:
+            arcs.append(None)
+            continue
+        if turn > np.pi - 1e-9:
+            raise Unreadable("a FilletRadius at a corner that turns back on itself")
+        cut = radius * np.tan(turn / 2.0)
+        ends[k], starts[k + 1] = pieces[k].end - u * cut, pieces[k + 1].start + v * cut
+        inward = _unit(v - np.dot(v, u) * u, "fillet normal")
+        center = ends[k] + radius * inward
+        arcs.append(Arc(center, float(radius), _unit(np.cross(u, v), "fillet axis"), -inward, turn))
+    out: list[Curve] = []
+    for k in range(len(pieces)):
+        leg = Line(starts[k], ends[k])
+        if np.dot(leg.end - leg.start, pieces[k].direction) < -MIN_LENGTH_M:
+            raise Unreadable("a FilletRadius larger than its legs allow")
+        if leg.length >= MIN_LENGTH_M:
+            out.append(leg)
+        if k < len(arcs) and arcs[k] is not None:
+            out.append(arcs[k])
+    return out
+
+
 def transformed(c: Curve, world_from_local: np.ndarray) -> Curve:
     """A piece moved by a 4x4 transform that may scale uniformly (and mirror)."""
     L, t = world_from_local[:3, :3], world_from_local[:3, 3]
@@ -390,7 +426,12 @@ def read_element(ifcopenshell, element, *, length_m: float, angle_rad: float) ->
             diameter = (nominal if nominal is not None else float(radius or 0.0)) * length_m
         if not diameter > 0.0:
             raise Unreadable(f"a non-positive diameter ({diameter:g} m)")
-        pieces = [transformed(c, m) for c in directrix_pieces(solid.Directrix, angle_rad)]
+        local = directrix_pieces(solid.Directrix, angle_rad)
+        if local and min(c.length for c in local) * scale < MIN_LENGTH_M:
+            raise Unreadable("a zero-length segment")
+        if solid.is_a("IfcSweptDiskSolidPolygonal") and solid.FilletRadius:
+            local = filleted(local, float(solid.FilletRadius))
+        pieces = [transformed(c, m) for c in local]
         if not pieces:
             raise Unreadable("an empty directrix")
         if min(c.length for c in pieces) < MIN_LENGTH_M:

@@ -458,6 +458,38 @@ def test_a_bent_bar_of_lines_and_arcs_is_one_bar_that_crosses_others_exactly(tmp
     same_crossings(rm, again, 1e-12)
 
 
+def test_a_polygonal_swept_disk_rounds_its_corners_by_the_fillet_radius(tmp_path):
+    """IFC4's IfcSweptDiskSolidPolygonal: a polyline whose corners are bends of FilletRadius."""
+    m = Model("IFC4")
+    solid = m.f.create_entity(
+        "IfcSweptDiskSolidPolygonal",
+        Directrix=m.polyline([(0, 0, 0), (1, 0, 0), (1, 1, 0), (1, 1, 1)]),
+        Radius=0.006,
+        FilletRadius=0.1,
+    )
+    m.element([solid], diameter=0.012)
+    rm = read_mesh(tmp_path, m.write(tmp_path / "polygonal.ifc"))
+    kinds = [b.curve.kind for b in rm.bars]
+    assert kinds == ["line", "arc", "line", "arc", "line"] and bar_count(rm) == 1
+    np.testing.assert_allclose(rm.bars[0].curve.end, [0.9, 0, 0], atol=1e-12)
+    first, second = rm.bars[1].curve, rm.bars[3].curve
+    np.testing.assert_allclose(first.center, [0.9, 0.1, 0], atol=1e-12)
+    np.testing.assert_allclose(second.center, [1.0, 0.9, 0.1], atol=1e-12)
+    for arc in (first, second):
+        assert arc.radius == pytest.approx(0.1) and arc.sweep == pytest.approx(np.pi / 2)
+    for a, b in zip(rm.bars, rm.bars[1:], strict=False):  # one smooth centerline
+        np.testing.assert_allclose(a.curve.end, b.curve.start, atol=1e-12)
+        np.testing.assert_allclose(a.curve.tangent(a.curve.length), b.curve.tangent(0.0), atol=1e-12)
+    assert len(rm.parts) == 5 and rm.mesh.is_watertight  # smooth joints: no balls
+
+    # without the fillet the corners are sharp: three legs, and a ball in each corner
+    m = Model("IFC4")
+    m.bar(m.polyline([(0, 0, 0), (1, 0, 0), (1, 1, 0), (1, 1, 1)]), 0.006)
+    rm = read_mesh(tmp_path, m.write(tmp_path / "sharp.ifc"))
+    assert [b.curve.kind for b in rm.bars] == ["line"] * 3 and len(rm.parts) == 5
+    assert rm.mesh.is_watertight and set(rm.triangle_bar_id.tolist()) == {0}
+
+
 def _stirrup(m: Model, x: float, w: float, h: float, rb: float, *, reverse: bool = False):
     """A closed rectangular stirrup in the plane x = const, corners bent to radius ``rb`` (centerline):
     four IfcPolyline legs and four IfcTrimmedCurve quarter circles (parameters in degrees)."""
@@ -576,6 +608,17 @@ def test_authoring_tool_conventions_millimetres_nested_placements_and_mapped_typ
         verts = verts.reshape(-1, 3)
         assert np.abs(verts.min(0) - part.mesh.bounds[0]).max() < 1e-3, bar.bar_id
         assert np.abs(verts.max(0) - part.mesh.bounds[1]).max() < 1e-3, bar.bar_id
+
+
+@pytest.mark.parametrize("schema", ["IFC2X3", "IFC4", "IFC4X3"])
+def test_every_accepted_schema_reads_the_same_two_bars(schema, tmp_path):
+    m = Model(schema)
+    m.bar(m.polyline([(0, 0, 0), (1, 0, 0)]), 0.006, diameter=0.012)
+    m.bar(m.trimmed_circle((0.5, 0, -0.5), 0.512, 0.5, np.pi - 0.5, axis=(1, 0, 0), ref=(0, 1, 0)), 0.006)
+    rm = read_mesh(tmp_path, m.write(tmp_path / f"{schema}.ifc"))
+    assert rm.layout.ifc.schema.startswith(schema) and bar_count(rm) == 2
+    assert len(rm.crossings) == 1 and rm.crossings.gap_m[0] == pytest.approx(0.0, abs=1e-12)
+    np.testing.assert_allclose(rm.crossings.point[0], [0.5, 0.0, 0.006], atol=1e-12)
 
 
 def test_filters_by_class_storey_global_id_and_box(tmp_path):
