@@ -5,7 +5,8 @@ Checks (each with its measured figure and bar):
   (max error <= 1e-3 px, depth within 1e-6 m), and visibility 0 exactly when the point projects outside;
 - formats: YOLO, COCO and Parquet hold the same visible keypoints;
 - geometry: the 3D points are the crossings of the mesh rebuilt from the recorded config;
-- instance pass: visible keypoints land on one of their own parts, occluded ones on something else;
+- instance pass: visible keypoints land on one of their own parts, occluded ones on something else
+  (not applicable to a dataset built without its depth or instance maps; see :func:`check_instances`);
 - duplicates: no two images are identical;
 - leakage: no scene or trajectory in two splits (unless the split rule is random).
 Plots of the distributions and a contact sheet are written beside the report.
@@ -46,11 +47,15 @@ INSTANCE_OFFSET = 3
 
 @dataclass
 class Check:
+    """One audit check. ``applicable`` false: the check does not apply to this dataset (its bar says why);
+    it then counts as passed and its value means nothing."""
+
     name: str
     passed: bool
     value: float
     bar: str
     detail: str
+    applicable: bool = True
 
 
 def load_tables(ds: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
@@ -232,28 +237,76 @@ class _PixelAlong:
         return along_bar_distance(self.rm, self.parts, crossing, int(self.inst[y, x]), point, sight)
 
 
-def check_instances(ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm) -> list[Check]:
+PASS_CHECKS = {  # name -> (visibility checked, bar, what agreeing means)
+    "visible_on_own_bar": (
+        2,
+        VISIBLE_ON_OWN_MIN,
+        "visible keypoints showing one of their own parts near the crossing",
+    ),
+    "occluded_off_own_bar": (
+        1,
+        OCCLUDED_OFF_OWN_MIN,
+        "occluded keypoints showing something else or their bar far away",
+    ),
+    "visible_at_own_depth": (
+        2,
+        VISIBLE_AT_OWN_DEPTH_MIN,
+        f"visible keypoints whose own pixel shows one of their parts within {AT_DEPTH_DIAMETERS:g} bar diameters "
+        "of their depth",
+    ),
+}
+
+
+def check_instances(
+    ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm, *, stored: dict[str, bool] | None = None
+) -> list[Check]:
     """The rendered passes, independently of the labels' ray cast, must agree with each keypoint's
     visibility: a visible keypoint shows one of its own parts near the crossing in the 3x3 pixels around
     it; an occluded one shows something else, or its own bar far from the crossing, there. "Near" is measured
     along the bar from the keypoint's sight point, as the labels do, to the pixel's surface point (depth
     pass, back-projected). A keypoint occluded because no pixel shows its bars cross (its sight point is
     the crossing's own point: :func:`rebar_data.labels.keypoints.sight_points`) is counted apart. And a
-    visible keypoint's own pixel shows one of its parts at about its depth (``visible_at_own_depth``)."""
+    visible keypoint's own pixel shows one of its parts at about its depth (``visible_at_own_depth``).
+
+    A check never passes on nothing checked. What happens instead depends on why there was nothing:
+
+    - the dataset chose not to store a pass (``stored``, the config's ``dataset.store_depth`` and
+      ``store_instances``; each check reads both maps): the checks are *not applicable*, reported as such
+      (``applicable`` false, bar "not applicable (...)"); they do not fail a dataset built that way on purpose;
+    - the config stores both passes but rows name no map, or a map that does not read: those images are lost
+      data, and every check fails, its detail counting them ("nothing checked" when no image had maps);
+    - the maps are there but the dataset holds no keypoint of the kind a check reads: no visible keypoint
+      fails (such a dataset has nothing to learn from); no occluded keypoint a pixel could show is not
+      applicable (a view of a mat with neither tie wire nor lower mat can have none).
+    """
+    stored = stored or {"store_depth": True, "store_instances": True}
+    not_stored = [k for k, v in stored.items() if not v]
+    if not_stored:
+        why = " and ".join(f"dataset.{k}: false" for k in not_stored)
+        return [
+            Check(
+                name,
+                True,
+                0.0,
+                f"not applicable ({why})",
+                f"the dataset stores no maps to check {what}",
+                False,
+            )
+            for name, (_, _, what) in PASS_CHECKS.items()
+        ]
     from rebar_data.labels.keypoints import CrossingParts, LabelRule
 
     parts = CrossingParts.of(rm)
     near_m = LabelRule().near_diameters * parts.diameter_max_m
     slack_m = parts.diameter_max_m  # a pixel centre is up to 0.7 px from the label
     hits = {1: [0, 0], 2: [0, 0]}  # visibility -> [agreeing, total]
-    unseen = at_own = 0
+    unseen = at_own = without_maps = 0
     for row in S.itertuples():
-        if not isinstance(row.instance_file, str) or not isinstance(row.depth_file, str):
+        maps = _read_maps(ds, row)
+        if maps is None:
+            without_maps += 1
             continue
-        inst = (
-            cv2.imread(str(ds / row.instance_file), cv2.IMREAD_UNCHANGED).astype(np.int32) - INSTANCE_OFFSET
-        )
-        depth = cv2.imread(str(ds / row.depth_file), cv2.IMREAD_UNCHANGED).astype(np.float64) / 1000.0
+        inst, depth = maps
         T = np.asarray(row.world_from_camera, float).reshape(4, 4)
         h, w = inst.shape
         along = _PixelAlong(rm, parts, inst, depth, T, (row.fx, row.fy, row.cx, row.cy))
@@ -280,44 +333,57 @@ def check_instances(ds: Path, S: pd.DataFrame, K: pd.DataFrame, rm) -> list[Chec
                 agree = any(along(c, yy, xx, sight) > near_m[c] - slack_m[c] for yy, xx in window)
             hits[kp.visibility][0] += agree
             hits[kp.visibility][1] += 1
-    out = []
-    for vis, bar, name, what in (
-        (
-            2,
-            VISIBLE_ON_OWN_MIN,
-            "visible_on_own_bar",
-            "visible keypoints showing one of their own parts near the crossing",
-        ),
-        (
-            1,
-            OCCLUDED_OFF_OWN_MIN,
-            "occluded_off_own_bar",
-            "occluded keypoints showing something else or their bar far away",
-        ),
-    ):
-        agree, total = hits[vis]
-        share = agree / total if total else 1.0
-        more = (
-            f"; {unseen} more occluded where no pixel shows the bars cross (not checked)" if vis == 1 else ""
+    agreeing = {
+        "visible_on_own_bar": hits[2][0],
+        "occluded_off_own_bar": hits[1][0],
+        "visible_at_own_depth": at_own,
+    }
+    return [
+        _pass_check(
+            name, agreeing[name], hits[vis][1], unseen=unseen, without_maps=without_maps, images=len(S)
         )
-        # one disagreement passes whatever share it leaves: with a handful checked (a few occluded keypoints
-        # in a set) one sub-pixel tie wire in front of the labels' exact ray, missed by the rendered pass,
-        # would otherwise decide the check
-        passed = share >= bar or total - agree <= 1
-        out.append(Check(name, passed, share, f">= {bar} or 1 off", f"{agree} of {total} {what}{more}"))
-    total = hits[2][1]
-    share = at_own / total if total else 1.0
-    out.append(
-        Check(
-            "visible_at_own_depth",
-            share >= VISIBLE_AT_OWN_DEPTH_MIN,
-            share,
-            f">= {VISIBLE_AT_OWN_DEPTH_MIN}",
-            f"{at_own} of {total} visible keypoints whose own pixel shows one of their parts within "
-            f"{AT_DEPTH_DIAMETERS:g} bar diameters of their depth",
+        for name, (vis, _, _) in PASS_CHECKS.items()
+    ]
+
+
+def _pass_check(name: str, agree: int, total: int, *, unseen: int, without_maps: int, images: int) -> Check:
+    """One rendered-pass check from its counts (see :func:`check_instances` for what nothing checked gives)."""
+    vis, bar, what = PASS_CHECKS[name]
+    more = f"; {unseen} more occluded where no pixel shows the bars cross (not checked)" if vis == 1 else ""
+    detail = f"{agree} of {total} {what}{more}"
+    # a share check (not the depth one) passes with one disagreement whatever share it leaves: with a handful
+    # checked (a few occluded keypoints in a set) one sub-pixel tie wire in front of the labels' exact ray,
+    # missed by the rendered pass, would otherwise decide the check
+    one_off = name != "visible_at_own_depth"
+    bar_text = f">= {bar}" + (" or 1 off" if one_off else "")
+    share = agree / total if total else 0.0
+    if without_maps:
+        nothing = "nothing checked: " if without_maps == images else ""
+        lost = (
+            f"{nothing}{without_maps} of {images} images have no readable depth or instance map, though the "
+            "config stores them (dataset.store_depth and store_instances are true)"
         )
-    )
-    return out
+        return Check(name, False, share, bar_text, f"{lost}; {detail}")
+    if total == 0 and vis == 1:
+        return Check(name, True, 0.0, "not applicable (no occluded keypoint a pixel shows)", detail, False)
+    if total == 0:
+        return Check(
+            name, False, 0.0, bar_text, f"nothing checked: the dataset has no visible keypoint ({detail})"
+        )
+    passed = share >= bar or (one_off and total - agree <= 1)
+    return Check(name, passed, share, bar_text, detail)
+
+
+def _read_maps(ds: Path, row) -> tuple[np.ndarray, np.ndarray] | None:
+    """The instance ids and the depth in metres of an image, or None when its row names no map or one does
+    not read."""
+    if not isinstance(row.instance_file, str) or not isinstance(row.depth_file, str):
+        return None
+    inst = cv2.imread(str(ds / row.instance_file), cv2.IMREAD_UNCHANGED)
+    depth = cv2.imread(str(ds / row.depth_file), cv2.IMREAD_UNCHANGED)
+    if inst is None or depth is None:
+        return None
+    return inst.astype(np.int32) - INSTANCE_OFFSET, depth.astype(np.float64) / 1000.0
 
 
 def check_duplicates(ds: Path, S: pd.DataFrame) -> Check:
@@ -348,7 +414,7 @@ def check_leakage(info: DatasetInfo, S: pd.DataFrame) -> list[Check]:
 
 def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Check], dict]:
     """Run every check, write ``audit/report.json``, ``report.md``, plots and the contact sheet."""
-    from rebar_data.dataset.audit_plots import contact_sheet, distribution_plots
+    from rebar_data.dataset.audit_plots import contact_sheet, distribution_plots, split_parameters
 
     ds = Path(ds)
     info = DatasetInfo.read(ds)
@@ -357,25 +423,33 @@ def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Che
     checks.append(check_formats(ds, S, K))
     geo, rm = check_geometry(info, K)
     checks.append(geo)
-    checks += check_instances(ds, S, K, rm)
+    options = info.config.get("dataset", {})
+    stored = {k: bool(options.get(k, True)) for k in ("store_depth", "store_instances")}
+    checks += check_instances(ds, S, K, rm, stored=stored)
     checks.append(check_duplicates(ds, S))
     checks += check_leakage(info, S)
     out = ds / layout.AUDIT_DIR
     out.mkdir(exist_ok=True)
     stats = distribution_plots(S, K, out)
+    _, constant = split_parameters(S)
     contact_sheet(ds, S, K, out / "contact_sheet.png", n=contact_sheet_images)
     report = {
         "dataset": f"{info.name} v{info.version}",
         "passed": all(c.passed for c in checks),
         "checks": [asdict(c) for c in checks],
         "stats": stats,
+        "constant_parameters": constant,
     }
     (out / "report.json").write_text(json.dumps(report, indent=2, sort_keys=True, default=float) + "\n")
-    (out / "report.md").write_text(_markdown(info, checks, stats))
+    (out / "report.md").write_text(_markdown(info, checks, stats, constant))
     return checks, stats
 
 
-def _markdown(info: DatasetInfo, checks: list[Check], stats: dict) -> str:
+def _result(c: Check) -> str:
+    return "n/a" if not c.applicable else "pass" if c.passed else "FAIL"
+
+
+def _markdown(info: DatasetInfo, checks: list[Check], stats: dict, constant: dict) -> str:
     lines = [
         f"# Audit of {info.name} v{info.version}",
         "",
@@ -384,7 +458,7 @@ def _markdown(info: DatasetInfo, checks: list[Check], stats: dict) -> str:
     ]
     for c in checks:
         lines.append(
-            f"| {c.name} | {'pass' if c.passed else 'FAIL'} | {c.value:.6g} | {c.bar} | {c.detail} |"
+            f"| {c.name} | {_result(c)} | {f'{c.value:.6g}' if c.applicable else '-'} | {c.bar} | {c.detail} |"
         )
     lines += ["", "## Distributions", ""]
     for k, v in stats.items():
@@ -393,7 +467,15 @@ def _markdown(info: DatasetInfo, checks: list[Check], stats: dict) -> str:
         "",
         "![keypoints per image](keypoints_per_image.png)",
         "![visibility](visibility.png)",
-        "![lighting and materials](coverage.png)",
+        "![randomized parameters that vary](coverage.png)",
+        "",
+        "## Constant parameters",
+        "",
+        "Randomized parameters with one value in every image (not drawn in coverage.png):",
+        "",
+    ]
+    lines += [f"- `{k}` = {json.dumps(v)}" for k, v in constant.items()] or ["- none"]
+    lines += [
         "",
         "![contact sheet](contact_sheet.png)",
         "",

@@ -15,10 +15,36 @@ import pandas as pd  # noqa: E402
 from rebar_data.dataset import layout  # noqa: E402
 
 COVERAGE_PREFIXES = ("light_", "mat_", "surr_", "sensor_")
+COVERAGE_GROUPS = {
+    "light_": "lighting",
+    "mat_": "rebar material",
+    "surr_": "surroundings",
+    "sensor_": "sensor",
+}
+COVERAGE_BINS = 24
+NOT_PLOTTED_SUFFIXES = ("_seed",)  # random seeds vary by design; their spread says nothing about coverage
+ROW_IN = 0.27  # height of a parameter's row (inches at 100 dpi)
+COLUMN_IN = 7.0  # width of a column of rows
+STRIP = (0.47, 0.87)  # the part of a row the distribution takes (fraction of the column)
+LISTING_CHARS = 58  # characters a line of a categorical parameter's counts holds
+
+
+def split_parameters(S: pd.DataFrame) -> tuple[list[str], dict[str, object]]:
+    """The randomized columns of the samples table (``COVERAGE_PREFIXES``): those that vary over the
+    images, and the constant ones with their value (JSON types)."""
+    varying, constant = [], {}
+    for c in (c for c in S.columns if c.startswith(COVERAGE_PREFIXES)):
+        values = S[c].drop_duplicates()
+        if len(values) > 1:
+            varying.append(c)
+        elif len(values) == 1:
+            v = values.iloc[0]
+            constant[c] = v.item() if isinstance(v, np.generic) else v
+    return varying, constant
 
 
 def distribution_plots(S: pd.DataFrame, K: pd.DataFrame, out: Path) -> dict:
-    """Keypoints per image, visibility per split, and coverage of lighting/material/surroundings/sensor."""
+    """Keypoints per image, visibility per split, and the coverage of the randomized parameters that vary."""
     per_image = K[K.visibility == 2].groupby("image_id").size().reindex(S.image_id, fill_value=0)
     fig, ax = plt.subplots(figsize=(6, 3.5))
     ax.hist(per_image.to_numpy(), bins=30, color="#b5651d")
@@ -38,24 +64,8 @@ def distribution_plots(S: pd.DataFrame, K: pd.DataFrame, out: Path) -> dict:
     fig.savefig(out / "visibility.png", dpi=100)
     plt.close(fig)
 
-    cols = [c for c in S.columns if c.startswith(COVERAGE_PREFIXES)]
-    n = max(len(cols), 1)
-    ncol = 4
-    nrow = int(np.ceil(n / ncol))
-    fig, axes = plt.subplots(nrow, ncol, figsize=(4 * ncol, 2.4 * nrow), squeeze=False)
-    for ax, c in zip(axes.flat, cols, strict=False):
-        col = S[c]
-        if pd.api.types.is_bool_dtype(col) or not pd.api.types.is_numeric_dtype(col):
-            col.astype(str).value_counts().sort_index().plot.bar(ax=ax, rot=30, color="#4472c4")
-        else:
-            ax.hist(col.to_numpy(float), bins=20, color="#4472c4")
-        ax.set_title(c, fontsize=9)
-        ax.tick_params(labelsize=7)
-    for ax in list(axes.flat)[len(cols) :]:
-        ax.axis("off")
-    fig.tight_layout()
-    fig.savefig(out / "coverage.png", dpi=80)
-    plt.close(fig)
+    varying, constant = split_parameters(S)
+    coverage_plot(S, [c for c in varying if not c.endswith(NOT_PLOTTED_SUFFIXES)], out / "coverage.png")
 
     counts = K.visibility.value_counts().to_dict()
     return {
@@ -65,8 +75,95 @@ def distribution_plots(S: pd.DataFrame, K: pd.DataFrame, out: Path) -> dict:
         "visible_per_image_max": int(per_image.max()) if len(per_image) else 0,
         "visibility_counts": {int(k): int(v) for k, v in sorted(counts.items())},
         "images_per_split": {s: int((S.split == s).sum()) for s in layout.SPLITS},
-        "randomized_columns": len(cols),
+        "randomized_columns": len(varying) + len(constant),
+        "varying_parameters": len(varying),
     }
+
+
+def coverage_plot(S: pd.DataFrame, columns: list[str], path: Path) -> None:
+    """One row per parameter, grouped by kind in two columns: a numeric parameter's histogram over the
+    images between its smallest and largest value (printed at the ends), a categorical one's count of
+    images per value. Constant parameters are not drawn (the audit report lists them)."""
+    rows = {c: _listing(S[c]) for c in columns}
+    size = {c: 1.0 if rows[c] is None else 0.2 + 0.8 * len(rows[c]) for c in columns}
+    groups = [
+        (title, [c for c in columns if c.startswith(prefix)]) for prefix, title in COVERAGE_GROUPS.items()
+    ]
+    groups = [(t, cs) for t, cs in groups if cs]
+    heights = [1.5 + sum(size[c] for c in cs) for _, cs in groups]
+    # two columns of about equal height, groups kept whole
+    best = min(range(1, len(groups) + 1), key=lambda k: abs(sum(heights[:k]) - sum(heights[k:])), default=0)
+    sides = [s for s in (groups[:best], groups[best:]) if s] or [[]]
+    height = max(sum(1.5 + sum(size[c] for c in cs) for _, cs in side) for side in sides)
+    fig_h = ROW_IN * max(height, 2) + 0.7
+    fig = plt.figure(figsize=(COLUMN_IN * len(sides), fig_h))
+    fig.text(
+        0.5,
+        1 - 0.25 / fig_h,
+        f"Randomized parameters that vary over the {len(S)} images (constant ones: audit/report.md)",
+        fontsize=11,
+        ha="center",
+        va="center",
+    )
+    for i, side in enumerate(sides):
+        ax = fig.add_axes((i / len(sides) + 0.01, 0.1 / fig_h, 1 / len(sides) - 0.02, 1 - 0.6 / fig_h))
+        y = 0.0
+        for title, cols in side:
+            ax.text(0.0, y + 0.3, title, fontsize=10.5, fontweight="bold", va="center")
+            y += 1.2
+            for c in cols:
+                _coverage_row(ax, S[c], c, y, rows[c])
+                y += size[c]
+            y += 0.3
+        ax.set_xlim(0, 1)
+        ax.set_ylim(max(height, 2) - 0.2, -0.4)
+        ax.axis("off")
+        if not side:
+            ax.text(0.5, 0.5, "no randomized parameter varies", ha="center", fontsize=11)
+    fig.savefig(path, dpi=100)
+    plt.close(fig)
+
+
+def _listing(col: pd.Series) -> list[str] | None:
+    """A categorical parameter's ``value: images`` pairs as lines of at most ``LISTING_CHARS`` (None for a
+    numeric parameter)."""
+    if not (pd.api.types.is_bool_dtype(col) or not pd.api.types.is_numeric_dtype(col)):
+        return None
+    counts = col.astype(str).value_counts().sort_index()
+    lines = [""]
+    for value, n in counts.items():
+        item = f"{value or '(empty)'}: {n}"
+        if lines[-1] and len(lines[-1]) + 3 + len(item) > LISTING_CHARS:
+            lines.append("")
+        lines[-1] += ("   " if lines[-1] else "") + item
+    return lines
+
+
+def _coverage_row(ax, col: pd.Series, name: str, y: float, listing: list[str] | None) -> None:
+    ax.text(0.0, y, name, fontsize=9, va="center", family="monospace")
+    lo, hi = STRIP
+    if listing is not None:
+        for k, line in enumerate(listing):
+            ax.text(lo, y + 0.8 * k, line, fontsize=8.5, va="center", color="#1f3864")
+        return
+    v = col.to_numpy(float)
+    v = v[np.isfinite(v)]
+    if not len(v):
+        ax.text(lo, y, "no finite value", fontsize=8.5, va="center", color="#c00000")
+        return
+    vmin, vmax = float(v.min()), float(v.max())
+    counts, _ = np.histogram(v, bins=COVERAGE_BINS, range=(vmin, vmax))
+    width = (hi - lo) / COVERAGE_BINS
+    centres = lo + width * (np.arange(COVERAGE_BINS) + 0.5)
+    heights = 0.72 * counts / max(counts.max(), 1)
+    ax.plot([lo, hi], [y + 0.38, y + 0.38], color="#bbbbbb", lw=0.8)
+    ax.bar(centres, heights, width=width * 0.9, bottom=y + 0.38 - heights, color="#4472c4")
+    ax.text(lo - 0.008, y, _number(vmin), fontsize=8, va="center", ha="right")
+    ax.text(hi + 0.008, y, _number(vmax), fontsize=8, va="center", ha="left")
+
+
+def _number(x: float) -> str:
+    return f"{x:.0f}" if 1e4 <= abs(x) < 1e10 else f"{x:.4g}"
 
 
 def draw_keypoints(img: np.ndarray, g: pd.DataFrame) -> np.ndarray:

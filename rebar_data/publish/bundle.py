@@ -14,7 +14,9 @@ import datetime as dt
 import json
 import os
 import shutil
+import sys
 import tempfile
+from collections.abc import Collection
 from pathlib import Path
 
 import pyarrow.parquet as pq
@@ -66,9 +68,9 @@ def _copy(src: Path, dst: Path, *, link: bool = False) -> None:
     shutil.copy2(src, dst)
 
 
-def _copy_tree(src: Path, dst: Path, *, link: bool = False) -> None:
+def _copy_tree(src: Path, dst: Path, *, link: bool = False, skip: Collection[Path] = ()) -> None:
     for p in sorted(src.rglob("*")):
-        if p.is_file():
+        if p.is_file() and p not in skip:
             _copy(p, dst / p.relative_to(src), link=link)
 
 
@@ -84,7 +86,8 @@ def check_source(dataset: Path, *, allow_failed_audit: bool) -> tuple[DatasetInf
         info = DatasetInfo.read(dataset)
     except DatasetFormatError as e:
         raise ConfigError(str(e)) from None
-    failures = validate_dataset(dataset)
+    # files other tools add (validate's FOREIGN_FILES) are notes there, and left out of the bundle
+    failures = validate_dataset(dataset, note=lambda line: print(line, file=sys.stderr))
     if failures:
         raise ConfigError(
             f"{dataset} does not validate ({len(failures)} failures, first: {failures[0]}); accepted: a "
@@ -218,12 +221,15 @@ def _write_bundle(
     src: Path, staging: Path, info: DatasetInfo, audit: dict, *, license_id: str, maps: bool
 ) -> None:
     """Every file of the bundle of ``src`` into the empty folder ``staging``."""
+    from rebar_data.dataset.validate import foreign_files
+
     samples = pq.read_table(src / layout.SAMPLES)
     keypoints = pq.read_table(src / layout.KEYPOINTS)
     shards = write_shards(src, staging, samples, keypoints)
+    foreign = {src / rel for rel in foreign_files(src)}  # never published
     for d in VIEW_DIRS + (MAP_DIRS if maps else ()):
         if (src / d).is_dir():
-            _copy_tree(src / d, staging / d, link=d in IMAGE_DIRS)
+            _copy_tree(src / d, staging / d, link=d in IMAGE_DIRS, skip=foreign)
     _copy(src / layout.INFO, staging / layout.INFO)
     _write_data_yaml(src, staging)
     for name in AUDIT_FILES:  # copies: an audit rewrites its files in place

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import copy as copy_module
 import json
 import shutil
 
@@ -98,3 +99,67 @@ def test_duplicate_images_and_split_leakage_are_caught(copy):
     pq.write_table(pa.Table.from_pandas(t, schema=pq.read_schema(p), preserve_index=False), p)
     failed = _failed(copy)
     assert "duplicate_images" in failed and "scene_id_in_two_splits" in failed
+
+
+def _by_name(checks) -> dict:
+    return {c.name: c for c in checks}
+
+
+PASS_CHECKS = ("visible_on_own_bar", "occluded_off_own_bar", "visible_at_own_depth")
+
+
+def test_rendered_pass_checks_with_no_maps_to_read_fail_saying_nothing_was_checked(copy):
+    """A dataset built to store its depth and instance maps whose rows name none has not had its
+    visibility checked: the checks fail and say so, where they used to pass with 0 keypoints checked."""
+    p = copy / "tables/samples.parquet"
+    t = pq.read_table(p).to_pandas()
+    t["depth_file"] = None
+    t["instance_file"] = None
+    pq.write_table(pa.Table.from_pandas(t, schema=pq.read_schema(p), preserve_index=False), p)
+    checks = _by_name(audit_dataset(copy)[0])
+    for name in PASS_CHECKS:
+        assert not checks[name].passed, checks[name]
+        assert "nothing checked" in checks[name].detail and "12 of 12 images" in checks[name].detail
+
+
+@pytest.fixture(scope="module")
+def mapless_dataset(tmp_path_factory):
+    """TINY built with dataset.store_depth and store_instances off."""
+    from rebar_data.dataset.build import build_dataset
+    from tests.dataset.conftest import TINY, write_config
+
+    data = copy_module.deepcopy(TINY)
+    data["dataset"] = {"store_depth": False, "store_instances": False}
+    root = tmp_path_factory.mktemp("mapless")
+    return build_dataset(write_config(root / "cfg", data), root, workers=1)
+
+
+def test_a_dataset_built_without_maps_validates_and_its_pass_checks_do_not_apply(mapless_dataset, capsys):
+    from rebar_data.dataset.validate import validate_dataset
+
+    assert validate_dataset(mapless_dataset) == []
+    checks, _ = audit_dataset(mapless_dataset)
+    by = _by_name(checks)
+    for name in PASS_CHECKS:
+        assert by[name].passed and not by[name].applicable, by[name]
+        assert by[name].bar.startswith("not applicable") and "store_" in by[name].bar
+    assert all(c.passed for c in checks)
+    assert all(c.applicable for c in checks if c.name not in PASS_CHECKS)
+    report = (mapless_dataset / "audit/report.md").read_text()
+    assert "| visible_on_own_bar | n/a |" in report
+    assert main(["dataset", "audit", str(mapless_dataset)]) == 0
+
+
+def test_coverage_shows_the_parameters_that_vary_and_the_report_lists_the_constant_ones(copy):
+    import cv2
+
+    _, stats = audit_dataset(copy)
+    report = json.loads((copy / "audit/report.json").read_text())
+    constant = report["constant_parameters"]
+    samples = pq.read_table(copy / "tables/samples.parquet").to_pandas()
+    assert constant and all(samples[name].nunique() == 1 for name in constant)
+    assert "light_exposure_lux" in constant  # one value for every scene of TINY
+    assert stats["varying_parameters"] + len(constant) == stats["randomized_columns"]
+    assert "## Constant parameters" in (copy / "audit/report.md").read_text()
+    h, w = cv2.imread(str(copy / "audit/coverage.png")).shape[:2]
+    assert w <= 2000 and h <= 2400, (w, h)

@@ -186,3 +186,18 @@ def test_publish_refuses_what_it_should_and_prints_the_bundle_last(source_datase
     assert not (tmp_path / "nope").exists()
     with pytest.raises(ConfigError, match="--license"):
         publish_dataset(source_dataset, tmp_path / "nope", license_id="gpl")
+
+
+def test_files_other_tools_add_are_not_published_and_do_not_block_publishing(source_dataset, tmp_path):
+    """A dataset Ultralytics trained on holds labels/<split>.cache (and .npy beside the images with
+    cache=disk): it still publishes, and the bundle holds neither."""
+    src = tmp_path / "src"
+    shutil.copytree(source_dataset, src)
+    (src / "labels/train.cache").write_bytes(b"\x93NUMPY cache")
+    image = sorted((src / "images/train").glob("*.png"))[0]
+    image.with_suffix(".npy").write_bytes(b"\x93NUMPY image")
+    out = publish_dataset(src, tmp_path / "bundle")
+    assert not list(out.rglob("*.cache")) and not list(out.rglob("*.npy"))
+    sums = (out / "SHA256SUMS").read_text()
+    assert ".cache" not in sums and ".npy" not in sums
+    assert (out / "labels/train" / image.with_suffix(".txt").name).is_file()
