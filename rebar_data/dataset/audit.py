@@ -396,7 +396,7 @@ def check_duplicates(ds: Path, S: pd.DataFrame) -> Check:
 
 def check_leakage(info: DatasetInfo, S: pd.DataFrame) -> list[Check]:
     out = []
-    for col in ("scene_id", "trajectory_id"):
+    for col, noun in (("scene_id", "scenes"), ("trajectory_id", "trajectories")):
         n = int((S.groupby(col)["split"].nunique() > 1).sum())
         rule = info.split.get("rule")
         applies = rule != "random" and (col == "trajectory_id" or rule == "scene")
@@ -406,7 +406,8 @@ def check_leakage(info: DatasetInfo, S: pd.DataFrame) -> list[Check]:
                 n == 0 or not applies,
                 n,
                 "0" if applies else "not applicable (split rule)",
-                f"{col.replace('_id', '')}s present in more than one split (split rule: {rule})",
+                f"{noun} present in more than one split (split rule: {rule})",
+                applies,
             )
         )
     return out
@@ -445,8 +446,9 @@ def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Che
     return checks, stats
 
 
-def _result(c: Check) -> str:
-    return "n/a" if not c.applicable else "pass" if c.passed else "FAIL"
+def result_word(passed: bool, applicable: bool = True) -> str:
+    """``n/a``, ``pass`` or ``FAIL``: how a check's result is written in the report, the CLI and the card."""
+    return "n/a" if not applicable else "pass" if passed else "FAIL"
 
 
 def _markdown(info: DatasetInfo, checks: list[Check], stats: dict, constant: dict) -> str:
@@ -458,7 +460,7 @@ def _markdown(info: DatasetInfo, checks: list[Check], stats: dict, constant: dic
     ]
     for c in checks:
         lines.append(
-            f"| {c.name} | {_result(c)} | {f'{c.value:.6g}' if c.applicable else '-'} | {c.bar} | {c.detail} |"
+            f"| {c.name} | {result_word(c.passed, c.applicable)} | {f'{c.value:.6g}' if c.applicable else '-'} | {c.bar} | {c.detail} |"
         )
     lines += ["", "## Distributions", ""]
     for k, v in stats.items():

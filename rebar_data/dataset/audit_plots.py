@@ -14,7 +14,6 @@ import pandas as pd  # noqa: E402
 
 from rebar_data.dataset import layout  # noqa: E402
 
-COVERAGE_PREFIXES = ("light_", "mat_", "surr_", "sensor_")
 COVERAGE_GROUPS = {
     "light_": "lighting",
     "mat_": "rebar material",
@@ -30,10 +29,10 @@ LISTING_CHARS = 58  # characters a line of a categorical parameter's counts hold
 
 
 def split_parameters(S: pd.DataFrame) -> tuple[list[str], dict[str, object]]:
-    """The randomized columns of the samples table (``COVERAGE_PREFIXES``): those that vary over the
+    """The randomized columns of the samples table (``layout.RANDOMIZED_PREFIXES``): those that vary over the
     images, and the constant ones with their value (JSON types)."""
     varying, constant = [], {}
-    for c in (c for c in S.columns if c.startswith(COVERAGE_PREFIXES)):
+    for c in (c for c in S.columns if c.startswith(layout.RANDOMIZED_PREFIXES)):
         values = S[c].drop_duplicates()
         if len(values) > 1:
             varying.append(c)

@@ -8,6 +8,7 @@ import sys
 from pathlib import Path
 
 from rebar_data.config import ConfigError
+from rebar_data.dataset import layout
 
 
 def dataset_folder(p: str) -> Path:
@@ -15,6 +16,12 @@ def dataset_folder(p: str) -> Path:
     path = Path(p)
     if not path.is_dir():
         raise ConfigError(f"{p}: no such folder; accepted: a dataset folder such as data/smoke/v0.1.0")
+    if not any((path / part).exists() for part in (layout.INFO, layout.MANIFEST, layout.DATA_YAML, "tables")):
+        # none of a dataset's own files: a user's folder, not a damaged dataset (which validate reports)
+        raise ConfigError(
+            f"{p}: not a dataset folder (no {layout.INFO}, {layout.MANIFEST}, {layout.DATA_YAML} or tables/); "
+            "accepted: a dataset folder such as data/smoke/v0.1.0"
+        )
     return path
 
 
@@ -64,7 +71,7 @@ def run_validate(args: argparse.Namespace) -> int:
 
 
 def run_audit(args: argparse.Namespace) -> int:
-    from rebar_data.dataset.audit import audit_dataset
+    from rebar_data.dataset.audit import audit_dataset, result_word
     from rebar_data.dataset.layout import DatasetFormatError
 
     path = dataset_folder(args.path)
@@ -73,7 +80,7 @@ def run_audit(args: argparse.Namespace) -> int:
     except DatasetFormatError as e:
         raise ConfigError(str(e)) from None
     for c in checks:
-        print(f"{'pass' if c.passed else 'FAIL'}  {c.name}: {c.value:.6g} (bar {c.bar}) - {c.detail}")
+        print(f"{result_word(c.passed, c.applicable):4}  {c.name}: {c.value:.6g} (bar {c.bar}) - {c.detail}")
     failed = [c.name for c in checks if not c.passed]
     print(f"report: {path / 'audit' / 'report.md'}")
     if failed:

@@ -22,6 +22,8 @@ DATA_YAML = "data.yaml"
 SAMPLES = "tables/samples.parquet"
 KEYPOINTS = "tables/keypoints.parquet"
 AUDIT_DIR = "audit"
+# The samples table's randomized columns (beyond its field list): lights, materials, surroundings, sensor.
+RANDOMIZED_PREFIXES = ("light_", "mat_", "surr_", "sensor_")
 
 
 def image_path(split: str, image_id: str) -> str:

@@ -42,7 +42,6 @@ from rebar_data.dataset.writers.manifest import listed_files, sha256_file
 
 SCHEMAS = Path(__file__).resolve().parents[2] / "schemas"
 MAX_PER_CHECK = 5  # failures reported per check before summarising the rest
-RANDOMIZED_PREFIXES = ("light_", "mat_", "surr_", "sensor_")  # samples columns beyond the field list
 ROTATION_TOLERANCE = 1e-6  # largest |R R^T - I| entry of a camera pose's rotation
 
 # Files other tools are known to write into a dataset folder, as globs relative to it: what writes each.
@@ -301,7 +300,7 @@ def _check_samples(S: pd.DataFrame, info: dict, hashes: dict[str, str], f: Failu
     for col in ("frame", "sample_index", "n_visible", "n_occluded"):
         c.rule(col, ~(S[col].to_numpy(float) >= 0), ">= 0")
     _check_poses(c, S)
-    for col in (x for x in S.columns if x.startswith(RANDOMIZED_PREFIXES)):
+    for col in (x for x in S.columns if x.startswith(layout.RANDOMIZED_PREFIXES)):
         if pd.api.types.is_bool_dtype(S[col]) or not pd.api.types.is_numeric_dtype(S[col]):
             c.rule(col, S[col].isna().to_numpy(), "a value")
             continue

@@ -14,6 +14,7 @@ from pathlib import Path
 import yaml
 
 from rebar_data.dataset import layout
+from rebar_data.dataset.audit import result_word
 from rebar_data.dataset.layout import DatasetInfo
 from rebar_data.dataset.writers.card import cocoeval_lines, label_lines
 from rebar_data.publish.rows import DATA_DIR, KEYPOINT_FIELDS, ROW_FIELDS
@@ -250,7 +251,13 @@ def dataset_card(
     lines.append("")
     lines += _table(
         [
-            [ch["name"], "pass" if ch["passed"] else "FAIL", _fmt(ch["value"]), ch["bar"], ch["detail"]]
+            [
+                ch["name"],
+                result_word(ch["passed"], ch.get("applicable", True)),
+                _fmt(ch["value"]),
+                ch["bar"],
+                ch["detail"],
+            ]
             for ch in audit.get("checks", [])
         ],
         ["check", "result", "value", "bar", "what"],

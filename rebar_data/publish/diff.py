@@ -33,7 +33,6 @@ from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
 
 LEVELS = ("none", "patch", "minor", "major")
-COVERAGE_PREFIXES = ("light_", "mat_", "surr_", "sensor_")
 KS_P_SHIFT = 0.01  # a numeric distribution shifted when the KS test rejects equality at this level
 TVD_SHIFT = 0.2  # a categorical distribution shifted when this share of the mass moved
 LABEL_COLUMNS = ("u", "v", "visibility", "box_size_px", "depth_m", "x_world", "y_world", "z_world")
@@ -335,7 +334,7 @@ def _distributions(
     d.distributions.append(
         _category_shift("visibility of keypoint rows", ka.visibility.map(names), kb.visibility.map(names))
     )
-    cols = [c for c in sa.columns if c.startswith(COVERAGE_PREFIXES) and c in sb.columns]
+    cols = [c for c in sa.columns if c.startswith(layout.RANDOMIZED_PREFIXES) and c in sb.columns]
     for c in cols:
         a, b = sa[c], sb[c]
         if (

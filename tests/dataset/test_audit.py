@@ -147,7 +147,22 @@ def test_a_dataset_built_without_maps_validates_and_its_pass_checks_do_not_apply
     assert all(c.applicable for c in checks if c.name not in PASS_CHECKS)
     report = (mapless_dataset / "audit/report.md").read_text()
     assert "| visible_on_own_bar | n/a |" in report
+    capsys.readouterr()
     assert main(["dataset", "audit", str(mapless_dataset)]) == 0
+    printed = capsys.readouterr().out.splitlines()
+    assert any(line.startswith("n/a   visible_on_own_bar") for line in printed), printed
+    assert any(line.startswith("pass  reprojection_px") for line in printed), printed
+
+
+def test_leakage_under_the_trajectory_rule_names_trajectories_and_does_not_apply_to_scenes(copy):
+    info = copy / "meta/info.json"
+    data = json.loads(info.read_text())
+    data["split"]["rule"] = "trajectory"
+    info.write_text(json.dumps(data))
+    by = _by_name(audit_dataset(copy)[0])
+    assert not by["scene_id_in_two_splits"].applicable and by["scene_id_in_two_splits"].passed
+    assert by["trajectory_id_in_two_splits"].applicable
+    assert by["trajectory_id_in_two_splits"].detail.startswith("trajectories present")
 
 
 def test_coverage_shows_the_parameters_that_vary_and_the_report_lists_the_constant_ones(copy):

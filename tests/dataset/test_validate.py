@@ -92,6 +92,12 @@ def test_each_breakage_is_a_named_failure(copy, breaker, words, capsys):
 def test_not_a_dataset_is_a_clear_error(tmp_path, capsys):
     assert main(["dataset", "validate", str(tmp_path / "nope")]) == 2
     assert "no such folder" in capsys.readouterr().err
+    (tmp_path / "notes.txt").write_text("a user's folder")
+    assert main(["dataset", "validate", str(tmp_path)]) == 2
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("error:") and "not a dataset folder" in err[0], err
+    assert main(["dataset", "audit", str(tmp_path)]) == 2
+    assert "not a dataset folder" in capsys.readouterr().err
     assert validate_dataset(tmp_path) == [
         f"layout: meta/info.json is missing; is {tmp_path} a dataset folder (<root>/<name>/v<version>)?"
     ]
