@@ -11,7 +11,9 @@ import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-SCHEMA_VERSION = "2.1.0"  # 2.1: info.json records the renderer
+SCHEMA_VERSION = (
+    "2.2.0"  # 2.1: info.json records the renderer; 2.2: data.yaml has kpt_oks_sigmas and flip_idx
+)
 SPLITS = ("train", "val", "test")
 KEYPOINT_NAMES = ["intersection"]
 CATEGORY = "rebar_crossing"

@@ -135,7 +135,7 @@ def validate_dataset(path: Path, *, note: Callable[[str], None] = print) -> list
         # the pictures decode in the pool (OpenCV releases the GIL) while this thread checks the rest
         decoding = _start_decoding(path, S, f, pool) if S is not None else []
         hashes = _check_manifest(path, f)
-        _check_data_yaml(path, info_dict, f)
+        _check_data_yaml(path, info_dict, f, note)
         if S is not None:
             _check_samples(S, info_dict, hashes, f)
             _check_unclaimed(path, S, foreign, f)
@@ -192,7 +192,20 @@ def _check_manifest(path: Path, f: Failures) -> dict[str, str]:
     return {rel: digest for rel, (_, digest) in listed.items()}
 
 
-def _check_data_yaml(path: Path, info: dict, f: Failures) -> None:
+# data.yaml keys a dataset of an earlier 2.x schema does not have: noted, not failed (the dataset was right
+# when built); a rebuild adds them
+DATA_YAML_SINCE = {"kpt_oks_sigmas": (2, 2), "flip_idx": (2, 2)}
+
+
+def _schema_minor(info: dict) -> tuple[int, int]:
+    try:
+        major, minor = str(info.get("schema_version", "")).split(".")[:2]
+        return int(major), int(minor)
+    except ValueError:
+        return (0, 0)
+
+
+def _check_data_yaml(path: Path, info: dict, f: Failures, note: Callable[[str], None]) -> None:
     p = path / layout.DATA_YAML
     if not p.exists():
         f.add("data.yaml", "missing")
@@ -205,7 +218,19 @@ def _check_data_yaml(path: Path, info: dict, f: Failures) -> None:
     names = d.get("names") if isinstance(d, dict) else None
     if isinstance(names, dict):  # YAML reads the class ids as integers; JSON Schema keys are strings
         d = {**d, "names": {str(k): v for k, v in names.items()}}
-    for err in sorted(jsonschema.Draft202012Validator(json_schema("data_yaml")).iter_errors(d), key=str):
+    schema = json_schema("data_yaml")
+    built = _schema_minor(info)
+    older = [
+        k for k, since in DATA_YAML_SINCE.items() if built < since and isinstance(d, dict) and k not in d
+    ]
+    if older:
+        schema = {**schema, "required": [k for k in schema["required"] if k not in older]}
+        note(
+            f"note: data.yaml: no {' or '.join(older)} (schema {info.get('schema_version')}, before 2.2); "
+            "Ultralytics then scores pose with its default sigma: rebuild the dataset, or add "
+            f"kpt_oks_sigmas: [{info.get('oks_sigma')}] and flip_idx: [0]"
+        )
+    for err in sorted(jsonschema.Draft202012Validator(schema).iter_errors(d), key=str):
         where = "/".join(str(x) for x in err.absolute_path) or "(top level)"
         f.add("data.yaml", f"{where}: {err.message}")
     sigma = info.get("oks_sigma")

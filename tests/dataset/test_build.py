@@ -122,6 +122,36 @@ def test_data_yaml_tells_ultralytics_the_datasets_oks_sigma(tiny_dataset, tmp_pa
         assert failures and "kpt_oks_sigmas" in failures[0], (value, failures)
 
 
+def test_a_dataset_of_the_schema_before_kpt_oks_sigmas_still_validates_with_a_note(tiny_dataset, tmp_path):
+    """A 2.1 dataset was right when built: data.yaml without kpt_oks_sigmas and flip_idx is a note
+    saying how to add them, not a failure; a 2.2 one without them fails."""
+    import json
+    import shutil
+
+    import yaml
+
+    from rebar_data.dataset.writers.manifest import write_manifest
+
+    old = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, old)
+    data = yaml.safe_load((old / "data.yaml").read_text())
+    (old / "data.yaml").write_text(
+        yaml.safe_dump({k: v for k, v in data.items() if k not in ("kpt_oks_sigmas", "flip_idx")})
+    )
+    write_manifest(old)
+    assert any(
+        f.startswith("data.yaml") and "kpt_oks_sigmas" in f
+        for f in validate_dataset(old, note=lambda s: None)
+    )
+    info = json.loads((old / "meta/info.json").read_text())
+    info["schema_version"] = "2.1.0"
+    (old / "meta/info.json").write_text(json.dumps(info, indent=2))
+    write_manifest(old)
+    notes: list[str] = []
+    assert validate_dataset(old, note=notes.append) == []
+    assert len(notes) == 1 and "kpt_oks_sigmas or flip_idx" in notes[0] and "rebuild" in notes[0], notes
+
+
 def test_dataset_card_states_the_dataset_and_its_cocoeval_snippet_scores_the_labels_as_perfect(
     tiny_dataset, tmp_path
 ):
