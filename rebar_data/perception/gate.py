@@ -20,8 +20,10 @@ lights, material and surroundings, so they are not independent; resampling whole
 ``BOOTSTRAP_REPLICATES`` resamples of the scenes with replacement, each scored with the same metric
 functions, and SE is the standard deviation of the resampled figure. A figure passes when it is at least
 ``reference - K_SE * SE``. With ``K_SE = 3`` a model as good as the reference fails a figure by chance with
-probability about 0.13% (one-sided, normal approximation to the bootstrap distribution); a drop larger than
-the margin is a regression. :func:`write_reference` measures the figures, their SEs and margins and writes them
+probability about 0.13% (one-sided, normal approximation to the bootstrap distribution), any of the six
+at most 0.8%; a drop larger than the margin is a regression. The set is the same pixels from build to build
+(its digest is in ``gate.json``) and an unchanged detector gives the reference figures exactly, so the margin
+is spent only on changes to the detector, its runtime or the renderer. :func:`write_reference` measures the figures, their SEs and margins and writes them
 to ``gate.json`` beside the model; shipping a model (:func:`rebar_data.perception.card.ship`) calls it, and
 ``python -m rebar_data.perception.gate`` runs it for the model already shipped.
 """
