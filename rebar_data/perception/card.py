@@ -728,6 +728,7 @@ def ship(
     evaluate_on: Sequence[str | Path] = (),
     random_split: bool = True,
     progress: bool = False,
+    gate: bool = True,
 ) -> Path:
     """Copy a run's ``best.onnx`` into the package as the shipped model and write its card.
 
@@ -738,6 +739,8 @@ def ship(
         evaluate_on: Datasets built with other configs, scored over all their splits for the card.
         random_split: Also score the training dataset on frames drawn at random, as a random split would.
         progress: Show progress bars while scoring.
+        gate: Also write the regression gate's reference figures beside the model (``gate.json``, with rows
+            in the card; :mod:`~rebar_data.perception.gate`, about a minute); False removes a stale one.
 
     Returns:
         The shipped model file.
@@ -773,6 +776,12 @@ def ship(
         detector, run_dir, evaluate_on=evaluate_on, random_split=random_split, progress=progress
     )
     rows.update(extra_results or {})
+    from rebar_data.perception.gate import GATE_NAME, card_rows, write_reference
+
+    if gate:
+        rows.update(card_rows(write_reference(dst, out=models_dir / GATE_NAME)))
+    else:
+        (models_dir / GATE_NAME).unlink(missing_ok=True)
     load = os.getloadavg()[0]
     frames, latency_source = latency_frames()
     fast = Detector.load(dst)  # what a caller's detector runs: the default runtime

@@ -143,7 +143,7 @@ def test_a_supplement_adds_its_images_to_training_and_is_recorded(drawn_dataset,
     assert set(both.results) == {"val", "test"}  # scored on the first dataset's splits alone
     from rebar_data.perception.card import CARD_NAME, ship
 
-    ship(tmp_path / "both", models_dir=tmp_path / "models")
+    ship(tmp_path / "both", models_dir=tmp_path / "models", gate=False)
     assert "`drawn-extra` v0.0.0 (6 images)" in (tmp_path / "models" / CARD_NAME).read_text()
     with pytest.raises(ConfigError, match="supplements"):  # a run resumes only with the supplements it had
         train(drawn_dataset, tmp_path / "both", config=cfg, epochs=2, progress=False)
@@ -197,7 +197,7 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     kept = load_refiner(run / "refine_last.pt")[2]
     for k, v in refine_after["state_dict"].items():
         assert torch.equal(kept["state_dict"][k], v)  # a finished stage on the same data is kept
-    ship(run, models_dir=tmp_path / "models")
+    ship(run, models_dir=tmp_path / "models", gate=False)
     card = (tmp_path / "models" / CARD_NAME).read_text()
     assert "`drawn-second` v0.0.0 (6 images), each listed 3 times" in card
     shipped = Detector.load(tmp_path / "models" / "rebar_keypoint.onnx")
@@ -256,7 +256,7 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
 
     depth_data = load_depth_check(run / "depth_last.pt")[2]["data"]
     assert depth_data[-2].startswith("adapted:") and depth_data[-1] == "its own lower-mat negatives: 16"
-    ship(run, models_dir=tmp_path / "models")
+    ship(run, models_dir=tmp_path / "models", gate=False)
     card = (tmp_path / "models" / CARD_NAME).read_text()
     assert "- Adapt epochs: 2 more after the best epoch" in card and "only in its adapt epochs" in card
     assert "hold up to 16 of the crossings each image's lower mat shows" in card  # the depth check's
@@ -302,7 +302,7 @@ def test_other_renderer_repeats_put_the_second_stage_supplements_in_the_first_ep
     result = train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
     n_train = len(load_split(drawn_dataset, "train"))
     assert [h["steps"] for h in result.history] == [math.ceil((n_train + 2 * 6) / cfg["batch_size"])]
-    ship(run, models_dir=tmp_path / "models")
+    ship(run, models_dir=tmp_path / "models", gate=False)
     card = (tmp_path / "models" / CARD_NAME).read_text()
     assert "the first stage saw them listed 2 times in its first epochs." in card
     with pytest.raises(ConfigError, match="drawn-late"):  # they trained the first epochs: kept to resume
