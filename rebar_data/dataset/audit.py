@@ -157,15 +157,17 @@ def check_formats(ds: Path, S: pd.DataFrame, K: pd.DataFrame) -> Check:
     return Check("formats_agree_px", ok, worst, f"<= {FORMAT_MAX_PX} px, same keypoints", detail)
 
 
-def check_geometry(info: DatasetInfo, K: pd.DataFrame):
-    """Rebuild the mesh from the recorded config; the table's crossing points must be its crossings, and
-    every sight point must lie on one of its crossing's two bar centerlines (or be the crossing's point,
-    in a grazing view)."""
+def check_geometry(info: DatasetInfo, K: pd.DataFrame, ds: Path | None = None):
+    """Rebuild the mesh from the recorded config (a mesh read from IFC from the dataset's own copy of the
+    model, ``meta/mesh.ifc``); the table's crossing points must be its crossings, and every sight point must
+    lie on one of its crossing's two bar centerlines (or be the crossing's point, in a grazing view)."""
     from rebar_data.config import MeshConfig
     from rebar_data.geometry.build import build_rebar_mesh
 
     # only the mesh sections: the rendering sections may have gained or lost options since the build
     mesh_keys = {k: info.config[k] for k in ("seed", "mesh", "realism", "pose") if k in info.config}
+    if mesh_keys.get("mesh", {}).get("kind") == "ifc" and ds is not None and (ds / layout.MESH_IFC).is_file():
+        mesh_keys["mesh"] = {**mesh_keys["mesh"], "ifc_path": str((ds / layout.MESH_IFC).resolve())}
     rm = build_rebar_mesh(MeshConfig.model_validate(mesh_keys))
     first = K[K.image_id == K.image_id.iloc[0]].sort_values("crossing_id")
     ok_count = len(first) == len(rm.crossings)
@@ -181,11 +183,13 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame):
         sight = inview[["x_world", "y_world", "z_world"]].to_numpy(float)[::step]
         cid = inview.crossing_id.to_numpy()[::step]
         c = rm.crossings
+        piece_a = c.bar_a if c.piece_a is None else c.piece_a
+        piece_b = c.bar_b if c.piece_b is None else c.piece_b
         sight_err = max(
             (
                 min(
-                    _centerline_distance(q, rm.bars[c.bar_a[i]]),
-                    _centerline_distance(q, rm.bars[c.bar_b[i]]),
+                    _centerline_distance(q, rm.bars[piece_a[i]]),
+                    _centerline_distance(q, rm.bars[piece_b[i]]),
                     float(np.linalg.norm(q - c.point[i])),  # grazing views fall back to the crossing
                 )
                 for q, i in zip(sight, cid, strict=True)
@@ -323,7 +327,7 @@ def check_instances(
                 agree = any(along(c, yy, xx, sight) <= near_m[c] + slack_m[c] for yy, xx in window)
                 z = depth[y, x]
                 at_own += bool(
-                    inst[y, x] in parts.own[c]
+                    parts.is_own(rm, c, int(inst[y, x]))
                     and abs(z - kp.depth_m) <= AT_DEPTH_DIAMETERS * parts.diameter_max_m[c]
                 )
             elif (kp.x_world, kp.y_world, kp.z_world) == (kp.x_crossing, kp.y_crossing, kp.z_crossing):
@@ -422,7 +426,7 @@ def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Che
     S, K = load_tables(ds)
     checks = check_reprojection(S, K)
     checks.append(check_formats(ds, S, K))
-    geo, rm = check_geometry(info, K)
+    geo, rm = check_geometry(info, K, ds)
     checks.append(geo)
     options = info.config.get("dataset", {})
     stored = {k: bool(options.get(k, True)) for k in ("store_depth", "store_instances")}

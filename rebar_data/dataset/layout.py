@@ -18,6 +18,7 @@ CATEGORY = "rebar_crossing"
 
 INFO = "meta/info.json"
 MANIFEST = "meta/manifest.parquet"
+MESH_IFC = "meta/mesh.ifc"  # a mesh read from IFC: the model it was read from, which the audit reads again
 DATA_YAML = "data.yaml"
 SAMPLES = "tables/samples.parquet"
 KEYPOINTS = "tables/keypoints.parquet"

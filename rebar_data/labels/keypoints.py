@@ -50,41 +50,86 @@ class LabelRule:
 
 @dataclass(frozen=True)
 class CrossingParts:
-    """For each crossing, the part ids that count as "its own" for the visibility test (padded with -9)."""
+    """For each crossing, the parts that count as "its own" for the visibility test, and the pieces of its
+    bars it lies on.
 
-    own: np.ndarray  # (N, 3) int32: part of bar a, part of bar b, tie wire part or -9
+    A bar of a generated mesh is one piece and one part; a bar read from IFC may have several pieces (one
+    part each) and a ball at each sharp joint. Every part of either bar is the crossing's own; distances
+    along a bar run over all its pieces.
+    """
+
+    own: np.ndarray  # (N, 3) int32: part of piece a, part of piece b, tie wire part or -9
     diameter_max_m: np.ndarray  # (N,)
     tangent_a: np.ndarray  # (N, 3) unit tangent of bar a at its closest point
     tangent_b: np.ndarray  # (N, 3) unit tangent of bar b at its closest point
-    bars: CurveArrays  # every bar's centerline, for the per-frame sight points (built once per mesh)
+    bars: CurveArrays  # every piece's centerline, for the per-frame sight points (built once per mesh)
+    piece_a: np.ndarray  # (N,) index in ``rm.bars`` of the piece of bar a the crossing lies on
+    piece_b: np.ndarray  # (N,)
+    part_bar: np.ndarray  # (parts,) bar id of each part, -1 for tie wire
+    piece_start_m: np.ndarray  # (pieces,) arc length along its bar where each piece begins
+    pieces_of_bar: dict[int, list[int]]  # bar id -> its pieces in ``rm.bars``, in order
 
     @staticmethod
     def of(rm: RebarMesh) -> CrossingParts:
-        part_of_bar = np.full(len(rm.bars), -9, np.int32)
-        tie_of_crossing = np.full(len(rm.crossings), -9, np.int32)
-        for p in rm.parts:
-            if p.kind == "bar":
-                part_of_bar[p.bar_id] = p.part_id
-            else:
-                tie_of_crossing[p.crossing_id] = p.part_id
         c = rm.crossings
-        own = np.stack([part_of_bar[c.bar_a], part_of_bar[c.bar_b], tie_of_crossing], axis=1)
+        piece_a = np.asarray(c.bar_a if c.piece_a is None else c.piece_a, np.int64)
+        piece_b = np.asarray(c.bar_b if c.piece_b is None else c.piece_b, np.int64)
+        part_bar = np.array([p.bar_id if p.kind == "bar" else -1 for p in rm.parts], np.int64)
+        tie_of_crossing = np.full(len(c), -9, np.int32)
+        for p in rm.parts:
+            if p.kind != "bar":
+                tie_of_crossing[p.crossing_id] = p.part_id
+        # the first len(rm.bars) parts are the pieces' tubes, in order (build_parts)
+        own = np.stack([piece_a, piece_b, tie_of_crossing], axis=1).astype(np.int32)
         diam = np.array([b.diameter_m for b in rm.bars])
+        pieces_of_bar: dict[int, list[int]] = {}
+        start = np.zeros(len(rm.bars))
+        for i, b in enumerate(rm.bars):
+            done = pieces_of_bar.setdefault(b.bar_id, [])
+            start[i] = sum(rm.bars[k].curve.length for k in done)
+            done.append(i)
 
-        def tangents(bars: np.ndarray, points: np.ndarray) -> np.ndarray:
+        def tangents(pieces: np.ndarray, points: np.ndarray) -> np.ndarray:
             out = [
-                rm.bars[b].curve.tangent(rm.bars[b].curve.project(p))
-                for b, p in zip(bars, points, strict=True)
+                rm.bars[k].curve.tangent(rm.bars[k].curve.project(p))
+                for k, p in zip(pieces, points, strict=True)
             ]
             return np.asarray(out, float).reshape(-1, 3)
 
         return CrossingParts(
             own,
-            np.maximum(diam[c.bar_a], diam[c.bar_b]),
-            tangents(c.bar_a, c.point_a),
-            tangents(c.bar_b, c.point_b),
+            np.maximum(diam[piece_a], diam[piece_b]),
+            tangents(piece_a, c.point_a),
+            tangents(piece_b, c.point_b),
             CurveArrays.of([b.curve for b in rm.bars]),
+            piece_a,
+            piece_b,
+            part_bar,
+            start,
+            pieces_of_bar,
         )
+
+    def is_own(self, rm: RebarMesh, crossing: int, instance: int) -> bool:
+        """Part ``instance`` is the crossing's tie wire or a part of either of its bars."""
+        if instance < 0 or instance >= len(self.part_bar):
+            return False
+        if instance == self.own[crossing, 2]:
+            return True
+        return int(self.part_bar[instance]) in (
+            int(rm.crossings.bar_a[crossing]),
+            int(rm.crossings.bar_b[crossing]),
+        )
+
+    def along_bar_m(self, rm: RebarMesh, bar_id: int, point: np.ndarray) -> float:
+        """Arc length along bar ``bar_id`` (over all its pieces) of the foot of ``point`` on it."""
+        best_d, best_s = np.inf, 0.0
+        for k in self.pieces_of_bar[bar_id]:
+            curve = rm.bars[k].curve
+            s = curve.project(point)
+            d = float(np.linalg.norm(curve.point(s) - point))
+            if d < best_d:
+                best_d, best_s = d, float(self.piece_start_m[k] + s)
+        return best_s
 
 
 @dataclass(frozen=True)
@@ -193,7 +238,7 @@ def sight_points(
     centre = np.asarray(camera_centre, float)
     q_a, q_b, sine, ok = sight_lines(c.point_a, parts.tangent_a, c.point_b, parts.tangent_b, centre)
     bars = parts.bars
-    a, b = np.asarray(c.bar_a), np.asarray(c.bar_b)
+    a, b = parts.piece_a, parts.piece_b
     curved = np.flatnonzero(ok & (bars.is_arc[a] | bars.is_arc[b]))
     for _ in range(SIGHT_CURVE_STEPS if len(curved) else 0):
         ia, ib = a[curved], b[curved]
@@ -230,14 +275,12 @@ def along_bar_distance(
     positions along the bar for either of its bars, and infinity for any other part. Measured from the
     sight point rather than the crossing: at a grazing view it runs several diameters along the nearer bar.
     """
-    own = parts.own[crossing]
-    if instance < 0 or instance not in own:
+    if not parts.is_own(rm, crossing, instance):
         return float("inf")
-    if instance == own[2]:
+    if instance == parts.own[crossing, 2]:
         return 0.0
-    c = rm.crossings
-    curve = rm.bars[c.bar_a[crossing] if instance == own[0] else c.bar_b[crossing]].curve
-    return abs(curve.project(point) - curve.project(sight))
+    bar = int(parts.part_bar[instance])
+    return abs(parts.along_bar_m(rm, bar, point) - parts.along_bar_m(rm, bar, sight))
 
 
 def label_frame(

@@ -1,9 +1,11 @@
 """The mat as a smooth surface with 2D coordinates, for placing cameras, lights and surroundings.
 
 The surface passes through the crossings: a plane for planar meshes, a cylinder about the tunnel axis
-for tunnel segments. Coordinates ``(a, b)`` are metres along the mesh's local x axis and along its local
-y direction (arc length for a tunnel), so a trajectory can walk across a curved mat at a constant
-stand-off. Heights are measured along the outward normal, positive outside.
+for tunnel segments, and for a mesh read from IFC the plane or cylinder fitted to its bars
+(:mod:`rebar_data.geometry.surface_fit`), in the fit's frame. Coordinates ``(a, b)`` are metres along the
+frame's x axis and along its y direction (arc length on a cylinder), so a trajectory can walk across a
+curved mat at a constant stand-off. Heights are measured along the outward normal (for IFC, the camera-side
+normal), positive on the camera's side.
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ class MatSurface:
     radius_m: float  # tunnel: the surface's radius; planar: 0
     crossing_ab: np.ndarray  # (N, 2)
     height_range_m: tuple[float, float]  # lowest and highest mesh point above the surface
+    side: int = 1  # a cylinder seen from inside (a fitted surface's camera side): -1
 
     @staticmethod
     def of(rm: RebarMesh) -> MatSurface:
@@ -39,6 +42,19 @@ class MatSurface:
     def through(layout: MeshLayout, points: np.ndarray) -> MatSurface:
         """The surface of ``layout``'s kind and pose through ``points`` (world; the crossings), without the
         solid mesh: its height range is left at zero."""
+        fit = layout.surface
+        if fit is not None:
+            T = fit.world_from_surface
+            local = (points - T[:3, 3]) @ T[:3, :3]
+            if fit.kind == "cylinder":
+                radius = float(np.mean(np.linalg.norm(local[:, 1:], axis=1)))
+                surf = MatSurface(
+                    "tunnel_segment", T, np.zeros(3), radius, np.zeros((0, 2)), (0.0, 0.0), fit.side
+                )
+            else:
+                origin = np.array([0.0, 0.0, float(np.mean(local[:, 2]))])
+                surf = MatSurface("planar", T, origin, 0.0, np.zeros((0, 2)), (0.0, 0.0))
+            return replace(surf, crossing_ab=surf.to_ab(points))
         T = layout.world_from_mesh
         local = (points - T[:3, 3]) @ T[:3, :3]
         if layout.kind == "tunnel_segment":
@@ -77,7 +93,7 @@ class MatSurface:
         """Signed distance (N,) of world points above the surface, along the outward normal."""
         local = self._to_local(points)
         if self.is_tunnel:
-            return np.linalg.norm(local[:, 1:], axis=1) - self.radius_m
+            return self.side * (np.linalg.norm(local[:, 1:], axis=1) - self.radius_m)
         return local[:, 2]
 
     def frame(self, ab: np.ndarray, height_m: float | np.ndarray = 0.0) -> tuple[np.ndarray, ...]:
@@ -90,7 +106,8 @@ class MatSurface:
             normal = np.stack([np.zeros_like(psi), np.sin(psi), np.cos(psi)], axis=1)
             t_b = np.stack([np.zeros_like(psi), np.cos(psi), -np.sin(psi)], axis=1)
             local = np.stack([ab[:, 0], np.zeros_like(psi), np.zeros_like(psi)], axis=1)
-            local = local + (self.radius_m + h)[:, None] * normal
+            local = local + (self.radius_m + self.side * h)[:, None] * normal
+            normal = self.side * normal
         else:
             normal = np.tile([0.0, 0.0, 1.0], (len(ab), 1))
             t_b = np.tile([0.0, 1.0, 0.0], (len(ab), 1))

@@ -377,9 +377,11 @@ def test_round_trip_through_ifc_keeps_bars_and_crossings(source, tmp_path, capsy
         data["realism"] = cfg.realism.model_dump(mode="json")
         data["pose"] = cfg.pose.model_dump(mode="json")
         source.write_text(yaml.safe_dump(data, sort_keys=False))
+    two_mats = "tunnel" not in str(source)
     ifc = tmp_path / "model.ifc"
     assert main(["mesh", str(source), "--out", str(tmp_path / "a"), "--ifc", str(ifc)]) == 0
-    cfg = pipeline(tmp_path, {"kind": "ifc", "ifc_path": "model.ifc"})
+    # every crossing of both mats; the default keeps the top mat's (checked below)
+    cfg = pipeline(tmp_path, {"kind": "ifc", "ifc_path": "model.ifc", "crossings": "all"})
     assert main(["mesh", str(cfg), "--out", str(tmp_path / "b")]) == 0
     capsys.readouterr()
 
@@ -406,6 +408,14 @@ def test_round_trip_through_ifc_keeps_bars_and_crossings(source, tmp_path, capsy
     summary = json.loads((tmp_path / "b/mesh.json").read_text())
     assert summary["bars"] == len(a["bars"]) and summary["ifc"]["schema"] == "IFC4"
     assert summary["ifc"]["skipped"] == [] and len(summary["ifc"]["sha256"]) == 64
+    # the fitted surface: a cylinder for the tunnel, a plane for the slab; its mats are the source's layers
+    surface = summary["surface"]
+    assert surface["kind"] == ("plane" if two_mats else "cylinder")
+    assert len(surface["mats"]) == (2 if two_mats else 1) and surface["pieces_through"] == 0
+    top = read_mesh(tmp_path, ifc, crossings="top_mat")
+    in_top = a["crossings"][a["crossings"].layer == 0]
+    assert len(top.crossings) == len(in_top) == (25 if two_mats else 720)
+    assert np.abs(top.crossings.point - in_top[["x", "y", "z"]].to_numpy()).max() <= 1e-6
 
 
 # ---------------------------------------------------------------------------------------------- IFC in
@@ -779,9 +789,9 @@ def test_bad_input_is_one_line_exit_2_and_nothing_written(case, tmp_path, capsys
     mesh = dict(mesh)
     top = {"realism": mesh.pop("realism")} if "realism" in mesh else {}
     if mesh.pop("no_config_dir", False):  # a command that does not pass the pipeline's folder
-        cfg = pipeline(tmp_path, {"kind": "ifc", "ifc_path": ifc.name})
+        cfg = MeshConfig.model_validate({"mesh": {"kind": "ifc", "ifc_path": ifc.name}})
         with pytest.raises(ConfigError) as e:
-            build_rebar_mesh(load_mesh_config(cfg))
+            build_rebar_mesh(cfg)
         assert all(w in str(e.value) for w in words), str(e.value)
         return
     cfg = pipeline(tmp_path, {"kind": "ifc", "ifc_path": ifc.name, **mesh}, **top)
