@@ -155,7 +155,7 @@ class IfcMesh(Strict):
     surface: Literal["auto", "plane", "cylinder"] = Field(
         "auto",
         description="the surface fitted to the bars that cameras and lights face: auto takes a cylinder when "
-        "its RMS residual is under half the plane's",
+        "it fits better and more bars lie along it",
     )
     camera_side: Vec3 | None = Field(
         None,

@@ -165,9 +165,10 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame, ds: Path | None = None):
     from rebar_data.geometry.build import build_rebar_mesh
 
     # only the mesh sections: the rendering sections may have gained or lost options since the build
-    mesh_keys = {k: info.config[k] for k in ("seed", "mesh", "realism", "pose") if k in info.config}
-    if mesh_keys.get("mesh", {}).get("kind") == "ifc" and ds is not None and (ds / layout.MESH_IFC).is_file():
-        mesh_keys["mesh"] = {**mesh_keys["mesh"], "ifc_path": str((ds / layout.MESH_IFC).resolve())}
+    if ds is None:
+        mesh_keys = {k: info.config[k] for k in ("seed", "mesh", "realism", "pose") if k in info.config}
+    else:
+        mesh_keys = layout.mesh_sections(ds, info.config)
     rm = build_rebar_mesh(MeshConfig.model_validate(mesh_keys))
     first = K[K.image_id == K.image_id.iloc[0]].sort_values("crossing_id")
     ok_count = len(first) == len(rm.crossings)

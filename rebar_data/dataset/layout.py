@@ -47,6 +47,16 @@ def coco_path(split: str) -> str:
     return f"annotations/{split}.json"
 
 
+def mesh_sections(ds: Path, config: dict) -> dict:
+    """The mesh sections (seed, mesh, realism, pose) of a dataset's recorded config; a mesh read from IFC
+    reads the dataset's own copy of the model (``meta/mesh.ifc``) when it has one."""
+    keys = {k: config[k] for k in ("seed", "mesh", "realism", "pose") if k in config}
+    mesh = keys.get("mesh")
+    if isinstance(mesh, dict) and mesh.get("kind") == "ifc" and (Path(ds) / MESH_IFC).is_file():
+        keys["mesh"] = {**mesh, "ifc_path": str((Path(ds) / MESH_IFC).resolve())}
+    return keys
+
+
 def dataset_dir(root: Path, name: str, version: str) -> Path:
     return Path(root) / name / f"v{version}"
 

@@ -602,6 +602,16 @@ def check_realism(cfg: MeshConfig) -> None:
             )
 
 
+def _direction(bar: Bar, mat: int, fit) -> int:
+    """A piece's direction as the file gives it (``rebar mesh --ifc``'s property set), else for a piece in a
+    mat 0 when it runs within 45 degrees of the fitted surface's x axis and 1 across it; -1 through the
+    thickness."""
+    if bar.direction >= 0 or mat < 0:
+        return bar.direction
+    t = bar.curve.tangent(bar.curve.length / 2.0)
+    return 0 if abs(float(t @ fit.world_from_surface[:3, 0])) >= np.sqrt(0.5) else 1
+
+
 def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
     """The bars of ``cfg``'s IFC model as a layout: one Bar per centerline piece, posed by ``cfg.pose``, its
     ``layer`` the mat the piece lies in (:mod:`rebar_data.geometry.surface_fit`; -1 through the thickness)."""
@@ -637,7 +647,10 @@ def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
         top_mat=mesh.top_mat,
         need_mats=mesh.crossings == "top_mat",
     )
-    bars = [replace(b, layer=int(m)) for b, m in zip(bars, fit.piece_mat, strict=True)]
+    bars = [
+        replace(b, layer=int(m), direction=_direction(b, int(m), fit))
+        for b, m in zip(bars, fit.piece_mat, strict=True)
+    ]
     source = IfcSource(
         str(path),
         read.sha256,

@@ -4,9 +4,10 @@ A mesh read from IFC has no ``face`` or ``layers``: cameras, lights and the top 
 
 Surface. The centerlines are sampled every ``SAMPLE_STEP_M``. A plane is fitted by SVD (the normal is the
 direction of least spread); a cylinder by least squares on the distance to an axis, started from each of the
-plane's two in-plane axes. ``surface: auto`` takes the cylinder when its RMS residual is under
-``CYLINDER_GAIN`` times the plane's and its radius under ``MAX_RADIUS_EXTENTS`` times the bars' extent,
-else the plane. Both residuals are kept (``plane_rms_m``, ``cylinder_rms_m``).
+plane's two in-plane axes. ``surface: auto`` takes the cylinder when it fits better (a smaller RMS residual),
+fewer pieces run through the thickness measured from it than from the plane (see Mats: the bars lie along
+it) and its radius is under ``MAX_RADIUS_EXTENTS`` times the bars' extent; else, and on a tie, the plane. Both fits' RMS and largest
+residuals are kept (``plane_rms_m``, ``plane_max_m``, ``cylinder_rms_m``, ``cylinder_max_m``).
 
 Camera side. ``camera_side`` (a world direction) picks the side of the surface the camera looks from: the
 normal at the bars' centre that points along it. Without it: for a plane, the side with a positive z
@@ -32,7 +33,6 @@ from rebar_data.config import ConfigError
 from rebar_data.geometry.curves import Curve, sample
 
 SAMPLE_STEP_M = 0.02
-CYLINDER_GAIN = 0.5
 MAX_RADIUS_EXTENTS = 100.0
 VERTICAL_NZ = 0.1
 _SIDE_MIN_COS = 1e-3
@@ -122,8 +122,9 @@ def _samples(curves: list[Curve]) -> tuple[np.ndarray, np.ndarray]:
 def fit_plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Centroid, in-plane axes (2, 3) by decreasing spread, and unit normal of the least-squares plane."""
     centroid = points.mean(0)
-    _, _, vt = np.linalg.svd(points - centroid, full_matrices=False)
-    return centroid, vt[:2], vt[2]
+    d = points - centroid
+    _, vectors = np.linalg.eigh(d.T @ d)  # ascending spread: the normal first
+    return centroid, vectors[:, [2, 1]].T, vectors[:, 0]
 
 
 def _circle(uv: np.ndarray) -> tuple[np.ndarray, float]:
@@ -188,6 +189,20 @@ def _plane_side(normal: np.ndarray) -> tuple[int, str]:
     return 1, "+z"
 
 
+def _span(heights: np.ndarray, owner: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Lowest and highest height (n,) of each piece's samples."""
+    lo, hi = np.full(n, np.inf), np.full(n, -np.inf)
+    np.minimum.at(lo, owner, heights)
+    np.maximum.at(hi, owner, heights)
+    return lo, hi
+
+
+def _through(heights: np.ndarray, owner: np.ndarray, n: int, gap: float) -> int:
+    """How many pieces span more than half of ``gap`` in height: those that lie along no mat."""
+    lo, hi = _span(heights, owner, n)
+    return int(np.sum(hi - lo > gap / 2.0))
+
+
 def fit_surface(
     curves: list[Curve],
     diameters_m: np.ndarray,
@@ -217,15 +232,11 @@ def fit_surface(
             f"mesh.surface = cylinder: {len(points)} centerline points are too few to fit one; accepted: surface: "
             "plane or auto"
         )
-    use_cylinder = surface == "cylinder" or (
-        surface == "auto"
-        and cyl is not None
-        and cyl_rms < CYLINDER_GAIN * plane_rms
-        and cyl[2] < MAX_RADIUS_EXTENTS * extent
-    )
+    gap = float(mat_gap_m) if mat_gap_m is not None else 2.0 * float(np.max(diameters_m))
     T = np.eye(4)
+    use_cylinder = surface == "cylinder"
     if cyl is not None:
-        p, axis, radius, _ = cyl
+        p, axis, radius, residual = cyl
         foot = p + ((centroid - p) @ axis) * axis
         out = centroid - foot
         if np.linalg.norm(out) < 1e-9 * max(extent, 1e-9):
@@ -234,7 +245,9 @@ def fit_surface(
                     "mesh.surface = cylinder: the bars' centre lies on the fitted axis, which leaves no side to "
                     "look from; accepted: surface: plane or auto"
                 )
-            use_cylinder = False
+        elif surface == "auto" and radius < MAX_RADIUS_EXTENTS * extent and cyl_rms < plane_rms:
+            k = len(curves)
+            use_cylinder = _through(residual, owner, k, gap) < _through(plane_res, owner, k, gap)
     if use_cylinder:
         out /= np.linalg.norm(out)
         sign, how = _side_sign(out, camera_side, "cylinder")
@@ -253,7 +266,6 @@ def fit_surface(
         T[:3, 1] = np.cross(z, in_plane[0])
         T[:3, 3] = centroid
         kind, radius, sign = "plane", 0.0, 1
-    gap = float(mat_gap_m) if mat_gap_m is not None else 2.0 * float(np.max(diameters_m))
     fit = SurfaceFit(
         kind,
         T,
@@ -271,10 +283,7 @@ def fit_surface(
     )
     h = fit.height(points)
     n_pieces = len(curves)
-    lo = np.full(n_pieces, np.inf)
-    hi = np.full(n_pieces, -np.inf)
-    np.minimum.at(lo, owner, h)
-    np.maximum.at(hi, owner, h)
+    lo, hi = _span(h, owner, n_pieces)
     mean = np.bincount(owner, weights=h, minlength=n_pieces) / np.bincount(owner, minlength=n_pieces)
     flat = hi - lo <= gap / 2.0
     piece_mat = np.full(n_pieces, -1, np.int32)
