@@ -159,8 +159,8 @@ class IfcMesh(Strict):
     )
     camera_side: Vec3 | None = Field(
         None,
-        description="a world direction on the camera's side of the surface; default up (+z; +x, then +y for a "
-        "vertical surface), a cylinder's outside",
+        description="a direction (the model's frame, before pose) on the camera's side of the surface; default "
+        "up (+z; +x, then +y for a vertical surface), a cylinder's outside",
     )
     mat_gap_m: Positive | None = Field(
         None,
@@ -195,7 +195,7 @@ class IfcMesh(Strict):
             all(np.isfinite(self.camera_side)) and float(np.linalg.norm(self.camera_side)) > 0.0
         ):
             raise ValueError(
-                f"camera_side = {list(self.camera_side)} is not accepted: it must be a finite, non-zero world "
+                f"camera_side = {list(self.camera_side)} is not accepted: it must be a finite, non-zero "
                 "direction, such as [0, 0, 1] (from above)"
             )
         if self.bbox_m is not None and not all(a < b for a, b in zip(*self.bbox_m, strict=True)):

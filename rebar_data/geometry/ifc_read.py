@@ -646,6 +646,7 @@ def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
         mat_gap_m=mesh.mat_gap_m,
         top_mat=mesh.top_mat,
         need_mats=mesh.crossings == "top_mat",
+        world_from_model=R,
     )
     bars = [
         replace(b, layer=int(m), direction=_direction(b, int(m), fit))

@@ -9,10 +9,12 @@ fewer pieces run through the thickness measured from it than from the plane (see
 it) and its radius is under ``MAX_RADIUS_EXTENTS`` times the bars' extent; else, and on a tie, the plane. Both fits' RMS and largest
 residuals are kept (``plane_rms_m``, ``plane_max_m``, ``cylinder_rms_m``, ``cylinder_max_m``).
 
-Camera side. ``camera_side`` (a world direction) picks the side of the surface the camera looks from: the
-normal at the bars' centre that points along it. Without it: for a plane, the side with a positive z
-component (from above), or for a plane within about 6 degrees of vertical (|n_z| < 0.1) the side with a
-positive x component, then y; for a cylinder, its outside (away from the axis).
+Camera side. ``camera_side`` (a direction in the model's frame, before ``pose`` moves it) picks the side of
+the surface the camera looks from: the normal at the bars' centre that points along it. Without it: for a
+plane, the side with a positive z component (from above), or for a plane within about 6 degrees of vertical
+(|n_z| < 0.1) the side with a positive x component, then y, both in the model's frame; for a cylinder, its
+outside (away from the axis). Being the model's, the side moves with the model wherever ``pose`` (or a servo
+world) puts it.
 
 Mats. A piece's height is its signed distance above the surface towards the camera side. A piece whose
 heights span at most half of ``mat_gap_m`` lies in a mat (a bar along the surface); one spanning more runs
@@ -212,10 +214,14 @@ def fit_surface(
     mat_gap_m: float | None = None,
     top_mat: int | None = None,
     need_mats: bool = False,
+    world_from_model: np.ndarray | None = None,
 ) -> SurfaceFit:
     """Fit the surface of ``curves`` (the pieces of a mesh, in the world) and find their mats (module doc).
 
-    ``need_mats``: a mesh without a mat (no piece along the surface) is a ConfigError, not an empty list."""
+    ``need_mats``: a mesh without a mat (no piece along the surface) is a ConfigError, not an empty list.
+    ``world_from_model``: the rotation (3x3) of the pose that placed ``curves``; the camera side is chosen in
+    the model's frame."""
+    R = np.eye(3) if world_from_model is None else np.asarray(world_from_model, float)[:3, :3]
     points, owner = _samples(curves)
     centroid, in_plane, n = fit_plane(points)
     plane_res = (points - centroid) @ n
@@ -250,7 +256,7 @@ def fit_surface(
             use_cylinder = _through(residual, owner, k, gap) < _through(plane_res, owner, k, gap)
     if use_cylinder:
         out /= np.linalg.norm(out)
-        sign, how = _side_sign(out, camera_side, "cylinder")
+        sign, how = _side_sign(R.T @ out, camera_side, "cylinder")
         if sign == 0:
             sign, how = 1, "the cylinder's outside"
         T[:3, 0], T[:3, 2] = axis, out
@@ -258,9 +264,9 @@ def fit_surface(
         T[:3, 3] = foot
         kind = "cylinder"
     else:
-        sign, how = _side_sign(n, camera_side, "plane")
+        sign, how = _side_sign(R.T @ n, camera_side, "plane")
         if sign == 0:
-            sign, how = _plane_side(n)
+            sign, how = _plane_side(R.T @ n)
         z = sign * n
         T[:3, 0], T[:3, 2] = in_plane[0], z
         T[:3, 1] = np.cross(z, in_plane[0])

@@ -169,3 +169,18 @@ def test_a_surface_without_side_to_look_from_is_refused():
 
     with pytest.raises(ConfigError, match="too few to fit one"):
         fit_surface([Line(np.zeros(3), np.array([0.01, 0.0, 0.0]))], np.array([0.01]), surface="cylinder")
+
+
+def test_the_camera_side_is_the_models_and_moves_with_its_pose(wall, tmp_path):
+    """A pose that turns the wall's front to -x keeps the front mat on top: the side is chosen in the model's
+    frame (a servo world places the model by its own pose)."""
+    still = read_mesh(tmp_path, wall, crossings="top_mat")
+    pose = {"rotation_deg": [0.0, 0.0, 150.0], "translation_m": [1.0, 2.0, 3.0]}
+    cfg = pipeline(tmp_path, {"kind": "ifc", "ifc_path": "wall.ifc", "crossings": "top_mat"}, pose=pose)
+    moved = build_rebar_mesh(load_mesh_config(cfg))
+    c, s = np.cos(np.radians(150.0)), np.sin(np.radians(150.0))
+    R = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    np.testing.assert_allclose(
+        moved.crossings.point, still.crossings.point @ R.T + [1.0, 2.0, 3.0], atol=1e-9
+    )
+    np.testing.assert_allclose(moved.layout.surface.world_from_surface[:3, 2], R @ WALL_FRONT, atol=1e-9)
