@@ -100,3 +100,4 @@ def test_the_bundle_of_an_ifc_dataset_ships_the_model(wall_dataset, tmp_path, ca
     croissant = json.loads((bundle / "croissant.json").read_text())
     assert layout.MESH_IFC in json.dumps(croissant)
     assert layout.MESH_IFC in (bundle / "SHA256SUMS").read_text()
+    assert "read from an IFC building model" in (bundle / "README.md").read_text()
