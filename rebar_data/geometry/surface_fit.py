@@ -4,7 +4,7 @@ A mesh read from IFC has no ``face`` or ``layers``: cameras, lights and the top 
 
 Surface. The centerlines are sampled every ``SAMPLE_STEP_M``. A plane is fitted by SVD (the normal is the
 direction of least spread); a cylinder by least squares on the distance to an axis, started from each of the
-plane's two in-plane axes. ``surface: auto`` takes the cylinder when it fits better (a smaller RMS residual),
+plane's two in-plane axes, on ``FIT_POINTS`` of the samples. ``surface: auto`` takes the cylinder when it fits better (a smaller RMS residual),
 fewer pieces run through the thickness measured from it than from the plane (see Mats: the bars lie along
 it) and its radius is under ``MAX_RADIUS_EXTENTS`` times the bars' extent; else, and on a tie, the plane. Both fits' RMS and largest
 residuals are kept (``plane_rms_m``, ``plane_max_m``, ``cylinder_rms_m``, ``cylinder_max_m``).
@@ -35,6 +35,7 @@ from rebar_data.config import ConfigError
 from rebar_data.geometry.curves import Curve, sample
 
 SAMPLE_STEP_M = 0.02
+FIT_POINTS = 4000  # the cylinder is fitted to this many of the samples, evenly spread along the centerlines
 MAX_RADIUS_EXTENTS = 100.0
 VERTICAL_NZ = 0.1
 _SIDE_MIN_COS = 1e-3
@@ -145,6 +146,12 @@ def _basis(axis: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return u, np.cross(axis, u)
 
 
+def cylinder_residuals(points: np.ndarray, p: np.ndarray, axis: np.ndarray, radius: float) -> np.ndarray:
+    """Distance of each point from the axis through ``p`` along unit ``axis``, less ``radius``."""
+    d = points - p
+    return np.linalg.norm(d - np.outer(d @ axis, axis), axis=1) - radius
+
+
 def fit_cylinder(points: np.ndarray, axis0: np.ndarray) -> tuple[np.ndarray, np.ndarray, float, np.ndarray]:
     """Least-squares cylinder started with its axis along ``axis0``: axis point, unit axis, radius and the
     residuals (distance to the axis less the radius) of every point."""
@@ -160,9 +167,7 @@ def fit_cylinder(points: np.ndarray, axis0: np.ndarray) -> tuple[np.ndarray, np.
         return p0 + x[2] * u + x[3] * w, axis, x[4]
 
     def residual(x):
-        p, axis, r = unpack(x)
-        d = points - p
-        return np.linalg.norm(d - np.outer(d @ axis, axis), axis=1) - r
+        return cylinder_residuals(points, *unpack(x))
 
     sol = least_squares(residual, np.array([0.0, 0.0, 0.0, 0.0, r0]), x_scale="jac", method="trf")
     p, axis, r = unpack(sol.x)
@@ -229,8 +234,10 @@ def fit_surface(
     extent = float(np.linalg.norm(points.max(0) - points.min(0)))
     cyl = None
     if surface in ("auto", "cylinder") and len(points) >= 6:
-        fits = [fit_cylinder(points, a) for a in in_plane]
-        cyl = min(fits, key=lambda f: float(np.mean(f[3] ** 2)))
+        some = points[np.unique(np.linspace(0, len(points) - 1, min(len(points), FIT_POINTS)).astype(int))]
+        fits = [fit_cylinder(some, a) for a in in_plane]
+        p, axis, radius, _ = min(fits, key=lambda f: float(np.mean(f[3] ** 2)))
+        cyl = (p, axis, radius, cylinder_residuals(points, p, axis, radius))
     cyl_rms = float(np.sqrt(np.mean(cyl[3] ** 2))) if cyl is not None else None
     cyl_max = float(np.abs(cyl[3]).max()) if cyl is not None else None
     if surface == "cylinder" and cyl is None:
