@@ -2,12 +2,13 @@
 
 A mesh read from IFC has no ``face`` or ``layers``: cameras, lights and the top mat come from this fit.
 
-Surface. The centerlines are sampled every ``SAMPLE_STEP_M``. A plane is fitted by SVD (the normal is the
+Surface. The centerlines are sampled every ``SAMPLE_STEP_M``. A plane is fitted by PCA (the normal is the
 direction of least spread); a cylinder by least squares on the distance to an axis, started from each of the
-plane's two in-plane axes, on ``FIT_POINTS`` of the samples. ``surface: auto`` takes the cylinder when it fits better (a smaller RMS residual),
-fewer pieces run through the thickness measured from it than from the plane (see Mats: the bars lie along
-it) and its radius is under ``MAX_RADIUS_EXTENTS`` times the bars' extent; else, and on a tie, the plane. Both fits' RMS and largest
-residuals are kept (``plane_rms_m``, ``plane_max_m``, ``cylinder_rms_m``, ``cylinder_max_m``).
+plane's two in-plane axes, on ``FIT_POINTS`` of the samples. ``surface: auto`` takes the cylinder when it fits
+better (a smaller RMS residual), fewer pieces run through the thickness measured from it than from the plane
+(see Mats: the bars lie along it) and its radius is under ``MAX_RADIUS_EXTENTS`` times the bars' extent; else,
+and on a tie, the plane. Both fits' RMS and largest residuals are kept (``plane_rms_m``, ``plane_max_m``,
+``cylinder_rms_m``, ``cylinder_max_m``).
 
 Camera side. ``camera_side`` (a direction in the model's frame, before ``pose`` moves it) picks the side of
 the surface the camera looks from: the normal at the bars' centre that points along it. Without it: for a
@@ -26,7 +27,7 @@ mat). Mat 0 is the nearest the camera side; the top mat the robot ties is mat ``
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -294,10 +295,28 @@ def fit_surface(
         0,
         how,
     )
-    h = fit.height(points)
-    n_pieces = len(curves)
-    lo, hi = _span(h, owner, n_pieces)
-    mean = np.bincount(owner, weights=h, minlength=n_pieces) / np.bincount(owner, minlength=n_pieces)
+    mats, piece_mat = _mats(fit.height(points), owner, len(curves), gap)
+    if not mats and need_mats:
+        raise ConfigError(
+            f"mesh: no bar lies along the fitted {kind} (every piece spans more than half of mat_gap_m = "
+            f"{gap:g} m in height); accepted: a larger mesh.mat_gap_m, or mesh.surface set to the other shape"
+        )
+    top = 0 if top_mat is None else int(top_mat)
+    if top >= len(mats) and (mats or top_mat is not None):
+        found = "; ".join(f"{k}: {m.pieces} pieces at {m.height_m:+.4f} m" for k, m in enumerate(mats))
+        raise ConfigError(
+            f"mesh.top_mat = {top_mat}: the bars form {len(mats)} mat{'s' if len(mats) != 1 else ''} counted "
+            f"from the camera side ({found or 'no piece lies along the surface'}); accepted: "
+            + (f"0 to {len(mats) - 1}" if mats else "no top_mat, or a larger mat_gap_m")
+        )
+    return replace(fit, mats=mats, piece_mat=piece_mat, top_mat=top)
+
+
+def _mats(heights: np.ndarray, owner: np.ndarray, n_pieces: int, gap: float) -> tuple[list[Mat], np.ndarray]:
+    """The mats, from the camera side, and each piece's mat (-1: through the thickness), from the heights of
+    the samples of every piece (module doc, Mats)."""
+    lo, hi = _span(heights, owner, n_pieces)
+    mean = np.bincount(owner, weights=heights, minlength=n_pieces) / np.bincount(owner, minlength=n_pieces)
     flat = hi - lo <= gap / 2.0
     piece_mat = np.full(n_pieces, -1, np.int32)
     mats: list[Mat] = []
@@ -313,31 +332,4 @@ def fit_surface(
                 Mat(float(np.mean(mean[group])), float(lo[group].min()), float(hi[group].max()), len(group))
             )
         group = [i] if i is not None else []
-    if not mats and need_mats:
-        raise ConfigError(
-            f"mesh: no bar lies along the fitted {kind} (every piece spans more than half of mat_gap_m = "
-            f"{gap:g} m in height); accepted: a larger mesh.mat_gap_m, or mesh.surface set to the other shape"
-        )
-    top = 0 if top_mat is None else int(top_mat)
-    if top >= len(mats) and (mats or top_mat is not None):
-        found = "; ".join(f"{k}: {m.pieces} pieces at {m.height_m:+.4f} m" for k, m in enumerate(mats))
-        raise ConfigError(
-            f"mesh.top_mat = {top_mat}: the bars form {len(mats)} mat{'s' if len(mats) != 1 else ''} counted "
-            f"from the camera side ({found or 'no piece lies along the surface'}); accepted: "
-            + (f"0 to {len(mats) - 1}" if mats else "no top_mat, or a larger mat_gap_m")
-        )
-    return SurfaceFit(
-        kind,
-        T,
-        float(radius),
-        int(sign),
-        plane_rms,
-        plane_max,
-        cyl_rms,
-        cyl_max,
-        gap,
-        mats,
-        piece_mat,
-        top,
-        how,
-    )
+    return mats, piece_mat
