@@ -102,9 +102,12 @@ class _GroundProbe:
 
 
 def _lower_layer(scene: SceneSample, surf: MatSurface, rm: RebarMesh) -> list[SceneObject]:
+    """A copy of the mat's bars (a mesh read from IFC: its top mat's), moved beneath it and shifted along it."""
     d = scene.distractors
+    fit = rm.layout.surface
+    bars = (None if fit is None else [b for b in rm.bars if b.layer == fit.top_mat]) or rm.bars
     shapes = []
-    for bar in rm.bars:
+    for bar in bars:
         c = bar.curve
         if c.kind == "line":
             s = np.array([0.0, c.length])
