@@ -183,15 +183,17 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame, ds: Path | None = None):
         step = max(1, len(inview) // SIGHT_SAMPLES)
         sight = inview[["x_world", "y_world", "z_world"]].to_numpy(float)[::step]
         cid = inview.crossing_id.to_numpy()[::step]
-        c = rm.crossings
-        piece_a = c.bar_a if c.piece_a is None else c.piece_a
-        piece_b = c.bar_b if c.piece_b is None else c.piece_b
+        from rebar_data.labels.keypoints import CrossingParts
+
+        parts = CrossingParts.of(rm)  # a bar of several pieces: the piece nearest the sight point
         sight_err = max(
             (
                 min(
-                    _centerline_distance(q, rm.bars[piece_a[i]]),
-                    _centerline_distance(q, rm.bars[piece_b[i]]),
-                    float(np.linalg.norm(q - c.point[i])),  # grazing views fall back to the crossing
+                    float(parts.nearest_on_bar(parts.piece_a[[i]], q[None])[2][0]),
+                    float(parts.nearest_on_bar(parts.piece_b[[i]], q[None])[2][0]),
+                    float(
+                        np.linalg.norm(q - rm.crossings.point[i])
+                    ),  # grazing views fall back to the crossing
                 )
                 for q, i in zip(sight, cid, strict=True)
             ),
@@ -206,12 +208,6 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame, ds: Path | None = None):
         f"off by {err:.1e} m, sight points {sight_err:.1e} m from their bar's centerline",
     )
     return check, rm
-
-
-def _centerline_distance(q: np.ndarray, bar) -> float:
-    """Distance of ``q`` from ``bar``'s centerline (exact projection onto the line or arc)."""
-    curve = bar.curve
-    return float(np.linalg.norm(curve.point(curve.project(q)) - q))
 
 
 class _PixelAlong:

@@ -68,6 +68,8 @@ class CrossingParts:
     part_bar: np.ndarray  # (parts,) bar id of each part, -1 for tie wire
     piece_start_m: np.ndarray  # (pieces,) arc length along its bar where each piece begins
     pieces_of_bar: dict[int, list[int]]  # bar id -> its pieces in ``rm.bars``, in order
+    neighbours: np.ndarray  # (pieces, 3): each piece, the one before and after it on its bar (or itself)
+    loop_length_m: dict[int, float]  # closed bars (a stirrup's loop): bar id -> length
 
     @staticmethod
     def of(rm: RebarMesh) -> CrossingParts:
@@ -89,6 +91,16 @@ class CrossingParts:
             start[i] = sum(rm.bars[k].curve.length for k in done)
             done.append(i)
 
+        neighbours = np.repeat(np.arange(len(rm.bars))[:, None], 3, axis=1)
+        loop_length: dict[int, float] = {}
+        for bar_id, pieces in pieces_of_bar.items():
+            neighbours[pieces[1:], 1] = pieces[:-1]
+            neighbours[pieces[:-1], 2] = pieces[1:]
+            first, last = rm.bars[pieces[0]].curve, rm.bars[pieces[-1]].curve
+            if len(pieces) > 1 and np.linalg.norm(last.point(last.length) - first.point(0.0)) < CLOSED_M:
+                neighbours[pieces[0], 1], neighbours[pieces[-1], 2] = pieces[-1], pieces[0]
+                loop_length[bar_id] = float(start[pieces[-1]] + last.length)
+
         def tangents(pieces: np.ndarray, points: np.ndarray) -> np.ndarray:
             out = [
                 rm.bars[k].curve.tangent(rm.bars[k].curve.project(p))
@@ -107,7 +119,24 @@ class CrossingParts:
             part_bar,
             start,
             pieces_of_bar,
+            neighbours,
+            loop_length,
         )
+
+    def nearest_on_bar(
+        self, pieces: np.ndarray, points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For points (N, 3) near pieces (N,): the piece among each one and its neighbours on its bar that is
+        nearest the point, the arc length of the point's foot on it, and the distance to that foot. A point
+        past a piece's end at a bend lies on the next piece; on a bar of one piece this is that piece."""
+        cand = self.neighbours[np.asarray(pieces, np.int64)]  # (N, 3)
+        pts = np.repeat(np.asarray(points, float), 3, axis=0)
+        flat = cand.reshape(-1)
+        s = self.bars.project(flat, pts)
+        d = np.linalg.norm(self.bars.point(flat, s) - pts, axis=1).reshape(-1, 3)
+        k = np.argmin(d, axis=1)
+        rows = np.arange(len(cand))
+        return cand[rows, k], s.reshape(-1, 3)[rows, k], d[rows, k]
 
     def is_own(self, rm: RebarMesh, crossing: int, instance: int) -> bool:
         """Part ``instance`` is the crossing's tie wire or a part of either of its bars."""
@@ -153,6 +182,12 @@ SIGHT_MIN_ANGLE_DEG = 10.0
 # found, this many times (an arc departs from its tangent by s^2 / 2R: 9 mm for a sight point 0.23 m along a
 # 3 m arc, 1e-5 m after 3 steps, 1e-15 m after 5)
 SIGHT_CURVE_STEPS = 5
+CLOSED_M = 1e-6  # a bar whose last piece ends this near its first piece's start is a closed loop
+# a tight bend (a stirrup's 20 mm radius) converges more slowly: a point still moving by more than
+# SIGHT_CONVERGED_M after SIGHT_CURVE_STEPS goes on, up to SIGHT_CURVE_MAX_STEPS, and is unseen if it has not
+# settled by then
+SIGHT_CONVERGED_M = 1e-9
+SIGHT_CURVE_MAX_STEPS = 60
 # the mat's outermost crossings lie at their bars' ends: a sight point up to this many bar diameters past a
 # bar's end still shows the bars meet (at the end's cap); farther out the image shows no crossing
 SIGHT_PAST_END_DIAMETERS = 1.0
@@ -221,9 +256,12 @@ def sight_points(
     whether it is defined.
 
     It is found on each centerline's tangent line at the crossing (:func:`sight_lines`). Where a bar is
-    curved, the tangent lines at the points found replace them, ``SIGHT_CURVE_STEPS`` times: an arc of
+    curved, the tangent lines at the points found replace them, ``SIGHT_CURVE_STEPS`` times (more, up to
+    ``SIGHT_CURVE_MAX_STEPS``, while a point still moves by over ``SIGHT_CONVERGED_M``): an arc of
     radius R departs from its tangent by s^2 / 2R where the sight point is s along it, which under a
-    grazing view (s several bar diameters) would put it a millimetre or more off the bar.
+    grazing view (s several bar diameters) would put it a millimetre or more off the bar. On a bar of several
+    pieces (read from IFC) they are the tangent lines of the piece nearest the points found: past a bend
+    the sight point goes on along the next piece.
 
     Where no pixel shows the bars cross (a ray along a bar; projected bars meeting at less than
     ``SIGHT_MIN_ANGLE_DEG``: they overlap along a stretch, at grazing views near the image's corners; the
@@ -239,23 +277,27 @@ def sight_points(
     q_a, q_b, sine, ok = sight_lines(c.point_a, parts.tangent_a, c.point_b, parts.tangent_b, centre)
     bars = parts.bars
     a, b = parts.piece_a, parts.piece_b
-    curved = np.flatnonzero(ok & (bars.is_arc[a] | bars.is_arc[b]))
-    for _ in range(SIGHT_CURVE_STEPS if len(curved) else 0):
-        ia, ib = a[curved], b[curved]
-        sa, sb = bars.project(ia, q_a[curved]), bars.project(ib, q_b[curved])
+    bent = (parts.neighbours[:, 1:] != np.arange(len(parts.neighbours))[:, None]).any(axis=1)
+    curved = np.flatnonzero(ok & (bars.is_arc[a] | bars.is_arc[b] | bent[a] | bent[b]))
+    step = 0
+    while len(curved) and step < SIGHT_CURVE_MAX_STEPS:
+        ia, sa, _ = parts.nearest_on_bar(a[curved], q_a[curved])
+        ib, sb, _ = parts.nearest_on_bar(b[curved], q_b[curved])
         qa, qb, s_k, ok_k = sight_lines(
             bars.point(ia, sa), bars.tangent(ia, sa), bars.point(ib, sb), bars.tangent(ib, sb), centre
         )
+        moved = np.maximum(np.linalg.norm(qa - q_a[curved], axis=1), np.linalg.norm(qb - q_b[curved], axis=1))
         ok[curved] &= ok_k
         q_a[curved] = np.where(ok_k[:, None], qa, q_a[curved])
         q_b[curved] = np.where(ok_k[:, None], qb, q_b[curved])
         sine[curved] = np.where(ok_k, s_k, sine[curved])
+        step += 1
+        if step >= SIGHT_CURVE_STEPS:  # a tight bend converges more slowly: only those still moving go on
+            curved = curved[ok_k & ~(moved <= SIGHT_CONVERGED_M)]
+    ok[curved] = False  # still moving after SIGHT_CURVE_MAX_STEPS: no sight point found
     # both points on their bars, not on a line's extension past a bar's end (no crossing is drawn there)
     with np.errstate(invalid="ignore"):
-        past = np.maximum(
-            np.linalg.norm(bars.point(a, bars.project(a, q_a)) - q_a, axis=1),
-            np.linalg.norm(bars.point(b, bars.project(b, q_b)) - q_b, axis=1),
-        )
+        past = np.maximum(parts.nearest_on_bar(a, q_a)[2], parts.nearest_on_bar(b, q_b)[2])
         ok &= past <= SIGHT_PAST_END_DIAMETERS * parts.diameter_max_m
     ok &= sine >= np.sin(np.radians(SIGHT_MIN_ANGLE_DEG))
     return np.where(ok[:, None], _nearer(q_a, q_b, centre), c.point), ok
@@ -280,7 +322,9 @@ def along_bar_distance(
     if instance == parts.own[crossing, 2]:
         return 0.0
     bar = int(parts.part_bar[instance])
-    return abs(parts.along_bar_m(rm, bar, point) - parts.along_bar_m(rm, bar, sight))
+    d = abs(parts.along_bar_m(rm, bar, point) - parts.along_bar_m(rm, bar, sight))
+    loop = parts.loop_length_m.get(bar)
+    return d if loop is None else min(d, loop - d)  # round a closed bar, the shorter way
 
 
 def label_frame(
