@@ -183,11 +183,6 @@ SIGHT_MIN_ANGLE_DEG = 10.0
 # 3 m arc, 1e-5 m after 3 steps, 1e-15 m after 5)
 SIGHT_CURVE_STEPS = 5
 CLOSED_M = 1e-6  # a bar whose last piece ends this near its first piece's start is a closed loop
-# a tight bend (a stirrup's 20 mm radius) converges more slowly: a point still moving by more than
-# SIGHT_CONVERGED_M after SIGHT_CURVE_STEPS goes on, up to SIGHT_CURVE_MAX_STEPS, and is unseen if it has not
-# settled by then
-SIGHT_CONVERGED_M = 1e-9
-SIGHT_CURVE_MAX_STEPS = 60
 # the mat's outermost crossings lie at their bars' ends: a sight point up to this many bar diameters past a
 # bar's end still shows the bars meet (at the end's cap); farther out the image shows no crossing
 SIGHT_PAST_END_DIAMETERS = 1.0
@@ -256,8 +251,7 @@ def sight_points(
     whether it is defined.
 
     It is found on each centerline's tangent line at the crossing (:func:`sight_lines`). Where a bar is
-    curved, the tangent lines at the points found replace them, ``SIGHT_CURVE_STEPS`` times (more, up to
-    ``SIGHT_CURVE_MAX_STEPS``, while a point still moves by over ``SIGHT_CONVERGED_M``): an arc of
+    curved, the tangent lines at the points found replace them, ``SIGHT_CURVE_STEPS`` times: an arc of
     radius R departs from its tangent by s^2 / 2R where the sight point is s along it, which under a
     grazing view (s several bar diameters) would put it a millimetre or more off the bar. On a bar of several
     pieces (read from IFC) they are the tangent lines of the piece nearest the points found: past a bend
@@ -279,22 +273,16 @@ def sight_points(
     a, b = parts.piece_a, parts.piece_b
     bent = (parts.neighbours[:, 1:] != np.arange(len(parts.neighbours))[:, None]).any(axis=1)
     curved = np.flatnonzero(ok & (bars.is_arc[a] | bars.is_arc[b] | bent[a] | bent[b]))
-    step = 0
-    while len(curved) and step < SIGHT_CURVE_MAX_STEPS:
+    for _ in range(SIGHT_CURVE_STEPS if len(curved) else 0):
         ia, sa, _ = parts.nearest_on_bar(a[curved], q_a[curved])
         ib, sb, _ = parts.nearest_on_bar(b[curved], q_b[curved])
         qa, qb, s_k, ok_k = sight_lines(
             bars.point(ia, sa), bars.tangent(ia, sa), bars.point(ib, sb), bars.tangent(ib, sb), centre
         )
-        moved = np.maximum(np.linalg.norm(qa - q_a[curved], axis=1), np.linalg.norm(qb - q_b[curved], axis=1))
         ok[curved] &= ok_k
         q_a[curved] = np.where(ok_k[:, None], qa, q_a[curved])
         q_b[curved] = np.where(ok_k[:, None], qb, q_b[curved])
         sine[curved] = np.where(ok_k, s_k, sine[curved])
-        step += 1
-        if step >= SIGHT_CURVE_STEPS:  # a tight bend converges more slowly: only those still moving go on
-            curved = curved[ok_k & ~(moved <= SIGHT_CONVERGED_M)]
-    ok[curved] = False  # still moving after SIGHT_CURVE_MAX_STEPS: no sight point found
     # both points on their bars, not on a line's extension past a bar's end (no crossing is drawn there)
     with np.errstate(invalid="ignore"):
         past = np.maximum(parts.nearest_on_bar(a, q_a)[2], parts.nearest_on_bar(b, q_b)[2])
