@@ -181,7 +181,7 @@ def _chords(root: Path) -> _Chords:
     if cfg.mesh.kind == "ifc":  # the top mat's pieces, with their directions along the fitted surface
         rm = build_rebar_mesh(cfg)
         layout, crossings = rm.layout, rm.crossings
-        bars = [b for b in layout.bars if b.layer == layout.surface.top_mat]
+        bars = [b for b in layout.bars if b.layer == layout.surface.top_mat] or layout.bars
     else:
         layout = build_layout(cfg)
         crossings = find_crossings(layout, cfg.mesh.crossing_tolerance_m)
