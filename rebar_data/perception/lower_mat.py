@@ -186,7 +186,7 @@ def _chords(root: Path) -> _Chords:
         layout = build_layout(cfg)
         crossings = find_crossings(layout, cfg.mesh.crossing_tolerance_m)
         bars = layout.bars
-    surf = MatSurface.through(layout, crossings.point)
+    surf = MatSurface.of_crossings(layout, crossings)
     ends, direction = [], []
     for bar in bars:
         pts = sample(bar.curve, CHORD_M)[1]

@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.geometry.crossings import Crossings
 from rebar_data.geometry.specs import MeshLayout
 
 
@@ -34,9 +35,21 @@ class MatSurface:
     def of(rm: RebarMesh) -> MatSurface:
         """The surface through ``rm``'s crossings (or its bars' points when it has none)."""
         vertices = np.asarray(rm.mesh.vertices)
-        surf = MatSurface.through(rm.layout, rm.crossings.point if len(rm.crossings) else vertices)
+        if len(rm.crossings):
+            surf = MatSurface.of_crossings(rm.layout, rm.crossings)
+        else:
+            surf = MatSurface.through(rm.layout, vertices)
         h = surf.height(vertices)
         return replace(surf, height_range_m=(float(h.min()), float(h.max())))
+
+    @staticmethod
+    def of_crossings(layout: MeshLayout, crossings: Crossings) -> MatSurface:
+        """The surface through the crossings; for a mesh read from IFC, through its top mat's crossings when
+        it keeps any (with ``crossings: all`` the others lie in other mats)."""
+        points = crossings.point
+        if layout.surface is not None and np.any(crossings.layer == layout.surface.top_mat):
+            points = points[crossings.layer == layout.surface.top_mat]
+        return MatSurface.through(layout, points)
 
     @staticmethod
     def through(layout: MeshLayout, points: np.ndarray) -> MatSurface:

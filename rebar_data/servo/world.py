@@ -237,7 +237,7 @@ class ServoWorld:
         surface's x and y from the bars' centre), and the outward normal there (world)."""
         lay = self.rm.layout
         if lay.surface is not None:
-            p, _, _, n = MatSurface.through(lay, self.rm.crossings.point).frame(np.array([[axial_m, arc_m]]))
+            p, _, _, n = MatSurface.of_crossings(lay, self.rm.crossings).frame(np.array([[axial_m, arc_m]]))
             return p[0], n[0]
         T = lay.world_from_mesh
         local_crossings = apply(inverse(T), self.rm.crossings.point)
