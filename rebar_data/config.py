@@ -135,7 +135,10 @@ class IfcMesh(Strict):
     a centerline the reader understands stops the build, unless ``skip_unreadable`` lets it go on (the bars
     left out are listed in mesh.json). Two bars cross where their centerlines come within the two radii
     plus ``crossing_tolerance_m`` at an angle of at least ``min_crossing_angle_deg`` (lapped bars run side
-    by side and do not cross).
+    by side and do not cross). Cameras and lights face a plane or cylinder fitted to the bars' centerlines,
+    from its ``camera_side``; the bars are sorted into mats by their height above it (a crossing's ``layer``
+    is its mat, 0 the top mat), and ``crossings: top_mat`` keeps only the top mat's crossings (see
+    :mod:`rebar_data.geometry.surface_fit` for the rules).
     """
 
     kind: Literal["ifc"]
@@ -149,6 +152,30 @@ class IfcMesh(Strict):
     skip_unreadable: bool = False
     crossing_tolerance_m: NonNegative = 0.005
     min_crossing_angle_deg: Annotated[float, Field(gt=0, le=90)] = 10.0
+    surface: Literal["auto", "plane", "cylinder"] = Field(
+        "auto",
+        description="the surface fitted to the bars that cameras and lights face: auto takes a cylinder when "
+        "it fits better and more bars lie along it",
+    )
+    camera_side: Vec3 | None = Field(
+        None,
+        description="a direction (the model's frame, before pose) on the camera's side of the surface; default "
+        "up (+z; +x, then +y for a vertical surface), a cylinder's outside",
+    )
+    mat_gap_m: Positive | None = Field(
+        None,
+        description="bars whose heights above the surface differ by more than this lie in different mats; "
+        "default twice the largest bar diameter",
+    )
+    top_mat: Annotated[int, Field(ge=0)] | None = Field(
+        None,
+        description="the mat the robot ties, counted from the camera side (0, the default, is the nearest)",
+    )
+    crossings: Literal["all", "top_mat"] = Field(
+        "all",
+        description="the crossings the mesh keeps (labels, tie wire, servo targets): every one found, or those of "
+        "two top-mat bars",
+    )
 
     @model_validator(mode="after")
     def _names(self) -> IfcMesh:
@@ -164,6 +191,13 @@ class IfcMesh(Strict):
                     f"global_ids[{i}] = {gid!r} is not a GlobalId; accepted: 22 characters of 0-9, A-Z, a-z, "
                     "_ and $ (IFC's compressed GUID)"
                 )
+        if self.camera_side is not None and not (
+            all(np.isfinite(self.camera_side)) and float(np.linalg.norm(self.camera_side)) > 0.0
+        ):
+            raise ValueError(
+                f"camera_side = {list(self.camera_side)} is not accepted: it must be a finite, non-zero "
+                "direction, such as [0, 0, 1] (from above)"
+            )
         if self.bbox_m is not None and not all(a < b for a, b in zip(*self.bbox_m, strict=True)):
             raise ValueError(
                 f"bbox_m = {[list(c) for c in self.bbox_m]} is not accepted: its first corner must be below "

@@ -157,15 +157,18 @@ def check_formats(ds: Path, S: pd.DataFrame, K: pd.DataFrame) -> Check:
     return Check("formats_agree_px", ok, worst, f"<= {FORMAT_MAX_PX} px, same keypoints", detail)
 
 
-def check_geometry(info: DatasetInfo, K: pd.DataFrame):
-    """Rebuild the mesh from the recorded config; the table's crossing points must be its crossings, and
-    every sight point must lie on one of its crossing's two bar centerlines (or be the crossing's point,
-    in a grazing view)."""
+def check_geometry(info: DatasetInfo, K: pd.DataFrame, ds: Path | None = None):
+    """Rebuild the mesh from the recorded config (a mesh read from IFC from the dataset's own copy of the
+    model, ``meta/mesh.ifc``); the table's crossing points must be its crossings, and every sight point must
+    lie on one of its crossing's two bar centerlines (or be the crossing's point, in a grazing view)."""
     from rebar_data.config import MeshConfig
     from rebar_data.geometry.build import build_rebar_mesh
 
     # only the mesh sections: the rendering sections may have gained or lost options since the build
-    mesh_keys = {k: info.config[k] for k in ("seed", "mesh", "realism", "pose") if k in info.config}
+    if ds is None:
+        mesh_keys = {k: info.config[k] for k in ("seed", "mesh", "realism", "pose") if k in info.config}
+    else:
+        mesh_keys = layout.mesh_sections(ds, info.config)
     rm = build_rebar_mesh(MeshConfig.model_validate(mesh_keys))
     first = K[K.image_id == K.image_id.iloc[0]].sort_values("crossing_id")
     ok_count = len(first) == len(rm.crossings)
@@ -180,13 +183,17 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame):
         step = max(1, len(inview) // SIGHT_SAMPLES)
         sight = inview[["x_world", "y_world", "z_world"]].to_numpy(float)[::step]
         cid = inview.crossing_id.to_numpy()[::step]
-        c = rm.crossings
+        from rebar_data.labels.keypoints import CrossingParts
+
+        parts = CrossingParts.of(rm)  # a bar of several pieces: the piece nearest the sight point
         sight_err = max(
             (
                 min(
-                    _centerline_distance(q, rm.bars[c.bar_a[i]]),
-                    _centerline_distance(q, rm.bars[c.bar_b[i]]),
-                    float(np.linalg.norm(q - c.point[i])),  # grazing views fall back to the crossing
+                    float(parts.nearest_on_bar(parts.piece_a[[i]], q[None])[2][0]),
+                    float(parts.nearest_on_bar(parts.piece_b[[i]], q[None])[2][0]),
+                    float(
+                        np.linalg.norm(q - rm.crossings.point[i])
+                    ),  # grazing views fall back to the crossing
                 )
                 for q, i in zip(sight, cid, strict=True)
             ),
@@ -201,12 +208,6 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame):
         f"off by {err:.1e} m, sight points {sight_err:.1e} m from their bar's centerline",
     )
     return check, rm
-
-
-def _centerline_distance(q: np.ndarray, bar) -> float:
-    """Distance of ``q`` from ``bar``'s centerline (exact projection onto the line or arc)."""
-    curve = bar.curve
-    return float(np.linalg.norm(curve.point(curve.project(q)) - q))
 
 
 class _PixelAlong:
@@ -323,7 +324,7 @@ def check_instances(
                 agree = any(along(c, yy, xx, sight) <= near_m[c] + slack_m[c] for yy, xx in window)
                 z = depth[y, x]
                 at_own += bool(
-                    inst[y, x] in parts.own[c]
+                    parts.is_own(rm, c, int(inst[y, x]))
                     and abs(z - kp.depth_m) <= AT_DEPTH_DIAMETERS * parts.diameter_max_m[c]
                 )
             elif (kp.x_world, kp.y_world, kp.z_world) == (kp.x_crossing, kp.y_crossing, kp.z_crossing):
@@ -422,7 +423,7 @@ def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Che
     S, K = load_tables(ds)
     checks = check_reprojection(S, K)
     checks.append(check_formats(ds, S, K))
-    geo, rm = check_geometry(info, K)
+    geo, rm = check_geometry(info, K, ds)
     checks.append(geo)
     options = info.config.get("dataset", {})
     stored = {k: bool(options.get(k, True)) for k in ("store_depth", "store_instances")}

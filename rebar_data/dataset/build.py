@@ -444,7 +444,8 @@ def finalize(
     staging: Path,
     final: Path,
 ) -> DatasetInfo:
-    """Write tables, YOLO, COCO, info and manifest into ``staging``, then swap it in at ``final``.
+    """Write tables, YOLO, COCO, info, the IFC model a mesh was read from, and the manifest into
+    ``staging``, then swap it in at ``final``.
 
     The records and plan are moved out of the staging folder (not deleted) before the manifest is taken
     and dropped after the swap, so a build stopped here is still resumable (``prepare_staging``).
@@ -465,6 +466,8 @@ def finalize(
     aside.mkdir(exist_ok=True)
     for name in (RECORDS, PLAN_FILE):
         (staging / name).rename(aside / name)
+    if cfg.mesh.kind == "ifc":
+        shutil.copyfile(cfg.mesh.ifc_path, staging / layout.MESH_IFC)
     write_manifest(staging)
     replace_folder(staging, final)
     shutil.rmtree(aside)

@@ -84,8 +84,13 @@ class PipelineConfig(MeshConfig):
 
 
 def load_pipeline(path: str | Path) -> PipelineConfig:
-    """Read and check a pipeline file; every problem is one ConfigError naming the field."""
-    return validate(PipelineConfig, read_yaml(path), str(path))
+    """Read and check a pipeline file; every problem is one ConfigError naming the field. A relative
+    ``mesh.ifc_path`` is resolved against the file's folder, so every command reads the same model."""
+    cfg = validate(PipelineConfig, read_yaml(path), str(path))
+    if cfg.mesh.kind == "ifc" and not Path(cfg.mesh.ifc_path).expanduser().is_absolute():
+        ifc = str(cfg.mesh.path(Path(path).parent).resolve())
+        cfg = cfg.model_copy(update={"mesh": cfg.mesh.model_copy(update={"ifc_path": ifc})})
+    return cfg
 
 
 def load_mesh_config(path: str | Path) -> MeshConfig:

@@ -20,6 +20,7 @@ CATEGORY = "rebar_crossing"
 
 INFO = "meta/info.json"
 MANIFEST = "meta/manifest.parquet"
+MESH_IFC = "meta/mesh.ifc"  # a mesh read from IFC: the model it was read from, which the audit reads again
 DATA_YAML = "data.yaml"
 SAMPLES = "tables/samples.parquet"
 KEYPOINTS = "tables/keypoints.parquet"
@@ -46,6 +47,16 @@ def instance_path(split: str, image_id: str) -> str:
 
 def coco_path(split: str) -> str:
     return f"annotations/{split}.json"
+
+
+def mesh_sections(ds: Path, config: dict) -> dict:
+    """The mesh sections (seed, mesh, realism, pose) of a dataset's recorded config; a mesh read from IFC
+    reads the dataset's own copy of the model (``meta/mesh.ifc``) when it has one."""
+    keys = {k: config[k] for k in ("seed", "mesh", "realism", "pose") if k in config}
+    mesh = keys.get("mesh")
+    if isinstance(mesh, dict) and mesh.get("kind") == "ifc" and (Path(ds) / MESH_IFC).is_file():
+        keys["mesh"] = {**mesh, "ifc_path": str((Path(ds) / MESH_IFC).resolve())}
+    return keys
 
 
 def dataset_dir(root: Path, name: str, version: str) -> Path:

@@ -447,8 +447,9 @@ def _check_keypoints(S: pd.DataFrame, K: pd.DataFrame, f: Failures) -> None:
         "one row per crossing per image",
         what=" appears twice",
     )
-    for col in ("crossing_id", "bar_a", "bar_b", "layer"):
+    for col in ("crossing_id", "bar_a", "bar_b"):
         c.rule(col, ~(K[col].to_numpy(float) >= 0), ">= 0")
+    c.rule("layer", ~(K["layer"].to_numpy(float) >= -1), ">= -1 (-1: bars of two mats, from IFC)")
     c.rule("hit_instance", ~(K["hit_instance"].to_numpy(float) >= -3), ">= -3")
     c.rule("tie_wire", K["tie_wire"].isna().to_numpy(), "true or false")
     vis = K["visibility"].to_numpy(float)

@@ -38,6 +38,14 @@ class Crossings:
     def __len__(self) -> int:
         return len(self.bar_a)
 
+    def take(self, rows: np.ndarray) -> Crossings:
+        """The crossings at ``rows`` (indices or a boolean mask), in that order."""
+        pick = {
+            name: None if getattr(self, name) is None else getattr(self, name)[rows]
+            for name in self.__dataclass_fields__
+        }
+        return Crossings(**pick)
+
 
 def _bounds(bar: Bar, pad: float) -> tuple[np.ndarray, np.ndarray]:
     step = 0.05

@@ -159,4 +159,5 @@ def write_mesh_outputs(rm: RebarMesh, out: Path) -> None:
             "elements": src.elements,
             "skipped": src.skipped,
         }
+        summary["surface"] = rm.layout.surface.record()
     (out / "mesh.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")

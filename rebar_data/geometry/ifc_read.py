@@ -20,7 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -29,6 +29,7 @@ from rebar_data.config import ConfigError, IfcMesh, MeshConfig
 from rebar_data.geometry.curves import Arc, Curve, Line
 from rebar_data.geometry.specs import Bar, IfcSource, MeshLayout, rng_streams
 from rebar_data.geometry.specs import _pose as pose_matrix
+from rebar_data.geometry.surface_fit import fit_surface
 
 SCHEMAS = ("IFC2X3", "IFC4", "IFC4X3")
 PSET_NAME = "RebarServo_Bar"  # what `rebar mesh --ifc` writes: BarId, Direction, Layer
@@ -601,8 +602,19 @@ def check_realism(cfg: MeshConfig) -> None:
             )
 
 
+def _direction(bar: Bar, mat: int, fit) -> int:
+    """A piece's direction as the file gives it (``rebar mesh --ifc``'s property set), else for a piece in a
+    mat 0 when it runs within 45 degrees of the fitted surface's x axis and 1 across it; -1 through the
+    thickness."""
+    if bar.direction >= 0 or mat < 0:
+        return bar.direction
+    t = bar.curve.tangent(bar.curve.length / 2.0)
+    return 0 if abs(float(t @ fit.world_from_surface[:3, 0])) >= np.sqrt(0.5) else 1
+
+
 def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
-    """The bars of ``cfg``'s IFC model as a layout: one Bar per centerline piece, posed by ``cfg.pose``."""
+    """The bars of ``cfg``'s IFC model as a layout: one Bar per centerline piece, posed by ``cfg.pose``, its
+    ``layer`` the mat the piece lies in (:mod:`rebar_data.geometry.surface_fit`; -1 through the thickness)."""
     check_realism(cfg)
     mesh = cfg.mesh
     path = mesh.path(config_dir)
@@ -626,6 +638,20 @@ def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
             classes.append(rb.ifc_class)
             pieces.append(k)
             roles.append(rb.role)
+    fit = fit_surface(
+        [b.curve for b in bars],
+        np.array([b.diameter_m for b in bars]),
+        surface=mesh.surface,
+        camera_side=mesh.camera_side,
+        mat_gap_m=mesh.mat_gap_m,
+        top_mat=mesh.top_mat,
+        need_mats=mesh.crossings == "top_mat",
+        world_from_model=R,
+    )
+    bars = [
+        replace(b, layer=int(m), direction=_direction(b, int(m), fit))
+        for b, m in zip(bars, fit.piece_mat, strict=True)
+    ]
     source = IfcSource(
         str(path),
         read.sha256,
@@ -637,4 +663,4 @@ def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
         roles,
         [{"global_id": s.global_id, "ifc_class": s.ifc_class, "reason": s.reason} for s in read.skipped],
     )
-    return MeshLayout(bars, world_from_mesh, "ifc", None, rngs, ifc=source)
+    return MeshLayout(bars, world_from_mesh, "ifc", None, rngs, ifc=source, surface=fit)

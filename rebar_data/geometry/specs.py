@@ -14,12 +14,16 @@ direction-1 bars lie beneath them, touching the thickest direction-0 bar.
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rebar_data.config import Layer, MeshConfig, PlanarMesh, TunnelSegmentMesh
 from rebar_data.geometry.curves import Arc, Curve, Line
+
+if TYPE_CHECKING:
+    from rebar_data.geometry.surface_fit import SurfaceFit
 
 STREAMS = ("diameter", "missing", "jitter", "bow", "tie_wire", "pose")
 
@@ -63,9 +67,13 @@ class MeshLayout:
     axis_point: np.ndarray | None = None  # tunnel only, in the mesh frame
     rngs: dict[str, np.random.Generator] = field(default_factory=dict, repr=False)
     ifc: IfcSource | None = None  # a mesh read from IFC (kind "ifc")
+    surface: SurfaceFit | None = None  # kind "ifc": the surface fitted to the bars, and their mats
 
     def outward_normal(self, points_world: np.ndarray) -> np.ndarray:
-        """Outward unit normal of the element's surface at (or beside) world points, shape (N, 3)."""
+        """Outward unit normal of the element's surface at (or beside) world points, shape (N, 3); for a
+        mesh read from IFC, the fitted surface's normal on its camera side."""
+        if self.surface is not None:
+            return self.surface.normal(points_world)
         R, t = self.world_from_mesh[:3, :3], self.world_from_mesh[:3, 3]
         local = (np.atleast_2d(points_world) - t) @ R
         if self.kind == "planar":

@@ -50,41 +50,115 @@ class LabelRule:
 
 @dataclass(frozen=True)
 class CrossingParts:
-    """For each crossing, the part ids that count as "its own" for the visibility test (padded with -9)."""
+    """For each crossing, the parts that count as "its own" for the visibility test, and the pieces of its
+    bars it lies on.
 
-    own: np.ndarray  # (N, 3) int32: part of bar a, part of bar b, tie wire part or -9
+    A bar of a generated mesh is one piece and one part; a bar read from IFC may have several pieces (one
+    part each) and a ball at each sharp joint. Every part of either bar is the crossing's own; distances
+    along a bar run over all its pieces.
+    """
+
+    own: np.ndarray  # (N, 3) int32: part of piece a, part of piece b, tie wire part or -9
     diameter_max_m: np.ndarray  # (N,)
     tangent_a: np.ndarray  # (N, 3) unit tangent of bar a at its closest point
     tangent_b: np.ndarray  # (N, 3) unit tangent of bar b at its closest point
-    bars: CurveArrays  # every bar's centerline, for the per-frame sight points (built once per mesh)
+    bars: CurveArrays  # every piece's centerline, for the per-frame sight points (built once per mesh)
+    piece_a: np.ndarray  # (N,) index in ``rm.bars`` of the piece of bar a the crossing lies on
+    piece_b: np.ndarray  # (N,)
+    part_bar: np.ndarray  # (parts,) bar id of each part, -1 for tie wire
+    piece_start_m: np.ndarray  # (pieces,) arc length along its bar where each piece begins
+    pieces_of_bar: dict[int, list[int]]  # bar id -> its pieces in ``rm.bars``, in order
+    neighbours: np.ndarray  # (pieces, 3): each piece, the one before and after it on its bar (or itself)
+    loop_length_m: dict[int, float]  # closed bars (a stirrup's loop): bar id -> length
 
     @staticmethod
     def of(rm: RebarMesh) -> CrossingParts:
-        part_of_bar = np.full(len(rm.bars), -9, np.int32)
-        tie_of_crossing = np.full(len(rm.crossings), -9, np.int32)
-        for p in rm.parts:
-            if p.kind == "bar":
-                part_of_bar[p.bar_id] = p.part_id
-            else:
-                tie_of_crossing[p.crossing_id] = p.part_id
         c = rm.crossings
-        own = np.stack([part_of_bar[c.bar_a], part_of_bar[c.bar_b], tie_of_crossing], axis=1)
+        piece_a = np.asarray(c.bar_a if c.piece_a is None else c.piece_a, np.int64)
+        piece_b = np.asarray(c.bar_b if c.piece_b is None else c.piece_b, np.int64)
+        part_bar = np.array([p.bar_id if p.kind == "bar" else -1 for p in rm.parts], np.int64)
+        tie_of_crossing = np.full(len(c), -9, np.int32)
+        for p in rm.parts:
+            if p.kind != "bar":
+                tie_of_crossing[p.crossing_id] = p.part_id
+        # the first len(rm.bars) parts are the pieces' tubes, in order (build_parts)
+        own = np.stack([piece_a, piece_b, tie_of_crossing], axis=1).astype(np.int32)
         diam = np.array([b.diameter_m for b in rm.bars])
+        pieces_of_bar: dict[int, list[int]] = {}
+        start = np.zeros(len(rm.bars))
+        for i, b in enumerate(rm.bars):
+            done = pieces_of_bar.setdefault(b.bar_id, [])
+            start[i] = sum(rm.bars[k].curve.length for k in done)
+            done.append(i)
 
-        def tangents(bars: np.ndarray, points: np.ndarray) -> np.ndarray:
+        neighbours = np.repeat(np.arange(len(rm.bars))[:, None], 3, axis=1)
+        loop_length: dict[int, float] = {}
+        for bar_id, pieces in pieces_of_bar.items():
+            neighbours[pieces[1:], 1] = pieces[:-1]
+            neighbours[pieces[:-1], 2] = pieces[1:]
+            first, last = rm.bars[pieces[0]].curve, rm.bars[pieces[-1]].curve
+            if len(pieces) > 1 and np.linalg.norm(last.point(last.length) - first.point(0.0)) < CLOSED_M:
+                neighbours[pieces[0], 1], neighbours[pieces[-1], 2] = pieces[-1], pieces[0]
+                loop_length[bar_id] = float(start[pieces[-1]] + last.length)
+
+        def tangents(pieces: np.ndarray, points: np.ndarray) -> np.ndarray:
             out = [
-                rm.bars[b].curve.tangent(rm.bars[b].curve.project(p))
-                for b, p in zip(bars, points, strict=True)
+                rm.bars[k].curve.tangent(rm.bars[k].curve.project(p))
+                for k, p in zip(pieces, points, strict=True)
             ]
             return np.asarray(out, float).reshape(-1, 3)
 
         return CrossingParts(
             own,
-            np.maximum(diam[c.bar_a], diam[c.bar_b]),
-            tangents(c.bar_a, c.point_a),
-            tangents(c.bar_b, c.point_b),
+            np.maximum(diam[piece_a], diam[piece_b]),
+            tangents(piece_a, c.point_a),
+            tangents(piece_b, c.point_b),
             CurveArrays.of([b.curve for b in rm.bars]),
+            piece_a,
+            piece_b,
+            part_bar,
+            start,
+            pieces_of_bar,
+            neighbours,
+            loop_length,
         )
+
+    def nearest_on_bar(
+        self, pieces: np.ndarray, points: np.ndarray
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For points (N, 3) near pieces (N,): the piece among each one and its neighbours on its bar that is
+        nearest the point, the arc length of the point's foot on it, and the distance to that foot. A point
+        past a piece's end at a bend lies on the next piece; on a bar of one piece this is that piece."""
+        cand = self.neighbours[np.asarray(pieces, np.int64)]  # (N, 3)
+        pts = np.repeat(np.asarray(points, float), 3, axis=0)
+        flat = cand.reshape(-1)
+        s = self.bars.project(flat, pts)
+        d = np.linalg.norm(self.bars.point(flat, s) - pts, axis=1).reshape(-1, 3)
+        k = np.argmin(d, axis=1)
+        rows = np.arange(len(cand))
+        return cand[rows, k], s.reshape(-1, 3)[rows, k], d[rows, k]
+
+    def is_own(self, rm: RebarMesh, crossing: int, instance: int) -> bool:
+        """Part ``instance`` is the crossing's tie wire or a part of either of its bars."""
+        if instance < 0 or instance >= len(self.part_bar):
+            return False
+        if instance == self.own[crossing, 2]:
+            return True
+        return int(self.part_bar[instance]) in (
+            int(rm.crossings.bar_a[crossing]),
+            int(rm.crossings.bar_b[crossing]),
+        )
+
+    def along_bar_m(self, rm: RebarMesh, bar_id: int, point: np.ndarray) -> float:
+        """Arc length along bar ``bar_id`` (over all its pieces) of the foot of ``point`` on it."""
+        best_d, best_s = np.inf, 0.0
+        for k in self.pieces_of_bar[bar_id]:
+            curve = rm.bars[k].curve
+            s = curve.project(point)
+            d = float(np.linalg.norm(curve.point(s) - point))
+            if d < best_d:
+                best_d, best_s = d, float(self.piece_start_m[k] + s)
+        return best_s
 
 
 @dataclass(frozen=True)
@@ -108,6 +182,7 @@ SIGHT_MIN_ANGLE_DEG = 10.0
 # found, this many times (an arc departs from its tangent by s^2 / 2R: 9 mm for a sight point 0.23 m along a
 # 3 m arc, 1e-5 m after 3 steps, 1e-15 m after 5)
 SIGHT_CURVE_STEPS = 5
+CLOSED_M = 1e-6  # a bar whose last piece ends this near its first piece's start is a closed loop
 # the mat's outermost crossings lie at their bars' ends: a sight point up to this many bar diameters past a
 # bar's end still shows the bars meet (at the end's cap); farther out the image shows no crossing
 SIGHT_PAST_END_DIAMETERS = 1.0
@@ -178,7 +253,9 @@ def sight_points(
     It is found on each centerline's tangent line at the crossing (:func:`sight_lines`). Where a bar is
     curved, the tangent lines at the points found replace them, ``SIGHT_CURVE_STEPS`` times: an arc of
     radius R departs from its tangent by s^2 / 2R where the sight point is s along it, which under a
-    grazing view (s several bar diameters) would put it a millimetre or more off the bar.
+    grazing view (s several bar diameters) would put it a millimetre or more off the bar. On a bar of several
+    pieces (read from IFC) they are the tangent lines of the piece nearest the points found: past a bend
+    the sight point goes on along the next piece.
 
     Where no pixel shows the bars cross (a ray along a bar; projected bars meeting at less than
     ``SIGHT_MIN_ANGLE_DEG``: they overlap along a stretch, at grazing views near the image's corners; the
@@ -193,11 +270,12 @@ def sight_points(
     centre = np.asarray(camera_centre, float)
     q_a, q_b, sine, ok = sight_lines(c.point_a, parts.tangent_a, c.point_b, parts.tangent_b, centre)
     bars = parts.bars
-    a, b = np.asarray(c.bar_a), np.asarray(c.bar_b)
-    curved = np.flatnonzero(ok & (bars.is_arc[a] | bars.is_arc[b]))
+    a, b = parts.piece_a, parts.piece_b
+    bent = (parts.neighbours[:, 1:] != np.arange(len(parts.neighbours))[:, None]).any(axis=1)
+    curved = np.flatnonzero(ok & (bars.is_arc[a] | bars.is_arc[b] | bent[a] | bent[b]))
     for _ in range(SIGHT_CURVE_STEPS if len(curved) else 0):
-        ia, ib = a[curved], b[curved]
-        sa, sb = bars.project(ia, q_a[curved]), bars.project(ib, q_b[curved])
+        ia, sa, _ = parts.nearest_on_bar(a[curved], q_a[curved])
+        ib, sb, _ = parts.nearest_on_bar(b[curved], q_b[curved])
         qa, qb, s_k, ok_k = sight_lines(
             bars.point(ia, sa), bars.tangent(ia, sa), bars.point(ib, sb), bars.tangent(ib, sb), centre
         )
@@ -207,10 +285,7 @@ def sight_points(
         sine[curved] = np.where(ok_k, s_k, sine[curved])
     # both points on their bars, not on a line's extension past a bar's end (no crossing is drawn there)
     with np.errstate(invalid="ignore"):
-        past = np.maximum(
-            np.linalg.norm(bars.point(a, bars.project(a, q_a)) - q_a, axis=1),
-            np.linalg.norm(bars.point(b, bars.project(b, q_b)) - q_b, axis=1),
-        )
+        past = np.maximum(parts.nearest_on_bar(a, q_a)[2], parts.nearest_on_bar(b, q_b)[2])
         ok &= past <= SIGHT_PAST_END_DIAMETERS * parts.diameter_max_m
     ok &= sine >= np.sin(np.radians(SIGHT_MIN_ANGLE_DEG))
     return np.where(ok[:, None], _nearer(q_a, q_b, centre), c.point), ok
@@ -230,14 +305,14 @@ def along_bar_distance(
     positions along the bar for either of its bars, and infinity for any other part. Measured from the
     sight point rather than the crossing: at a grazing view it runs several diameters along the nearer bar.
     """
-    own = parts.own[crossing]
-    if instance < 0 or instance not in own:
+    if not parts.is_own(rm, crossing, instance):
         return float("inf")
-    if instance == own[2]:
+    if instance == parts.own[crossing, 2]:
         return 0.0
-    c = rm.crossings
-    curve = rm.bars[c.bar_a[crossing] if instance == own[0] else c.bar_b[crossing]].curve
-    return abs(curve.project(point) - curve.project(sight))
+    bar = int(parts.part_bar[instance])
+    d = abs(parts.along_bar_m(rm, bar, point) - parts.along_bar_m(rm, bar, sight))
+    loop = parts.loop_length_m.get(bar)
+    return d if loop is None else min(d, loop - d)  # round a closed bar, the shorter way
 
 
 def label_frame(

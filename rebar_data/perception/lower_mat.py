@@ -24,6 +24,8 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError, MeshConfig, validate
+from rebar_data.dataset.layout import mesh_sections
+from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.specs import build_layout
@@ -175,14 +177,18 @@ def _chords(root: Path) -> _Chords:
             f"{root}: meta/info.json records no mesh config, so its lower mat cannot be placed; accepted: "
             "a dataset written by `rebar dataset build`"
         )
-    cfg = validate(
-        MeshConfig, {k: config[k] for k in ("seed", "mesh", "realism", "pose") if k in config}, str(root)
-    )
-    layout = build_layout(cfg)
-    crossings = find_crossings(layout, cfg.mesh.crossing_tolerance_m)
-    surf = MatSurface.through(layout, crossings.point)
+    cfg = validate(MeshConfig, mesh_sections(Path(root), config), str(root))
+    if cfg.mesh.kind == "ifc":  # the top mat's pieces, with their directions along the fitted surface
+        rm = build_rebar_mesh(cfg)
+        layout, crossings = rm.layout, rm.crossings
+        bars = [b for b in layout.bars if b.layer == layout.surface.top_mat] or layout.bars
+    else:
+        layout = build_layout(cfg)
+        crossings = find_crossings(layout, cfg.mesh.crossing_tolerance_m)
+        bars = layout.bars
+    surf = MatSurface.of_crossings(layout, crossings)
     ends, direction = [], []
-    for bar in layout.bars:
+    for bar in bars:
         pts = sample(bar.curve, CHORD_M)[1]
         ends.append(np.stack([pts[:-1], pts[1:]], axis=1))
         direction.append(np.full(len(pts) - 1, bar.direction))

@@ -2,8 +2,8 @@
 
 The bundle holds the ready-to-train Parquet shards (Hugging Face layout, images embedded), the dataset
 card (``README.md``), Croissant metadata (``croissant.json``), the YOLO and COCO views, the full source
-tables, the build's ``meta/info.json``, the audit report and ``SHA256SUMS``. Only a dataset that
-validates and passes its audit is published. Like a build, the bundle is written to a staging folder
+tables, the build's ``meta/info.json`` (and ``meta/mesh.ifc``, for bars read from IFC), the audit report and
+``SHA256SUMS``. Only a dataset that validates and passes its audit is published. Like a build, the bundle is written to a staging folder
 and swapped into place, so an interrupted publish never leaves a folder that looks finished; an existing
 ``--out`` is replaced only when it holds an earlier bundle (and ``--force`` says so), one publish at a time.
 """
@@ -132,6 +132,8 @@ def _single_files(bundle: Path) -> dict[str, dict]:
         layout.DATA_YAML: ("application/x-yaml", "Ultralytics YOLO pose dataset file"),
         CARD: ("text/markdown", "the dataset card"),
     }
+    if (bundle / layout.MESH_IFC).is_file():
+        listed[layout.MESH_IFC] = ("application/x-step", "the IFC building model the bars were read from")
     for p in sorted((bundle / "annotations").glob("*.json")):
         listed[f"annotations/{p.name}"] = ("application/json", f"COCO keypoints of the {p.stem} split")
     return {
@@ -231,6 +233,8 @@ def _write_bundle(
         if (src / d).is_dir():
             _copy_tree(src / d, staging / d, link=d in IMAGE_DIRS, skip=foreign)
     _copy(src / layout.INFO, staging / layout.INFO)
+    if (src / layout.MESH_IFC).is_file():
+        _copy(src / layout.MESH_IFC, staging / layout.MESH_IFC)
     _write_data_yaml(src, staging)
     for name in AUDIT_FILES:  # copies: an audit rewrites its files in place
         if (src / layout.AUDIT_DIR / name).exists():

@@ -101,6 +101,21 @@ def _fmt(x) -> str:
     return f"{x:.4g}" if isinstance(x, float) else str(x)
 
 
+def _geometry(mesh: dict) -> str:
+    """The card's line on where the bars came from."""
+    if mesh.get("kind") == "ifc":
+        kept = "the top mat's" if mesh.get("crossings") == "top_mat" else "every"
+        return (
+            "- Geometry: reinforcing bars read from an IFC building model, shipped as `meta/mesh.ifc` (each "
+            "IfcSweptDiskSolid's centerline swept as a tube, tie-wire loops as configured); cameras face the "
+            f"surface fitted to the bars; {kept} crossing, computed analytically from the bar centerlines."
+        )
+    return (
+        "- Geometry: a parametric rebar mesh (bars as swept tubes, tie-wire loops, position noise, missing "
+        "bars as configured); crossings computed analytically from the bar centerlines."
+    )
+
+
 def dataset_card(
     info: DatasetInfo,
     *,
@@ -198,8 +213,7 @@ def dataset_card(
         "",
         f"- Generator: {gen.get('name')} {gen.get('version')}, commit `{gen.get('git_commit')}`.",
         f"- Seed {info.seed}; config sha256 `{info.config_hash}`; dataset schema {info.schema_version}.",
-        "- Geometry: a parametric rebar mesh (bars as swept tubes, tie-wire loops, position noise, missing "
-        "bars as configured); crossings computed analytically from the bar centerlines.",
+        _geometry(info.config.get("mesh") or {}),
         _rendering(info.renderer),
         "- Every random draw comes from the seed through NumPy `SeedSequence` streams planned before "
         "rendering, so the same config gives the same dataset whatever the number of workers or machines: "

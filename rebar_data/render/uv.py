@@ -29,10 +29,24 @@ def arc_length(curve: Curve, points: np.ndarray) -> np.ndarray:
     return phi * curve.radius
 
 
+def _piece_of(rm: RebarMesh, part_index: int) -> int:
+    """The piece in ``rm.bars`` a bar part is swept along: the part's own (the first parts are the pieces'
+    tubes, in order), or for a ball at a joint of a bar's pieces the piece of that bar nearest it."""
+    part = rm.parts[part_index]
+    if part_index < len(rm.bars) and rm.bars[part_index].bar_id == part.bar_id:
+        return part_index
+    centre = np.asarray(part.mesh.vertices).mean(0)
+    pieces = [i for i, b in enumerate(rm.bars) if b.bar_id == part.bar_id]
+    return min(
+        pieces,
+        key=lambda i: np.linalg.norm(rm.bars[i].curve.point(rm.bars[i].curve.project(centre)) - centre),
+    )
+
+
 def bar_corner_uv_m(rm: RebarMesh, part_index: int) -> np.ndarray:
     """Per-corner ``(u, v)`` in metres (T, 3, 2) for the triangles of bar part ``part_index``."""
     part = rm.parts[part_index]
-    bar = rm.bars[part.bar_id]
+    bar = rm.bars[_piece_of(rm, part_index)]
     verts = np.asarray(part.mesh.vertices)
     faces = np.asarray(part.mesh.faces)
     s = arc_length(bar.curve, verts)

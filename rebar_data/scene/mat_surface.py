@@ -1,9 +1,11 @@
 """The mat as a smooth surface with 2D coordinates, for placing cameras, lights and surroundings.
 
 The surface passes through the crossings: a plane for planar meshes, a cylinder about the tunnel axis
-for tunnel segments. Coordinates ``(a, b)`` are metres along the mesh's local x axis and along its local
-y direction (arc length for a tunnel), so a trajectory can walk across a curved mat at a constant
-stand-off. Heights are measured along the outward normal, positive outside.
+for tunnel segments, and for a mesh read from IFC the plane or cylinder fitted to its bars
+(:mod:`rebar_data.geometry.surface_fit`), in the fit's frame. Coordinates ``(a, b)`` are metres along the
+frame's x axis and along its y direction (arc length on a cylinder), so a trajectory can walk across a
+curved mat at a constant stand-off. Heights are measured along the outward normal (for IFC, the camera-side
+normal), positive on the camera's side.
 """
 
 from __future__ import annotations
@@ -13,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.geometry.crossings import Crossings
 from rebar_data.geometry.specs import MeshLayout
 
 
@@ -26,19 +29,45 @@ class MatSurface:
     radius_m: float  # tunnel: the surface's radius; planar: 0
     crossing_ab: np.ndarray  # (N, 2)
     height_range_m: tuple[float, float]  # lowest and highest mesh point above the surface
+    side: int = 1  # a cylinder seen from inside (a fitted surface's camera side): -1
 
     @staticmethod
     def of(rm: RebarMesh) -> MatSurface:
         """The surface through ``rm``'s crossings (or its bars' points when it has none)."""
         vertices = np.asarray(rm.mesh.vertices)
-        surf = MatSurface.through(rm.layout, rm.crossings.point if len(rm.crossings) else vertices)
+        if len(rm.crossings):
+            surf = MatSurface.of_crossings(rm.layout, rm.crossings)
+        else:
+            surf = MatSurface.through(rm.layout, vertices)
         h = surf.height(vertices)
         return replace(surf, height_range_m=(float(h.min()), float(h.max())))
+
+    @staticmethod
+    def of_crossings(layout: MeshLayout, crossings: Crossings) -> MatSurface:
+        """The surface through the crossings; for a mesh read from IFC, through its top mat's crossings when
+        it keeps any (with ``crossings: all`` the others lie in other mats)."""
+        points = crossings.point
+        if layout.surface is not None and np.any(crossings.layer == layout.surface.top_mat):
+            points = points[crossings.layer == layout.surface.top_mat]
+        return MatSurface.through(layout, points)
 
     @staticmethod
     def through(layout: MeshLayout, points: np.ndarray) -> MatSurface:
         """The surface of ``layout``'s kind and pose through ``points`` (world; the crossings), without the
         solid mesh: its height range is left at zero."""
+        fit = layout.surface
+        if fit is not None:
+            T = fit.world_from_surface
+            local = (points - T[:3, 3]) @ T[:3, :3]
+            if fit.kind == "cylinder":
+                radius = float(np.mean(np.linalg.norm(local[:, 1:], axis=1)))
+                surf = MatSurface(
+                    "tunnel_segment", T, np.zeros(3), radius, np.zeros((0, 2)), (0.0, 0.0), fit.side
+                )
+            else:
+                origin = np.array([0.0, 0.0, float(np.mean(local[:, 2]))])
+                surf = MatSurface("planar", T, origin, 0.0, np.zeros((0, 2)), (0.0, 0.0))
+            return replace(surf, crossing_ab=surf.to_ab(points))
         T = layout.world_from_mesh
         local = (points - T[:3, 3]) @ T[:3, :3]
         if layout.kind == "tunnel_segment":
@@ -77,7 +106,7 @@ class MatSurface:
         """Signed distance (N,) of world points above the surface, along the outward normal."""
         local = self._to_local(points)
         if self.is_tunnel:
-            return np.linalg.norm(local[:, 1:], axis=1) - self.radius_m
+            return self.side * (np.linalg.norm(local[:, 1:], axis=1) - self.radius_m)
         return local[:, 2]
 
     def frame(self, ab: np.ndarray, height_m: float | np.ndarray = 0.0) -> tuple[np.ndarray, ...]:
@@ -90,7 +119,8 @@ class MatSurface:
             normal = np.stack([np.zeros_like(psi), np.sin(psi), np.cos(psi)], axis=1)
             t_b = np.stack([np.zeros_like(psi), np.cos(psi), -np.sin(psi)], axis=1)
             local = np.stack([ab[:, 0], np.zeros_like(psi), np.zeros_like(psi)], axis=1)
-            local = local + (self.radius_m + h)[:, None] * normal
+            local = local + (self.radius_m + self.side * h)[:, None] * normal
+            normal = self.side * normal
         else:
             normal = np.tile([0.0, 0.0, 1.0], (len(ab), 1))
             t_b = np.tile([0.0, 1.0, 0.0], (len(ab), 1))

@@ -65,7 +65,7 @@ def _ground(scene: SceneSample, surf: MatSurface, rm: RebarMesh) -> list[SceneOb
         b = np.linspace(lo[1] - 1.0, hi[1] + 1.0, 48)
         ab = np.stack(np.meshgrid(a, b, indexing="ij"), axis=-1).reshape(-1, 2)
         pts = surf.frame(ab, h)[0].reshape(len(a), len(b), 3)
-        uv = ab.reshape(len(a), len(b), 2) * np.array([1.0, (surf.radius_m + h) / surf.radius_m])
+        uv = ab.reshape(len(a), len(b), 2) * np.array([1.0, (surf.radius_m + surf.side * h) / surf.radius_m])
         objects.append(SceneObject("ground_mould", grid(pts, uv), "ground", GROUND_ID))
         keep_below = np.concatenate([verts, pts.reshape(-1, 3) - 0.3 * n])
     tilt_axis = np.cos(np.radians(g.tilt_azimuth_deg)) * t_a + np.sin(np.radians(g.tilt_azimuth_deg)) * t_b
@@ -102,9 +102,12 @@ class _GroundProbe:
 
 
 def _lower_layer(scene: SceneSample, surf: MatSurface, rm: RebarMesh) -> list[SceneObject]:
+    """A copy of the mat's bars (a mesh read from IFC: its top mat's), moved beneath it and shifted along it."""
     d = scene.distractors
+    fit = rm.layout.surface
+    bars = (None if fit is None else [b for b in rm.bars if b.layer == fit.top_mat]) or rm.bars
     shapes = []
-    for bar in rm.bars:
+    for bar in bars:
         c = bar.curve
         if c.kind == "line":
             s = np.array([0.0, c.length])

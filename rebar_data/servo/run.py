@@ -87,9 +87,9 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
     def make_detector(rng: np.random.Generator):
         return faulty(base, suite, rng, camera)
 
-    diameters = rm.config.realism.diameters_m or [rm.config.mesh.bar_diameter_m]
+    bar_diameter_m = max(b.diameter_m for b in rm.bars)
     return ServoContext(
-        suite, world, rm, camera, frames, make_detector, float(max(diameters)), suite.detector
+        suite, world, rm, camera, frames, make_detector, float(bar_diameter_m), suite.detector
     )
 
 

@@ -32,6 +32,7 @@ from scipy.spatial.transform import Rotation
 from rebar_data.config import ConfigError, Pose
 from rebar_data.dataset.config import load_mesh_config
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
+from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.servo import ur5
 from rebar_data.servo.client import BulletClient, quiet_stdout
 from rebar_data.servo.config import StartPose, WorldConfig
@@ -232,8 +233,12 @@ class ServoWorld:
     # --- the mesh ------------------------------------------------------------------------------
     def surface_point(self, axial_m: float, arc_m: float) -> tuple[np.ndarray, np.ndarray]:
         """A point of the crossings' surface, ``axial_m`` along the axis and ``arc_m`` along the arc from
-        the crown (planar meshes: along x and y from the centre), and the outward normal there (world)."""
+        the crown (planar meshes: along x and y from the centre; a mesh read from IFC: along the fitted
+        surface's x and y from the bars' centre), and the outward normal there (world)."""
         lay = self.rm.layout
+        if lay.surface is not None:
+            p, _, _, n = MatSurface.of_crossings(lay, self.rm.crossings).frame(np.array([[axial_m, arc_m]]))
+            return p[0], n[0]
         T = lay.world_from_mesh
         local_crossings = apply(inverse(T), self.rm.crossings.point)
         if lay.kind == "planar":

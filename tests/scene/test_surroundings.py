@@ -58,3 +58,23 @@ def test_distractors_follow_the_sample(tunnel_rm):
         assert o.shape.corner_uv_m.shape == (len(o.shape.triangles), 3, 2)
     again = build_surroundings(s, tunnel_rm)
     assert all(np.array_equal(a.shape.vertices, b.shape.vertices) for a, b in zip(full, again, strict=True))
+
+
+def test_ground_and_lower_layer_of_a_wall_read_from_ifc(tmp_path):
+    """The sample IFC wall: the ground lies behind its back mat, along the camera-side normal, and the lower
+    layer is a copy of the top (front) mat alone, moved beneath it."""
+    pytest.importorskip("ifcopenshell")
+    from rebar_data.geometry.ifc_samples import write_wall
+    from tests.ifc_models import read_mesh
+
+    rm = read_mesh(tmp_path, write_wall(tmp_path / "wall.ifc"), crossings="top_mat")
+    fit = rm.layout.surface
+    s = _scene(lower_layer=True, spacers=0, loose_tie_wire=0, formwork_sides=0)
+    s = replace(s, ground=replace(s.ground, shape="plane", distance_m=0.1, tilt_deg=0.0))
+    objs = {o.name: o for o in build_surroundings(s, rm)}
+    lowest = fit.height(np.asarray(rm.mesh.vertices)).min()  # the back mat's far side
+    assert fit.height(objs["ground_plane"].shape.vertices).max() <= lowest - 0.1 + 1e-3
+    h = fit.height(objs["lower_layer"].shape.vertices)
+    top, r = fit.mats[fit.top_mat], 0.006 / np.cos(np.pi / 8) + 1e-6  # 8-sided tubes of the 12 mm bars
+    depth = s.distractors.lower_layer_depth_m
+    assert h.min() >= top.low_m - r - depth - 1e-6 and h.max() <= top.high_m + r - depth + 1e-6

@@ -156,6 +156,26 @@ def test_ci_suite_meets_the_goals_and_its_check(tmp_path, root, monkeypatch):
     _goals(out)
 
 
+def test_ifc_wall_suite_converges_on_the_front_mat_of_a_model_read_from_ifc(tmp_path, root, monkeypatch):
+    """eval/ifc-wall.yaml: the sample IFC wall stood where the tunnel stands; its targets are the crossings of
+    the mat on the model's camera side, which the world's pose turns towards the robot."""
+    pytest.importorskip("ifcopenshell")
+    from rebar_data.servo.config import load_suite
+    from rebar_data.servo.world import build_world_mesh
+
+    monkeypatch.chdir(root)
+    out = tmp_path / "ifc"
+    assert main(["servo", "run", "eval/ifc-wall.yaml", "--out", str(out), "--quiet"]) == 0
+    assert main(["servo", "check", str(out)]) == 0
+    _goals(out)
+    suite = load_suite(root / "eval/ifc-wall.yaml")
+    rm = build_world_mesh(suite.world, root / suite.world.mesh_config)
+    E = pq.read_table(out / "episodes.parquet").to_pandas()
+    visited = rm.crossings.point[E["target_id"].to_numpy()]
+    np.testing.assert_allclose(visited[:, 0], 0.96, atol=1e-3)  # the front mat, facing the robot (-x)
+    assert rm.layout.surface.normal(visited)[:, 0].max() < -0.999
+
+
 def test_check_fails_on_a_regression(tmp_path, root, monkeypatch, capsys):
     monkeypatch.chdir(root)
     run = tmp_path / "run"

@@ -1,0 +1,149 @@
+"""Sample IFC models the project makes itself: a reinforced wall with stirrups and bent bars.
+
+``pipelines/ifc/wall.ifc`` (what ``pipelines/ifc-wall.yaml`` reads) is written by::
+
+    python -m rebar_data.geometry.ifc_samples pipelines/ifc/wall.ifc
+
+The wall is 1.6 m long, 1.2 m high and 0.2 m thick, standing on a storey, turned -60 degrees about z and
+moved to (3, 2, 0.5) m, so its faces are neither axis-aligned nor at the origin. Each face has a mat of
+12 mm bars at 150 mm: horizontal bars outside (cover 30 mm), vertical bars inside them, touching. Six closed
+8 mm stirrups (four legs, four 20 mm bends) hold the three vertical bars at each end of both mats, and
+three 10 mm U-bars (two legs, two 30 mm bends and a straight top) cap the wall between the vertical bars.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from rebar_data.geometry.curves import Arc, Curve, Line
+from rebar_data.geometry.ifc_write import BarRecord, global_id, ifc_model
+
+WALL_TIMESTAMP = 1_767_225_600  # 2026-01-01T00:00:00Z: the same bytes every time
+WALL_LENGTH_M, WALL_HEIGHT_M, WALL_THICKNESS_M, COVER_M = 1.6, 1.2, 0.2, 0.03
+MAT_DIAMETER_M, STIRRUP_DIAMETER_M, U_BAR_DIAMETER_M = 0.012, 0.008, 0.010
+SPACING_M = 0.15
+STIRRUP_BEND_M, U_BAR_BEND_M = 0.02, 0.03
+WALL_YAW_DEG = -60.0
+WALL_TRANSLATION_M = (3.0, 2.0, 0.5)
+
+
+def _v(*xyz: float) -> np.ndarray:
+    return np.array(xyz, float)
+
+
+def _quarter(center: np.ndarray, radius: float, start_dir: np.ndarray, end_dir: np.ndarray) -> Arc:
+    """The quarter circle about ``center`` from ``center + radius * start_dir`` to ``+ radius * end_dir``."""
+    return Arc(center, radius, np.cross(start_dir, end_dir), start_dir, np.pi / 2.0)
+
+
+def _stirrup(z: float, bars_x: tuple[float, float], bar_y: float) -> list[Curve]:
+    """A closed rectangular stirrup in the plane ``z`` around vertical bars at ``bars_x`` (outermost) and
+    ``+-bar_y``, each corner bar touching its bend on the diagonal."""
+    rb = STIRRUP_BEND_M
+    inset = (rb - (MAT_DIAMETER_M + STIRRUP_DIAMETER_M) / 2.0) / np.sqrt(2.0)
+    cx = (bars_x[0] + inset, bars_x[1] - inset)  # bend centres
+    cy = (-bar_y + inset, bar_y - inset)
+    ex, ey = _v(1, 0, 0), _v(0, 1, 0)
+    c = {(i, j): _v(cx[i], cy[j], z) for i in (0, 1) for j in (0, 1)}
+    pieces: list[Curve] = [
+        Line(c[0, 1] + rb * ey, c[1, 1] + rb * ey),  # camera-side leg, along +x
+        _quarter(c[1, 1], rb, ey, ex),
+        Line(c[1, 1] + rb * ex, c[1, 0] + rb * ex),  # across the thickness, along -y
+        _quarter(c[1, 0], rb, ex, -ey),
+        Line(c[1, 0] - rb * ey, c[0, 0] - rb * ey),  # far leg, along -x
+        _quarter(c[0, 0], rb, -ey, -ex),
+        Line(c[0, 0] - rb * ex, c[0, 1] - rb * ex),  # across, along +y
+        _quarter(c[0, 1], rb, -ex, ey),
+    ]
+    return pieces
+
+
+def _u_bar(x: float, leg_y: float, z_low: float, z_top: float) -> list[Curve]:
+    """A U-bar in the plane ``x``: up the leg at ``+leg_y``, over the top, down the leg at ``-leg_y``."""
+    rb = U_BAR_BEND_M
+    ey, ez = _v(0, 1, 0), _v(0, 0, 1)
+    bend_z = z_top - rb
+    c_front, c_back = _v(x, leg_y - rb, bend_z), _v(x, -leg_y + rb, bend_z)
+    return [
+        Line(_v(x, leg_y, z_low), _v(x, leg_y, bend_z)),
+        _quarter(c_front, rb, ey, ez),
+        Line(c_front + rb * ez, c_back + rb * ez),
+        _quarter(c_back, rb, ez, -ey),
+        Line(_v(x, -leg_y, bend_z), _v(x, -leg_y, z_low)),
+    ]
+
+
+def wall_bars() -> list[tuple[list[Curve], float, str]]:
+    """The wall's bars in its own frame (x along it, y through it, z up from its base): pieces, diameter
+    and IFC role."""
+    half_l, t = WALL_LENGTH_M / 2.0, WALL_THICKNESS_M
+    y_h = t / 2.0 - COVER_M - MAT_DIAMETER_M / 2.0  # horizontal bars, outside
+    y_v = y_h - MAT_DIAMETER_M  # vertical bars, inside them, touching
+    z_h = np.arange(7) * SPACING_M + 0.1
+    x_v = (np.arange(10) - 4.5) * SPACING_M
+    bars: list[tuple[list[Curve], float, str]] = []
+    for side in (1.0, -1.0):
+        for z in z_h:
+            line = Line(_v(-half_l + COVER_M, side * y_h, z), _v(half_l - COVER_M, side * y_h, z))
+            bars.append(([line], MAT_DIAMETER_M, "MAIN"))
+        for x in x_v:
+            line = Line(_v(x, side * y_v, COVER_M), _v(x, side * y_v, WALL_HEIGHT_M - COVER_M))
+            bars.append(([line], MAT_DIAMETER_M, "MAIN"))
+    for end in (-1.0, 1.0):
+        outer = x_v[-1] if end > 0 else x_v[0]
+        inner = outer - end * 2 * SPACING_M
+        span = (min(inner, outer), max(inner, outer))
+        for z in z_h[:-1][::2] + SPACING_M / 2.0:
+            bars.append((_stirrup(float(z), span, y_v), STIRRUP_DIAMETER_M, "LIGATURE"))
+    for x in (-0.3, 0.0, 0.3):
+        bars.append((_u_bar(x, y_v, 0.6, WALL_HEIGHT_M - 0.06), U_BAR_DIAMETER_M, "EDGE"))
+    return bars
+
+
+def world_from_wall() -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_euler("z", WALL_YAW_DEG, degrees=True).as_matrix()
+    T[:3, 3] = WALL_TRANSLATION_M
+    return T
+
+
+def wall_records() -> list[BarRecord]:
+    """The wall's bars placed in the world, as the IFC writer takes them."""
+    T = world_from_wall()
+    R, t = T[:3, :3], T[:3, 3]
+    return [
+        BarRecord(k, [c.transformed(R, t) for c in curves], d, -1, -1, global_id(f"ifc-wall/{k}"), role)
+        for k, (curves, d, role) in enumerate(wall_bars())
+    ]
+
+
+def write_wall(path: str | Path, *, schema: str = "IFC4") -> Path:
+    """Write the sample wall to ``path`` (the same bytes for the same IfcOpenShell version)."""
+    path = Path(path)
+    model = ifc_model(
+        wall_records(), schema=schema, project_name="ifc-wall", file_name=path.name, timestamp=WALL_TIMESTAMP
+    )
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    try:
+        model.write(str(tmp))
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
+def main(argv: list[str] | None = None) -> None:
+    p = argparse.ArgumentParser(description="Write the sample IFC wall (stirrups and bent bars).")
+    p.add_argument("out", help="the .ifc file to write, such as pipelines/ifc/wall.ifc")
+    p.add_argument("--schema", choices=("IFC4", "IFC2X3"), default="IFC4")
+    args = p.parse_args(argv)
+    print(write_wall(args.out, schema=args.schema))
+
+
+if __name__ == "__main__":
+    main()
