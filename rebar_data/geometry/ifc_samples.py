@@ -14,14 +14,13 @@ three 10 mm U-bars (two legs, two 30 mm bends and a straight top) cap the wall b
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rebar_data.geometry.curves import Arc, Curve, Line
-from rebar_data.geometry.ifc_write import BarRecord, global_id, ifc_model
+from rebar_data.geometry.ifc_write import BarRecord, global_id, ifc_model, write_model
 
 WALL_TIMESTAMP = 1_767_225_600  # 2026-01-01T00:00:00Z: the same bytes every time
 WALL_LENGTH_M, WALL_HEIGHT_M, WALL_THICKNESS_M, COVER_M = 1.6, 1.2, 0.2, 0.03
@@ -128,13 +127,7 @@ def write_wall(path: str | Path, *, schema: str = "IFC4") -> Path:
     model = ifc_model(
         wall_records(), schema=schema, project_name="ifc-wall", file_name=path.name, timestamp=WALL_TIMESTAMP
     )
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        model.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return write_model(model, path)
 
 
 def main(argv: list[str] | None = None) -> None:

@@ -90,6 +90,11 @@ def write_ifc(
         textured=rm.config.realism.ribs,
         file_name=Path(path).name,
     )
+    write_model(model, path)
+
+
+def write_model(model: ifcopenshell.file, path: str | Path) -> Path:
+    """Write ``model`` to ``path`` whole or not at all (a temporary file beside it, renamed into place)."""
     path = Path(path)
     tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
     try:
@@ -97,6 +102,7 @@ def write_ifc(
         os.replace(tmp, path)
     finally:
         tmp.unlink(missing_ok=True)
+    return path
 
 
 def is_mesh_ifc(path: Path) -> bool:
