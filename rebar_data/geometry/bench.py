@@ -86,8 +86,9 @@ def _all_pairs_candidates(layout, pad: float) -> int:
     return int(np.triu(overlap, k=1).sum())
 
 
-def _plate_figures(n_bars: int, folder) -> tuple[str, float, float]:
-    """One floor plate written, read and crossed: its figures' line and the two candidate searches' times."""
+def _plate_figures(n_bars: int, folder) -> tuple[str, float, float, float]:
+    """One floor plate written, read and crossed: its figures' line, the two candidate searches' times and the
+    mesh's time (read and crossings)."""
     from rebar_data.config import IfcMesh
     from rebar_data.geometry.crossings import candidate_pairs, find_piece_crossings
     from rebar_data.geometry.ifc_read import ifc_layout
@@ -111,24 +112,30 @@ def _plate_figures(n_bars: int, folder) -> tuple[str, float, float]:
         f"{t_read:.2f} s, crossings {t_cross:.2f} s ({len(crossings)} crossings; candidate pairs: k-d tree "
         f"{len(ii)} in {t_tree * 1e3:.0f} ms, all-pairs boxes {n_pairs} in {t_pairs * 1e3:.0f} ms)"
     )
-    return line, t_tree, t_pairs
+    return line, t_tree, t_pairs, t_read + t_cross
 
 
-def ifc_bench(n_bars: int = 5000) -> list[str]:
-    """Write an ``n_bars`` floor plate to IFC, read it (``mesh.kind: ifc``) and find its crossings; the k-d tree
-    candidate search against the all-pairs box test, on this model and on one of half the bars."""
+def ifc_bench(sizes: tuple[int, ...] = (500, 2000, 5000)) -> list[str]:
+    """Write a floor plate of each size to IFC, read it (``mesh.kind: ifc``) and find its crossings; how the
+    mesh's time and the k-d tree candidate search grow with the bars, against the all-pairs box test."""
     import tempfile
     from pathlib import Path
 
     with tempfile.TemporaryDirectory() as tmp:
-        half_line, half_tree, half_pairs = _plate_figures(n_bars // 2, Path(tmp))
-        line, tree, pairs = _plate_figures(n_bars, Path(tmp))
+        runs = [_plate_figures(n, Path(tmp)) for n in sizes]
+    (lo, hi), ratio = (sizes[0], sizes[-1]), sizes[-1] / sizes[0]
+    first, last = runs[0], runs[-1]
+
+    def exponent(t_lo: float, t_hi: float) -> float:  # t ~ n^k over the sizes' range
+        return float(np.log(t_hi / t_lo) / np.log(ratio))
+
     return [
-        half_line,
-        line,
-        f"candidate search, {n_bars // 2} -> {n_bars} bars: k-d tree {tree / half_tree:.1f}x the time, all-pairs "
-        f"boxes {pairs / half_pairs:.1f}x (linear 2x, quadratic 4x); the k-d tree {pairs / tree:.1f}x faster at "
-        f"{n_bars}",
+        *(r[0] for r in runs),
+        f"growth {lo} -> {hi} bars ({ratio:.0f}x): mesh (read and crossings) {last[3] / first[3]:.1f}x the time "
+        f"(t ~ n^{exponent(first[3], last[3]):.2f}; n log n is n^{exponent(lo * np.log(lo), hi * np.log(hi)):.2f} "
+        f"here), k-d tree candidate search {last[1] / first[1]:.1f}x (n^{exponent(first[1], last[1]):.2f}), "
+        f"all-pairs boxes {last[2] / first[2]:.1f}x (n^{exponent(first[2], last[2]):.2f}); the k-d tree "
+        f"{last[2] / last[1]:.1f}x faster at {hi}",
     ]
 
 
