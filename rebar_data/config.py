@@ -16,14 +16,12 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from rebar_data.errors import ConfigError  # noqa: F401  (raised by every config reader)
+
 Positive = Annotated[float, Field(gt=0)]
 NonNegative = Annotated[float, Field(ge=0)]
 Fraction = Annotated[float, Field(ge=0, le=1)]
 Vec3 = tuple[float, float, float]
-
-
-class ConfigError(Exception):
-    """A user's config (or the file holding it) is wrong; the message says what and how to fix it."""
 
 
 class Strict(BaseModel):

@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rebar_data.cli import bounded
-from rebar_data.perception.focal import TOLERANCE
-from rebar_data.perception.reading import READINGS
-from rebar_data.perception.runtime import RUNTIMES
+from rebar_data.perception.inference.focal import TOLERANCE
+from rebar_data.perception.inference.reading import READINGS
+from rebar_data.perception.inference.runtime import RUNTIMES
 
 if TYPE_CHECKING:
     import numpy as np
@@ -87,8 +87,8 @@ def _crossing_point_folder(folder: Path) -> bool:
 def run_train(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError, read_yaml
     from rebar_data.outputs import outside_inputs
-    from rebar_data.perception.data import check_dataset, read_info
-    from rebar_data.perception.train import check_run_folder, resolve_config, train
+    from rebar_data.perception.evaluation.data import check_dataset, read_info
+    from rebar_data.perception.training.train import check_run_folder, resolve_config, train
 
     root = check_dataset(args.dataset)
     if args.eval and not args.ship:
@@ -117,7 +117,7 @@ def run_train(args: argparse.Namespace) -> None:
         progress=not args.quiet,
     )
     if args.ship:
-        from rebar_data.perception.card import ship
+        from rebar_data.perception.evaluation.card import ship
 
         model = ship(out, evaluate_on=args.eval or (), progress=not args.quiet)
         print(f"shipped {model}", file=sys.stderr)
@@ -135,10 +135,10 @@ def _added_stage_inputs(args: argparse.Namespace, *, model_settings: bool = Fals
     ``model_settings`` those the model file records) and every image of the supplements with their
     records."""
     from rebar_data.config import read_yaml
-    from rebar_data.perception.data import check_dataset, read_info
-    from rebar_data.perception.export import check_model_file, onnx_meta
-    from rebar_data.perception.infer import resolve_model_path
-    from rebar_data.perception.train import resolve_config, supplement_images
+    from rebar_data.perception.evaluation.data import check_dataset, read_info
+    from rebar_data.perception.inference.detector import resolve_model_path
+    from rebar_data.perception.networks.files import check_model_file, onnx_meta
+    from rebar_data.perception.training.train import resolve_config, supplement_images
 
     root = check_dataset(args.dataset)
     info = read_info(root)
@@ -177,8 +177,8 @@ def _writing(out: Path, command: str, owned):
 
 
 def run_add_crossing_point(args: argparse.Namespace) -> None:
-    from rebar_data.perception.crossing_point_train import attach
-    from rebar_data.perception.data import load_split
+    from rebar_data.perception.evaluation.data import load_split
+    from rebar_data.perception.training.crossing_point import attach
 
     out = _training_out(
         args, ADD_CROSSING_POINT, _crossing_point_folder, [args.dataset, *(args.supplement or ())]
@@ -195,8 +195,8 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
 
 def run_add_line_check(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError
-    from rebar_data.perception.data import load_split
-    from rebar_data.perception.line_check_train import attach, fitted_on
+    from rebar_data.perception.evaluation.data import load_split
+    from rebar_data.perception.training.line_check import attach, fitted_on
 
     root, info, model, cfg, extra, records = _added_stage_inputs(args)
     val = load_split(root, "val")
@@ -218,8 +218,8 @@ def run_add_line_check(args: argparse.Namespace) -> None:
 
 
 def run_add_int8_passes(args: argparse.Namespace) -> None:
-    from rebar_data.perception.data import load_split
-    from rebar_data.perception.refine_train import attach_int8_passes, calibrated_on
+    from rebar_data.perception.evaluation.data import load_split
+    from rebar_data.perception.training.refine import attach_int8_passes, calibrated_on
 
     root, info, model, cfg, extra, records = _added_stage_inputs(args, model_settings=True)
     samples = load_split(root, "train") + extra
@@ -232,10 +232,10 @@ def run_add_int8_passes(args: argparse.Namespace) -> None:
 
 def run_adapt(args: argparse.Namespace) -> None:
     from rebar_data.config import read_yaml
-    from rebar_data.perception.adapt_train import adapt_model
-    from rebar_data.perception.data import check_dataset, load_split, read_info
-    from rebar_data.perception.infer import resolve_model_path
-    from rebar_data.perception.train import resolve_config, supplement_images
+    from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
+    from rebar_data.perception.inference.detector import resolve_model_path
+    from rebar_data.perception.training.adapt import adapt_model
+    from rebar_data.perception.training.train import resolve_config, supplement_images
 
     out = _training_out(args, ADAPT, _adapt_folder, [args.dataset, *args.frames])
     root = check_dataset(args.dataset)
@@ -261,7 +261,7 @@ def run_adapt(args: argparse.Namespace) -> None:
 def run_detect(args: argparse.Namespace) -> int:
     from rebar_data.config import ConfigError
     from rebar_data.outputs import input_file, input_folder
-    from rebar_data.perception.infer import Detector, resolve_model_path
+    from rebar_data.perception.inference.detector import resolve_model_path
 
     target = Path(args.input)
     accepted = "a dataset folder, an image or a folder of images"
@@ -299,7 +299,9 @@ def run_detect(args: argparse.Namespace) -> int:
         _images_out(target, args)
         _camera_of(args.camera)
     resolve_model_path(args.model)  # a wrong --model is named before anything loads
-    detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
+    from rebar_data.perception.training.train import load_detector
+
+    detector = load_detector(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
     detector.resample = not args.no_resample
     detector.flatten_behind = args.flatten_behind
     if dataset:
@@ -377,7 +379,7 @@ def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> 
     """The predictions file, with `rebar detect`'s mark in its Parquet metadata."""
     import pyarrow.parquet as pq
 
-    from rebar_data.perception.evaluate import write_predictions
+    from rebar_data.perception.evaluation.evaluate import write_predictions
 
     def write(tmp: Path) -> None:
         table = pq.read_table(write_predictions(tmp, image_ids, preds))
@@ -390,10 +392,10 @@ def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> 
 def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
     from rebar_data.config import ConfigError
     from rebar_data.outputs import OutputLock
-    from rebar_data.perception.data import SPLITS, stated_oks_sigma
-    from rebar_data.perception.evaluate import LOW_THRESHOLD, load_splits, predict, score
-    from rebar_data.perception.false_detections import false_detection_census, format_census
-    from rebar_data.perception.metrics import format_summary
+    from rebar_data.perception.evaluation.data import SPLITS, stated_oks_sigma
+    from rebar_data.perception.evaluation.evaluate import LOW_THRESHOLD, load_splits, predict, score
+    from rebar_data.perception.evaluation.false_detections import false_detection_census, format_census
+    from rebar_data.perception.evaluation.metrics import format_summary
 
     samples = load_splits(root, SPLITS if args.split == "all" else (args.split,), truth=args.truth)
     if not samples:
@@ -447,7 +449,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
 
 def _runtime_words(detector) -> str:
     """What ran ``detector``'s first stage, in words (its figures may move a little with the runtime)."""
-    from rebar_data.perception.runtime import runtime_description
+    from rebar_data.perception.inference.runtime import runtime_description
 
     return "PyTorch, float32" if detector.backend == "torch" else runtime_description(detector.backend)
 
@@ -493,8 +495,8 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
     end; an image that cannot be read is named and skipped, and the command then ends with status 1."""
     from rebar_data.config import ConfigError
     from rebar_data.outputs import OutputLock, mark_output, replace_folder
-    from rebar_data.perception.data import read_image
-    from rebar_data.perception.metrics import OPERATING_THRESHOLD
+    from rebar_data.perception.evaluation.data import read_image
+    from rebar_data.perception.inference.heatmap import OPERATING_THRESHOLD
 
     files = _image_files(target)
     camera = _camera_of(args.camera)
@@ -534,7 +536,7 @@ def _detect_image(detector, f: Path, rgb: np.ndarray, out: Path, camera, thresho
     was read with."""
     import cv2
 
-    from rebar_data.perception.plots import draw_overlay
+    from rebar_data.perception.evaluation.plots import draw_overlay
 
     used, how = camera, "--camera"
     if camera is None:
@@ -552,9 +554,9 @@ def _photo_camera(
     path: Path, rgb: np.ndarray, *, exif: bool
 ) -> tuple[tuple[float, float, float, float] | None, str]:
     """The intrinsics a photograph is read with when ``--camera`` gives none: its EXIF 35 mm equivalent
-    focal length's (:mod:`~rebar_data.perception.photo`) unless ``exif`` is off, else None (the training
+    focal length's (:mod:`~rebar_data.perception.inference.photo`) unless ``exif`` is off, else None (the training
     camera's field of view); and words saying which, for the command's line per image."""
-    from rebar_data.perception.photo import photo_camera
+    from rebar_data.perception.inference.photo import photo_camera
 
     found = photo_camera(path, *rgb.shape[:2]) if exif else None
     if found is None:

@@ -9,12 +9,14 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.config import CrossingPointConfig
-from rebar_data.perception.crossing_point import CrossingPoint, patch_rays, shrink
-from rebar_data.perception.crossing_point_train import PatchSet, attach, batches, build, export_onnx
-from rebar_data.perception.data import load_split, read_image
-from rebar_data.perception.export import onnx_meta
-from rebar_data.perception.infer import Detector, crossing_point_path
+from rebar_data.perception.evaluation.data import load_split, read_image
+from rebar_data.perception.inference.crossing_point import CrossingPoint, patch_rays, shrink
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.model_file import crossing_point_path
+from rebar_data.perception.networks import eager
+from rebar_data.perception.networks.files import export_onnx, onnx_meta
+from rebar_data.perception.training.config import CrossingPointConfig
+from rebar_data.perception.training.crossing_point import PatchSet, attach, batches, build
 
 from .conftest import STILL, TINY_TRAIN
 
@@ -70,10 +72,10 @@ def test_onnx_crossing_point_gives_what_pytorch_gives(tmp_path):
     image = np.random.default_rng(1).integers(0, 256, (60, 80, 3)).astype(np.uint8)
     uv = np.array([[10.2, 12.7], [40.0, 30.0], [79.5, 59.5]])
     camera = (70.0, 70.0, 40.0, 30.0)
-    eager = CrossingPoint.from_network(net, pool=2).offsets(image, uv, camera)
+    in_torch = eager.crossing_point(net, pool=2).offsets(image, uv, camera)
     onnx = CrossingPoint.load_onnx(export_onnx(net, tmp_path / "c.onnx"), threads=1, pool=2)
-    np.testing.assert_allclose(onnx.offsets(image, uv, camera), eager, atol=1e-4)
-    assert eager.shape == (3, 2) and np.isfinite(eager).all()
+    np.testing.assert_allclose(onnx.offsets(image, uv, camera), in_torch, atol=1e-4)
+    assert in_torch.shape == (3, 2) and np.isfinite(in_torch).all()
 
 
 def test_a_trained_run_ships_the_stage_and_detect_gives_the_crossing_points(
@@ -110,7 +112,7 @@ def test_the_stage_is_added_beside_a_model_trained_without_it(trained_run, drawn
         shutil.copy(trained_run.out_dir / name, model_dir / name)
     model = model_dir / "best.onnx"
     # as a model written before the stage existed: its metadata names none
-    from rebar_data.perception.export import update_onnx_meta
+    from rebar_data.perception.networks.files import update_onnx_meta
 
     update_onnx_meta(model, {"crossing_point": None})
     det = Detector.load(model)

@@ -9,18 +9,14 @@ import pytest
 import torch
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.config import DepthCheckConfig
-from rebar_data.perception.data import load_split, read_image
-from rebar_data.perception.depth_check import DepthCheck, as_depth_m, encode, read_depth
-from rebar_data.perception.depth_check_train import (
-    PaddedDepth,
-    build,
-    export_onnx,
-    patch_batches,
-    train_depth_check,
-)
-from rebar_data.perception.infer import Detector, verified_score
-from rebar_data.perception.refine import patches
+from rebar_data.perception.evaluation.data import load_split, read_image
+from rebar_data.perception.inference.depth_check import DepthCheck, as_depth_m, encode, read_depth
+from rebar_data.perception.inference.detector import Detector, verified_score
+from rebar_data.perception.inference.refine import patches
+from rebar_data.perception.networks import eager
+from rebar_data.perception.networks.files import export_onnx
+from rebar_data.perception.training.config import DepthCheckConfig
+from rebar_data.perception.training.depth_check import PaddedDepth, build, patch_batches, train_depth_check
 from tests.perception.conftest import TINY_TRAIN
 
 
@@ -118,7 +114,7 @@ def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
     assert onnx_check.patch_px == 16 and net.pool == 2
     np.testing.assert_allclose(
         onnx_check.logits(depth, points),
-        DepthCheck.from_network(net, scale_m=0.05, clip=4.0).logits(depth, points),
+        eager.depth_check(net, scale_m=0.05, clip=4.0).logits(depth, points),
         atol=1e-4,
     )
 
@@ -152,7 +148,7 @@ def test_the_depth_check_learns_crossings_from_points_far_behind_the_bars(drawn_
     cfg = DepthCheckConfig(patch_px=16, widths=(8, 8, 16, 16), hidden=16, epochs=6, batch_size=64, threads=1)
     net, history = train_depth_check(samples, negatives, tmp_path, cfg, seed=0)
     assert history[-1]["loss"] < history[0]["loss"]
-    check = DepthCheck.from_network(net, scale_m=cfg.scale_m, clip=cfg.clip)
+    check = eager.depth_check(net, scale_m=cfg.scale_m, clip=cfg.clip)
     s = load_split(drawn_dataset, "test")[0]
     depth = read_depth(s.depth_path)
     assert np.median(check.logits(depth, s.visible)) > 0

@@ -7,13 +7,15 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import infer
-from rebar_data.perception.config import RefineConfig
-from rebar_data.perception.data import load_split, read_sample_image
-from rebar_data.perception.export import onnx_meta, update_onnx_meta
-from rebar_data.perception.infer import Detector, int8_passes_path
-from rebar_data.perception.refine import Refiner
-from rebar_data.perception.refine_train import attach_int8_passes
+from rebar_data.perception.evaluation.data import load_split, read_sample_image
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.model_file import int8_passes_path
+from rebar_data.perception.inference.refine import Refiner
+from rebar_data.perception.networks.files import onnx_meta, update_onnx_meta
+from rebar_data.perception.training.config import RefineConfig
+from rebar_data.perception.training.refine import attach_int8_passes
 
 from .conftest import shipped_model_copy
 
@@ -72,8 +74,8 @@ def float_model(tmp_path_factory):
 def test_add_int8_passes_writes_the_copy_and_the_detector_reads_its_later_passes_with_it(
     float_model, drawn_dataset
 ):
-    from rebar_data.perception.bench import int8_passes_cost
-    from rebar_data.perception.card import _int8_passes_lines
+    from rebar_data.perception.evaluation.bench import int8_passes_cost
+    from rebar_data.perception.evaluation.card import _int8_passes_lines
 
     model = float_model
     assert not Detector.load(model, threads=1).refiner.has_int8_passes
@@ -126,7 +128,9 @@ def test_an_int8_copy_of_another_network_is_refused():
         pytest.skip("no model shipped yet (make train ships one)")
     model = infer.SHIPPED_MODEL
     with pytest.raises(ConfigError, match="takes or gives other shapes than rebar_keypoint.refine.onnx"):
-        Refiner.load_onnx(infer.refiner_path(model), threads=1, int8_path=infer.depth_check_path(model))
+        Refiner.load_onnx(
+            model_file.refiner_path(model), threads=1, int8_path=model_file.depth_check_path(model)
+        )
 
 
 def test_the_shipped_files_stay_within_five_megabytes():
@@ -135,7 +139,7 @@ def test_the_shipped_files_stay_within_five_megabytes():
         pytest.skip("no model shipped yet (make train ships one)")
     files = sorted(infer.MODELS_DIR.glob(f"{infer.SHIPPED_MODEL.stem}*.onnx"))
     det = Detector.load(None, threads=1)
-    loaded = [infer.SHIPPED_MODEL, infer.refiner_path(infer.SHIPPED_MODEL)]
+    loaded = [infer.SHIPPED_MODEL, model_file.refiner_path(infer.SHIPPED_MODEL)]
     loaded += [int8_passes_path(infer.SHIPPED_MODEL)] if det.refiner.has_int8_passes else []
     assert set(loaded) <= set(files)
     assert sum(f.stat().st_size for f in files) <= 5_000_000, [(f.name, f.stat().st_size) for f in files]

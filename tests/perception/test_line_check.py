@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import line_check as lc
-from rebar_data.perception.config import LineCheckConfig
-from rebar_data.perception.data import load_split, read_sample_image
-from rebar_data.perception.depth_check import read_depth
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.line_check import FEATURES, LineCheck
-from rebar_data.perception.line_check_train import attach
+from rebar_data.perception.evaluation.data import load_split, read_sample_image
+from rebar_data.perception.inference import line_check as lc
+from rebar_data.perception.inference.depth_check import read_depth
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.line_check import FEATURES, LineCheck
+from rebar_data.perception.training.config import LineCheckConfig
+from rebar_data.perception.training.line_check import attach
 
 from .conftest import shipped_model_copy
 
@@ -123,7 +123,7 @@ def checked_model(drawn_dataset, tmp_path_factory):
 
 
 def test_add_line_check_writes_the_fitted_check_into_the_model_file(checked_model):
-    from rebar_data.perception.card import _line_check_lines
+    from rebar_data.perception.evaluation.card import _line_check_lines
 
     model, entry = checked_model
     assert entry["fitted_on"] == ["drawn"] and entry["candidates"] > entry["crossings"] > 0
@@ -162,7 +162,7 @@ def test_with_a_line_check_the_detector_returns_the_same_at_any_threshold(checke
 
 
 def test_the_bench_times_the_rgb_path_with_and_without_the_check(checked_model):
-    from rebar_data.perception.bench import line_check_cost
+    from rebar_data.perception.evaluation.bench import line_check_cost
 
     model, _ = checked_model
     det = Detector.load(model, threads=1)

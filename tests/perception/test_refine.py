@@ -10,20 +10,26 @@ import pytest
 import torch
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.config import AugmentConfig, RefineConfig
-from rebar_data.perception.data import load_split, read_image
-from rebar_data.perception.infer import Detector, verified_score
-from rebar_data.perception.refine import Refiner, patches, shrunk, shrunk_around, stage_input
-from rebar_data.perception.refine_data import patch_batch, patch_batches, patch_geometry, training_patch
-from rebar_data.perception.refine_train import (
+from rebar_data.perception.evaluation.data import load_split, read_image
+from rebar_data.perception.inference.detector import Detector, verified_score
+from rebar_data.perception.inference.refine import Refiner, patches, shrunk, shrunk_around, stage_input
+from rebar_data.perception.networks import eager
+from rebar_data.perception.networks.files import export_onnx, quantize_onnx
+from rebar_data.perception.training.config import AugmentConfig, RefineConfig
+from rebar_data.perception.training.refine import (
     build,
     calibration_patches,
-    export_onnx,
     mine_negatives,
     mine_starts,
-    quantize_onnx,
     train_refiner,
 )
+from rebar_data.perception.training.refine_data import (
+    patch_batch,
+    patch_batches,
+    patch_geometry,
+    training_patch,
+)
+from rebar_data.perception.training.train import load_detector
 
 from .conftest import STILL, TINY_TRAIN
 
@@ -78,7 +84,7 @@ def test_turned_views_of_a_patch_are_turned_back_to_one_answer(border):
     """A stand-in network that reads a spot's centroid (offset from the patch centre) and, as its logit,
     how far right the spot lies: every view, turned back, puts the spot where it is, and the logit is the
     plain view's alone."""
-    from rebar_data.perception.refine import VIEWS
+    from rebar_data.perception.inference.refine import VIEWS
 
     size = 24
     point = np.array([40.3, 27.8])
@@ -463,7 +469,7 @@ def test_the_refiner_learns_to_move_points_onto_crossings(drawn_dataset, tmp_pat
     test = load_split(drawn_dataset, "test")
     rng = np.random.default_rng(0)
     before, after = [], []
-    refiner = Refiner.from_network(net)
+    refiner = eager.refiner(net)
     for s in test:
         start = s.visible + rng.normal(0, 1.5, s.visible.shape)
         moved = refiner.refine(read_image(s.path), start)
@@ -513,7 +519,7 @@ def test_onnx_refiner_gives_what_pytorch_gives(tmp_path, border, context_scale):
         with pytest.raises(ConfigError, match="does not fit context_scale 0"):
             Refiner.load_onnx(path, threads=1)
     np.testing.assert_allclose(
-        onnx_refiner.refine(image, points), Refiner.from_network(net).refine(image, points), atol=1e-4
+        onnx_refiner.refine(image, points), eager.refiner(net).refine(image, points), atol=1e-4
     )
     assert onnx_refiner.refine(image, np.zeros((0, 2))).shape == (0, 2)
 
@@ -540,7 +546,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     expected = expected[expected[:, 2] >= 0.01]
     np.testing.assert_allclose(both, expected[np.argsort(-expected[:, 2], kind="stable")])
     det.refiner = None
-    assert Detector.load(out / "best.pt").refiner is not None
+    assert load_detector(out / "best.pt").refiner is not None
     lone = tmp_path / "lone"
     lone.mkdir()
     shutil.copy(out / "best.onnx", lone / "best.onnx")
@@ -552,7 +558,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
 
 
 def test_a_second_stage_file_that_does_not_fit_its_settings_is_named_and_retrained(drawn_dataset, tmp_path):
-    from rebar_data.perception.refine_train import load, save
+    from rebar_data.perception.training.refine import load, save
 
     small = RefineConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8, epochs=1, batch_size=64, threads=1)
     other = small.model_copy(update={"widths": (4, 8, 8, 8)})
@@ -639,7 +645,7 @@ def test_the_second_stage_learns_to_tell_crossings_from_mined_negatives(drawn_da
     assert asked == [len(samples)] and net.verify
     assert history[-1]["verify_negatives_right"] > 0.8 and history[-1]["verify_positives_right"] > 0.8
     # on images it never saw, crossings score higher than the middles of bars
-    refiner = Refiner.from_network(net)
+    refiner = eager.refiner(net)
     test = load_split(drawn_dataset, "test")
     on, off = [], []
     for s, middles in zip(test, _bar_middles(test), strict=True):

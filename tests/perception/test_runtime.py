@@ -4,9 +4,15 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import infer, runtime
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.runtime import OpenVinoSession, onnx_session, openvino_bf16, resolve_runtime
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference import model_file, runtime
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.runtime import (
+    OpenVinoSession,
+    onnx_session,
+    openvino_bf16,
+    resolve_runtime,
+)
 
 needs_openvino = pytest.mark.skipif(
     runtime._openvino_core() is None, reason="openvino is not installed (pip install openvino)"
@@ -74,7 +80,7 @@ def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
 def test_openvino_reads_a_frame_and_its_mirror_image_in_one_call_with_the_same_numbers():
     """The mirrored reading's two first-stage reads go through OpenVINO as one batch of two; ONNX Runtime,
     whose files take one image, reads them in two calls. The batch gives what the two calls give."""
-    from rebar_data.perception.bench import drawn_frame
+    from rebar_data.perception.evaluation.bench import drawn_frame
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
@@ -103,7 +109,7 @@ def test_openvino_reads_a_frame_and_its_mirror_image_in_one_call_with_the_same_n
 
 @needs_openvino
 def test_a_batch_of_patches_is_padded_for_openvino_and_comes_back_as_long():
-    path = infer.refiner_path(infer.SHIPPED_MODEL)
+    path = model_file.refiner_path(infer.SHIPPED_MODEL)
     if not path.exists():
         pytest.skip("no model shipped yet (make train ships one)")
     ort, ov = onnx_session(path, 1), onnx_session(path, 1, "openvino")
@@ -130,7 +136,7 @@ def test_a_batch_of_patches_is_padded_for_openvino_and_comes_back_as_long():
 @needs_openvino
 def test_an_int8_file_runs_in_onnx_runtime_whatever_the_runtime(trained_run):
     # the tests' tiny run quantizes its whole second stage (quantize: int8), which OpenVINO does not read
-    path = infer.refiner_path(trained_run.out_dir / "best.onnx")
+    path = model_file.refiner_path(trained_run.out_dir / "best.onnx")
     assert not isinstance(onnx_session(path, 1, "openvino"), OpenVinoSession)
     with pytest.raises(ConfigError, match="cannot be loaded as an ONNX model"):
         onnx_session(trained_run.out_dir / "config.json", 1, "openvino")
@@ -138,7 +144,7 @@ def test_an_int8_file_runs_in_onnx_runtime_whatever_the_runtime(trained_run):
 
 @needs_openvino
 def test_the_shipped_detector_finds_the_same_crossings_in_either_runtime():
-    from rebar_data.perception.bench import drawn_frame
+    from rebar_data.perception.evaluation.bench import drawn_frame
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
@@ -164,7 +170,7 @@ def test_the_shipped_model_loads_in_onnx_runtime_and_in_the_default_runtime():
 
 @needs_openvino
 def test_the_bench_times_the_two_runtimes_in_turn(trained_run):
-    from rebar_data.perception.bench import drawn_frame, runtime_cost
+    from rebar_data.perception.evaluation.bench import drawn_frame, runtime_cost
 
     rgb, _ = drawn_frame()
     det = Detector.load(trained_run.out_dir / "best.onnx", threads=1, runtime="openvino")
