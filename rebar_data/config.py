@@ -2,7 +2,7 @@
 
 A pipeline file (``pipelines/<name>.yaml``) has the dataset's identity (``name``, ``version``,
 ``seed``), the rebar mesh (``mesh``, ``realism``) and the rendering sections defined in
-:mod:`rebar_data.scene.config`; :mod:`rebar_data.dataset.config` reads the whole file, for every command
+:mod:`rebar_data.scene.config`; :mod:`rebar_data.pipeline` reads the whole file, for every command
 that takes one. Unknown keys are errors: a typo must never be silently ignored.
 """
 

@@ -11,7 +11,7 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rebar_data.cli import bounded
+from rebar_data.arguments import bounded
 from rebar_data.perception.inference.focal import TOLERANCE
 from rebar_data.perception.inference.reading import READINGS
 from rebar_data.perception.inference.runtime import RUNTIMES
@@ -88,7 +88,8 @@ def run_train(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError, read_yaml
     from rebar_data.outputs import outside_inputs
     from rebar_data.perception.evaluation.data import check_dataset, read_info
-    from rebar_data.perception.training.train import check_run_folder, resolve_config, train
+    from rebar_data.perception.training.config import resolve_config
+    from rebar_data.perception.training.train import check_run_folder, train
 
     root = check_dataset(args.dataset)
     if args.eval and not args.ship:
@@ -138,7 +139,8 @@ def _added_stage_inputs(args: argparse.Namespace, *, model_settings: bool = Fals
     from rebar_data.perception.evaluation.data import check_dataset, read_info
     from rebar_data.perception.inference.detector import resolve_model_path
     from rebar_data.perception.networks.files import check_model_file, onnx_meta
-    from rebar_data.perception.training.train import resolve_config, supplement_images
+    from rebar_data.perception.training.config import resolve_config
+    from rebar_data.perception.training.train import supplement_images
 
     root = check_dataset(args.dataset)
     info = read_info(root)
@@ -235,7 +237,8 @@ def run_adapt(args: argparse.Namespace) -> None:
     from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
     from rebar_data.perception.inference.detector import resolve_model_path
     from rebar_data.perception.training.adapt import adapt_model
-    from rebar_data.perception.training.train import resolve_config, supplement_images
+    from rebar_data.perception.training.config import resolve_config
+    from rebar_data.perception.training.train import supplement_images
 
     out = _training_out(args, ADAPT, _adapt_folder, [args.dataset, *args.frames])
     root = check_dataset(args.dataset)
@@ -554,9 +557,9 @@ def _photo_camera(
     path: Path, rgb: np.ndarray, *, exif: bool
 ) -> tuple[tuple[float, float, float, float] | None, str]:
     """The intrinsics a photograph is read with when ``--camera`` gives none: its EXIF 35 mm equivalent
-    focal length's (:mod:`~rebar_data.perception.inference.photo`) unless ``exif`` is off, else None (the training
+    focal length's (:mod:`~rebar_data.perception.photo`) unless ``exif`` is off, else None (the training
     camera's field of view); and words saying which, for the command's line per image."""
-    from rebar_data.perception.inference.photo import photo_camera
+    from rebar_data.perception.photo import photo_camera
 
     found = photo_camera(path, *rgb.shape[:2]) if exif else None
     if found is None:

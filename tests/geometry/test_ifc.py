@@ -22,11 +22,11 @@ import ifcopenshell.validate  # noqa: E402
 
 from rebar_data.cli import main  # noqa: E402
 from rebar_data.config import ConfigError, MeshConfig  # noqa: E402
-from rebar_data.dataset.config import load_mesh_config  # noqa: E402
 from rebar_data.geometry.build import build_rebar_mesh  # noqa: E402
 from rebar_data.geometry.curves import Arc, Line  # noqa: E402
 from rebar_data.geometry.ifc_read import arc_through  # noqa: E402
 from rebar_data.geometry.ifc_write import write_ifc  # noqa: E402
+from rebar_data.pipeline import load_mesh_config  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -13,7 +13,7 @@ from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synt
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks.files import onnx_meta
 from rebar_data.perception.training.adapt import adapt_model
-from rebar_data.perception.training.train import resolve_config
+from rebar_data.perception.training.config import resolve_config
 
 from .conftest import TINY_TRAIN
 

@@ -1,4 +1,4 @@
-"""A photograph's camera from its EXIF (``rebar_data.perception.inference.photo``): the intrinsics `rebar detect IMAGES`
+"""A photograph's camera from its EXIF (``rebar_data.perception.photo``): the intrinsics `rebar detect IMAGES`
 reads a photograph with when ``--camera`` gives none."""
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ from rebar_data.perception.evaluation.metrics import Truth, pixel_metrics
 from rebar_data.perception.inference import detector as infer
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.inference.focal import resample
-from rebar_data.perception.inference.photo import EXIF_IFD, FOCAL_LENGTH_35MM, focal_35mm, photo_camera
+from rebar_data.perception.photo import EXIF_IFD, FOCAL_LENGTH_35MM, focal_35mm, photo_camera
 
 ORIENTATION = 0x0112
 

@@ -183,8 +183,8 @@ def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[Fram
         RuntimeError: and others from Open3D when the offscreen renderer cannot start here.
     """
     from rebar_data.config import PAPER_PIPELINE
-    from rebar_data.dataset.config import load_pipeline
     from rebar_data.geometry.build import build_rebar_mesh
+    from rebar_data.pipeline import load_pipeline
     from rebar_data.render.renderer import Renderer
     from rebar_data.scene.cameras import PRESETS, trajectory_poses
     from rebar_data.scene.sample import sample_scene, sample_sensor

@@ -21,7 +21,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
-from rebar_data.dataset.config import DEFAULT_OKS_SIGMA
+from rebar_data.pipeline import DEFAULT_OKS_SIGMA
 
 T = TypeVar("T")
 

@@ -29,8 +29,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from rebar_data.dataset.config import DEFAULT_OKS_SIGMA  # stated by the dataset in info.json
 from rebar_data.perception.inference.heatmap import OPERATING_THRESHOLD
+from rebar_data.pipeline import DEFAULT_OKS_SIGMA  # stated by the dataset in info.json
 
 OKS_THRESHOLDS = np.linspace(0.5, 0.95, 10)
 RECALL_THRESHOLDS = np.linspace(0.0, 1.0, 101)

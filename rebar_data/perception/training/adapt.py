@@ -19,7 +19,7 @@ import torch
 
 from rebar_data.perception.evaluation.data import Sample
 from rebar_data.perception.networks.files import load_checkpoint, save_checkpoint
-from rebar_data.perception.training.config import AdaptConfig, TrainConfig
+from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
 from rebar_data.perception.training.epochs import WeightAverage, batch_stream, train_epoch
 
 ADAPT_LAST = "adapt_last.pt"
@@ -181,8 +181,6 @@ def adapt_model(
         )
     net, meta = network_from_onnx(model)
     if cfg is None:
-        from rebar_data.perception.training.train import resolve_config
-
         cfg = resolve_config(meta.get("train_config"), {}, source=f"{model}'s train settings")
     if cfg.adapt.epochs == 0:
         raise ConfigError("adapt.epochs = 0 trains nothing; accepted: 1 or more adapt epochs")

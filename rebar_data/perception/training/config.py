@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Annotated, Any, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from rebar_data.config import Fraction, NonNegative, Positive, Strict
+from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, format_validation_error
 from rebar_data.perception.networks.keypoint_net import ModelConfig  # noqa: F401  (TrainConfig.model)
 
 PositiveInt = Annotated[int, Field(gt=0)]
@@ -929,3 +929,20 @@ class TrainConfig(Strict):
     depth_check: DepthCheckConfig = DepthCheckConfig()
     crossing_point: CrossingPointConfig = CrossingPointConfig()
     line_check: LineCheckConfig = LineCheckConfig()
+
+
+def resolve_config(
+    config: TrainConfig | dict | None, overrides: dict[str, Any], *, source: str = "train settings"
+) -> TrainConfig:
+    """Settings from a TrainConfig or dict with keyword overrides applied (None values are left out);
+    ``source`` names where they came from in an error (the settings file, for ``rebar train --config``)."""
+    base = config.model_dump() if isinstance(config, TrainConfig) else dict(config or {})
+    base.update({k: v for k, v in overrides.items() if v is not None})
+    try:
+        return TrainConfig.model_validate(base)
+    except Exception as e:
+        from pydantic import ValidationError
+
+        if isinstance(e, ValidationError):
+            raise ConfigError(format_validation_error(e, source, base)) from None
+        raise

@@ -33,7 +33,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from rebar_data.config import ConfigError, format_validation_error
+from rebar_data.config import ConfigError
 from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.outputs import OutputLock, mark_output, output_folder
 from rebar_data.perception.evaluation.data import (
@@ -67,7 +67,7 @@ from rebar_data.perception.networks.files import export_onnx, load_checkpoint, q
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
 from rebar_data.perception.networks.stages import CrossingNet, DepthNet, PatchNet
 from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage, adapt_settings
-from rebar_data.perception.training.config import TrainConfig
+from rebar_data.perception.training.config import TrainConfig, resolve_config
 from rebar_data.perception.training.crossing_point import save as save_crossing_point
 from rebar_data.perception.training.crossing_point import train_crossing_point
 from rebar_data.perception.training.depth_check import calibration_inputs, check_depth, train_depth_check
@@ -122,23 +122,6 @@ class TrainResult:
     stopped_early: bool
     history: list[dict[str, Any]] = field(default_factory=list)
     results: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-def resolve_config(
-    config: TrainConfig | dict | None, overrides: dict[str, Any], *, source: str = "train settings"
-) -> TrainConfig:
-    """Settings from a TrainConfig or dict with keyword overrides applied (None values are left out);
-    ``source`` names where they came from in an error (the settings file, for ``rebar train --config``)."""
-    base = config.model_dump() if isinstance(config, TrainConfig) else dict(config or {})
-    base.update({k: v for k, v in overrides.items() if v is not None})
-    try:
-        return TrainConfig.model_validate(base)
-    except Exception as e:
-        from pydantic import ValidationError
-
-        if isinstance(e, ValidationError):
-            raise ConfigError(format_validation_error(e, source, base)) from None
-        raise
 
 
 def is_run_folder(folder: Path) -> bool:
