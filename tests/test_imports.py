@@ -41,6 +41,13 @@ FORBIDDEN = {
     ],
     f"{PERCEPTION}.evaluation": [f"{PERCEPTION}.training", f"{PERCEPTION}.commands"],
     f"{PERCEPTION}.training": [f"{PERCEPTION}.commands"],
+    "rebar_data.dataset": [
+        "rebar_data.perception",
+        "rebar_data.servo",
+        "rebar_data.publish",
+        "rebar_data.cli",
+    ],
+    "rebar_data.perception": ["rebar_data.servo", "rebar_data.publish"],
     **{
         f"rebar_data.{lower}": [
             "rebar_data.dataset",

@@ -130,31 +130,21 @@ def run_train(args: argparse.Namespace) -> None:
     print(out)
 
 
-def _added_stage_inputs(args: argparse.Namespace, *, model_settings: bool = False):
-    """What `rebar add-crossing-point`, `add-line-check` and `add-int8-passes` share: the dataset (checked)
-    and its info, the model file, the training settings (``--config``; without it the defaults, or with
-    ``model_settings`` those the model file records) and every image of the supplements with their
-    records."""
+def _added_stage_inputs(args: argparse.Namespace):
+    """What `rebar add-crossing-point` reads: the dataset (checked), the model file, the training settings
+    (``--config``, else the defaults) and every image of the supplements."""
     from rebar_data.config import read_yaml
     from rebar_data.perception.evaluation.data import check_dataset, read_info
     from rebar_data.perception.inference.detector import resolve_model_path
-    from rebar_data.perception.networks.files import check_model_file, onnx_meta
     from rebar_data.perception.training.config import resolve_config
     from rebar_data.perception.training.train import supplement_images
 
     root = check_dataset(args.dataset)
-    info = read_info(root)
     model = resolve_model_path(args.model)
-    if args.config:
-        settings, source = read_yaml(args.config), str(args.config)
-    elif model_settings:
-        settings = onnx_meta(check_model_file(model)).get("train_config")
-        source = f"{model}'s train settings"
-    else:
-        settings, source = None, "train settings"
+    settings, source = (read_yaml(args.config), str(args.config)) if args.config else (None, "train settings")
     cfg = resolve_config(settings, {}, source=source)
-    extra, records = supplement_images(args.supplement or (), trained_on=info.get("name"))
-    return root, info, model, cfg, extra, records
+    extra, _ = supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
+    return root, model, cfg, extra
 
 
 def _training_out(args: argparse.Namespace, command: str, owned, inputs) -> Path:
@@ -185,7 +175,7 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
     out = _training_out(
         args, ADD_CROSSING_POINT, _crossing_point_folder, [args.dataset, *(args.supplement or ())]
     )
-    root, _, model, cfg, extra, _ = _added_stage_inputs(args)
+    root, model, cfg, extra = _added_stage_inputs(args)
     samples = load_split(root, "train") + extra
     with _writing(out, ADD_CROSSING_POINT, _crossing_point_folder):
         stage = attach(
@@ -193,43 +183,6 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
         )
     print(f"crossing-point stage beside {model}: {stage}", file=sys.stderr)
     print(stage)
-
-
-def run_add_line_check(args: argparse.Namespace) -> None:
-    from rebar_data.config import ConfigError
-    from rebar_data.perception.evaluation.data import load_split
-    from rebar_data.perception.training.line_check import attach, fitted_on
-
-    root, info, model, cfg, extra, records = _added_stage_inputs(args)
-    val = load_split(root, "val")
-    if not val:
-        raise ConfigError(f"{root}: the val split has no images; accepted: the dataset the model trained on")
-    entry = attach(
-        model,
-        val + extra,
-        val,
-        cfg.line_check,
-        data=fitted_on(info.get("name"), records),
-        progress=not args.quiet,
-    )
-    print(
-        f"line check in {model}: fitted on {entry['candidates']} candidates of {entry['images']} images",
-        file=sys.stderr,
-    )
-    print(model)
-
-
-def run_add_int8_passes(args: argparse.Namespace) -> None:
-    from rebar_data.perception.evaluation.data import load_split
-    from rebar_data.perception.training.refine import attach_int8_passes, calibrated_on
-
-    root, info, model, cfg, extra, records = _added_stage_inputs(args, model_settings=True)
-    samples = load_split(root, "train") + extra
-    out = attach_int8_passes(
-        model, samples, cfg.refine, seed=cfg.seed, data=calibrated_on(info.get("name"), records)
-    )
-    print(f"second stage's later passes in int8 beside {model}: {out}", file=sys.stderr)
-    print(out)
 
 
 def run_adapt(args: argparse.Namespace) -> None:
@@ -567,20 +520,6 @@ def _photo_camera(
     return found.camera, f"EXIF {found.focal_35mm:g} mm equivalent, fx {found.camera[0]:.0f} px"
 
 
-def _added_stage_parser(
-    sub: argparse._SubParsersAction, name: str, *, help: str, dataset: str, supplement: str, config: str
-) -> argparse.ArgumentParser:
-    """The parser of a command that adds a stage to a model file in place (`rebar add-line-check`,
-    `add-int8-passes`): the dataset, --model, --supplement, --config and --quiet, helped as given."""
-    c = sub.add_parser(name, help=help)
-    c.add_argument("dataset", help=dataset)
-    c.add_argument("--model", help="the model's .onnx file, changed in place (default: the shipped model)")
-    c.add_argument("--supplement", action="append", metavar="DATASET", help=supplement)
-    c.add_argument("--config", help=config)
-    c.add_argument("--quiet", action="store_true", help="no progress lines")
-    return c
-
-
 def register(sub: argparse._SubParsersAction) -> None:
     t = sub.add_parser("train", help="train the crossing detector on a dataset (CPU; resumable)")
     t.add_argument("dataset", help="dataset folder ROOT/<name>/v<version>/, as `rebar dataset build` prints")
@@ -648,23 +587,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     a.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
     a.set_defaults(func=run_add_crossing_point)
-
-    _added_stage_parser(
-        sub,
-        "add-line-check",
-        help="fit the line check (scores read along each detection's bars) into a model file",
-        dataset="the dataset the model trained on (its val split fits and calibrates it)",
-        supplement="a dataset whose every image the check also fits on (repeatable; make train: LINE_SUPPLEMENTS)",
-        config="YAML of training settings, as for `rebar train` (its line_check)",
-    ).set_defaults(func=run_add_line_check)
-    _added_stage_parser(
-        sub,
-        "add-int8-passes",
-        help="write the int8 copy of a model's second stage that its passes after the first read",
-        dataset="the dataset the model trained on (its train split calibrates the copy)",
-        supplement="a dataset whose every image calibrates it too (repeatable; make train: SUPPLEMENTS)",
-        config="YAML of training settings (default: those the model trained with)",
-    ).set_defaults(func=run_add_int8_passes)
 
     p = sub.add_parser(
         "adapt",

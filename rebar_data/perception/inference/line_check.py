@@ -273,12 +273,12 @@ class LineCheck:
         ):
             raise ConfigError(
                 f"{source}: its line check reads {entry.get('features')}; accepted: one fitted on this "
-                f"version's features ({', '.join(FEATURES)}), as `rebar add-line-check` fits it"
+                f"version's features ({', '.join(FEATURES)}), as `rebar train` fits it"
             )
         if entry.get("reading") != READING:
             raise ConfigError(
                 f"{source}: its line check was fitted reading the bars with {entry.get('reading')}; accepted: "
-                f"one fitted with this version's {READING}, as `rebar add-line-check` fits it"
+                f"one fitted with this version's {READING}, as `rebar train` fits it"
             )
         return cls(
             np.asarray(entry["weights"], np.float64),

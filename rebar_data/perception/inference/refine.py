@@ -275,7 +275,7 @@ class Refiner:
             if (int8.get_inputs()[0].shape, int8.get_outputs()[0].shape) != signature:
                 raise ConfigError(
                     f"{int8_path}: takes or gives other shapes than {path.name}; accepted: the int8 copy "
-                    f"written from it (`rebar add-int8-passes`, or `rebar train` with quantize: later)"
+                    f"written from it by `rebar train` (quantize: later)"
                 )
             int8_name = int8.get_inputs()[0].name
 

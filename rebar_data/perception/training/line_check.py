@@ -13,7 +13,6 @@ from __future__ import annotations
 import sys
 import time
 from collections.abc import Sequence
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -107,30 +106,3 @@ def fit_line_check(
         "seconds": time.perf_counter() - t0,
     }
     return entry, check
-
-
-def attach(
-    model: str | Path,
-    samples: Sequence[Sample],
-    val_samples: Sequence[Sample],
-    cfg: LineCheckConfig,
-    *,
-    data: Sequence[str] = (),
-    threads: int = 2,
-    progress: bool = False,
-) -> dict[str, Any]:
-    """Fit the line check to the detector in ``model`` (an ONNX file written by ``rebar train``) and write
-    it into the file's metadata (a line check already there is replaced; the detector's other stages and
-    its scores with depth are unchanged). ``data`` names the fitting datasets for the metadata.
-
-    Returns:
-        The metadata entry written.
-    """
-    from rebar_data.perception.networks.files import check_model_file, update_onnx_meta
-
-    model = check_model_file(model)
-    # float32 as trained; a line check already there is replaced
-    detector = Detector.load(model, threads=threads, line_check=False, runtime="onnxruntime")
-    entry, _ = fit_line_check(detector, samples, val_samples, cfg, data=data, progress=progress)
-    update_onnx_meta(model, {"line_check": entry})
-    return entry

@@ -27,7 +27,6 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_image, read_images
 from rebar_data.perception.evaluation.lower_mat import lower_mat_of
-from rebar_data.perception.networks.files import quantize_onnx
 from rebar_data.perception.networks.stages import PatchNet
 from rebar_data.perception.training.checkpoints import (
     calibration_points,
@@ -412,51 +411,3 @@ def calibrated_on(dataset: str | None, supplements: list[dict[str, Any]]) -> lis
     """What an int8 file's metadata says it was calibrated on: ``dataset``'s train split and each supplement
     (:func:`~rebar_data.perception.training.train.supplement_images`' records)."""
     return [f"{dataset} train"] + [f"{m['name']} v{m['version']}" for m in supplements]
-
-
-def attach_int8_passes(
-    model: str | Path, samples: list[Sample], cfg: RefineConfig, *, seed: int, data: list[str]
-) -> Path:
-    """Write the int8 copy of ``model``'s second stage that its passes after the first read
-    (``RefineConfig.quantize = "later"``), calibrated on ``cfg.calibration_patches`` patches around the
-    crossings of ``samples`` (named ``data`` in the metadata), and name it in the model file's metadata;
-    the float file, and so every verified score, stays as it was. A copy already there is replaced.
-
-    Returns:
-        The int8 file's path (beside the model: ``<stem>.refine.int8.onnx``).
-    """
-    from rebar_data.dataset.writers.manifest import sha256_file
-    from rebar_data.perception.inference.detector import Detector
-    from rebar_data.perception.inference.model_file import int8_passes_path, refiner_path
-    from rebar_data.perception.networks.files import check_model_file, onnx_meta, update_onnx_meta
-
-    model = check_model_file(model)
-    entry = onnx_meta(model).get("refiner")
-    if not entry or not refiner_path(model).exists():
-        raise ConfigError(
-            f"{model}: has no second stage beside it; accepted: a model trained with one (refine: "
-            "{enabled: true}, as `make train` ships)"
-        )
-    if entry.get("quantize") == "int8":
-        raise ConfigError(
-            f"{model}: its second stage is int8 throughout already; accepted: a model whose second stage "
-            "ships in float (quantize: none or later)"
-        )
-    if entry.get("patch_px") != cfg.patch_px or entry.get("context_scale", 0) != cfg.context_scale:
-        raise ConfigError(
-            f"{model}: its second stage reads {entry.get('patch_px')} px patches with context_scale "
-            f"{entry.get('context_scale', 0)}, the settings {cfg.patch_px} and {cfg.context_scale}; accepted: "
-            "the settings it trained with (leave --config out to use them)"
-        )
-    dst = int8_passes_path(model)
-    patches = calibration_patches(samples, cfg, seed=seed)
-    quantize_onnx(refiner_path(model), dst, patches)
-    entry = {
-        **entry,
-        "quantize": "later",
-        "int8_sha256": sha256_file(dst),
-        "int8_calibrated_on": {"data": list(data), "patches": len(patches)},
-    }
-    update_onnx_meta(model, {"refiner": entry})
-    Detector.load(model, runtime="onnxruntime")  # loads with it, or says why not
-    return dst
