@@ -66,9 +66,6 @@ class PlanarMesh(MeshBase):
         _check_thickness(self)
         return self
 
-    def extents(self) -> tuple[float, float]:
-        return self.width_m, self.height_m
-
 
 class TunnelSegmentMesh(MeshBase):
     """Curved tunnel-segment mat: hoop bars (arcs, direction 0) and longitudinal bars (lines, direction 1).

@@ -119,8 +119,6 @@ TINY_TRAIN = {
         "epochs": 1,
         "batch_size": 32,
         "threads": 1,
-        "quantize": "int8",  # not the default (float), so the tests cover the int8 file too
-        "context_scale": 2,  # so the tests cover a second stage that reads a context view
     },
     "depth_check": {
         "patch_px": 16,

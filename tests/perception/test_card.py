@@ -22,8 +22,6 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     # the second stage's verification is described where the model and its training are
     assert "sigmoid(first-stage logit + 1 log p; 0.5 log p beside the depth check)" in card
     assert "farther than 6 px from every" in card
-    # and its context view (the tests' settings give it one, 2 times wider)
-    assert "context view: the 2 times wider square" in card
     # latency is timed on rendered frames like the training data's, not on the drawn worst case
     assert "over 8 rendered paper-tunnel frames" in card and "candidates" in card
     # its figures read each image as Detector.load does by default: the mirrored reading

@@ -34,16 +34,6 @@ def test_a_patch_is_depth_relative_to_its_centre_with_a_mask_of_measurements():
     assert doubled[0, 0, 4, 0] == pytest.approx(8.0)
 
 
-def test_pooled_cells_hold_the_mean_of_their_measured_pixels_and_the_share_measured():
-    p = np.full((1, 8, 8), 1.0, np.float32)
-    p[0, 0, 0], p[0, 0, 1], p[0, 1, 0] = 1.1, 0.0, 0.0  # the top-left 2x2 block: 1.1, 1.0 and two holes
-    full, _ = encode(p, scale_m=0.05, clip=4.0)
-    x, has_centre = encode(p, scale_m=0.05, clip=4.0, pool=2)
-    assert x.shape == (1, 2, 4, 4) and has_centre.tolist() == [True]
-    assert x[0, 0, 0, 0] == pytest.approx((2.0 + 0.0) / 2) and x[0, 1, 0, 0] == pytest.approx(0.5)
-    np.testing.assert_allclose(x[0, :, 1:, 1:], full[0, :, 2:, 2:].reshape(2, 3, 2, 3, 2).mean(axis=(2, 4)))
-
-
 def test_the_reference_depth_is_the_median_of_the_centres_measurements():
     rng = np.random.default_rng(0)
     p = rng.uniform(0.5, 2.0, (300, 16, 16)).astype(np.float32)
@@ -100,7 +90,7 @@ def test_a_detection_with_no_depth_at_its_centre_keeps_its_score():
 
 def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
     torch.manual_seed(1)
-    net = build(DepthCheckConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8, pool=2)).eval()
+    net = build(DepthCheckConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8)).eval()
     with torch.no_grad():
         for m in net.modules():
             if isinstance(m, torch.nn.BatchNorm2d):
@@ -109,9 +99,9 @@ def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
     depth = np.random.default_rng(0).uniform(0.5, 1.0, (40, 50)).astype(np.float32)
     points = np.array([[10.0, 12.0], [25.5, 30.25], [0.5, 39.0]])
     onnx_check = DepthCheck.load_onnx(
-        export_onnx(net, tmp_path / "d.onnx"), threads=1, scale_m=0.05, clip=4.0, pool=net.pool
+        export_onnx(net, tmp_path / "d.onnx"), threads=1, scale_m=0.05, clip=4.0
     )
-    assert onnx_check.patch_px == 16 and net.pool == 2
+    assert onnx_check.patch_px == 16
     np.testing.assert_allclose(
         onnx_check.logits(depth, points),
         eager.depth_check(net, scale_m=0.05, clip=4.0).logits(depth, points),
@@ -215,7 +205,7 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     assert det.depth_check is not None
     lone = tmp_path / "lone"
     lone.mkdir()
-    for name in ("best.onnx", "best.refine.onnx"):
+    for name in ("best.onnx", "best.refine.onnx", "best.refine.int8.onnx"):
         shutil.copy(out / name, lone / name)
     with pytest.raises(ConfigError, match="best.depth.onnx is missing"):
         Detector.load(lone / "best.onnx")

@@ -135,8 +135,8 @@ def test_a_batch_of_patches_is_padded_for_openvino_and_comes_back_as_long():
 
 @needs_openvino
 def test_an_int8_file_runs_in_onnx_runtime_whatever_the_runtime(trained_run):
-    # the tests' tiny run quantizes its whole second stage (quantize: int8), which OpenVINO does not read
-    path = model_file.refiner_path(trained_run.out_dir / "best.onnx")
+    # the tests' tiny run writes the int8 copy its second stage's later passes read, which OpenVINO does not read
+    path = model_file.int8_passes_path(trained_run.out_dir / "best.onnx")
     assert not isinstance(onnx_session(path, 1, "openvino"), OpenVinoSession)
     with pytest.raises(ConfigError, match="cannot be loaded as an ONNX model"):
         onnx_session(trained_run.out_dir / "config.json", 1, "openvino")

@@ -355,44 +355,6 @@ def test_interrupted_adapt_epochs_resume_after_their_last_epoch(
         torch.testing.assert_close(b.state_dict()[k], v)
 
 
-def test_a_run_with_first_stage_starts_mines_negatives_and_starts_from_one_run_of_the_first_stage(
-    trained_run, drawn_dataset, tmp_path, monkeypatch
-):
-    """The second stage's negatives and starts come from the same detections: the first stage runs
-    over its images once, and the starts are kept in its checkpoint beside the negatives."""
-    import shutil
-
-    from rebar_data.perception.training import train as train_module
-    from rebar_data.perception.training.refine import load as load_refiner
-
-    out = tmp_path / "run"
-    shutil.copytree(trained_run.out_dir, out)
-    (out / "refine_last.pt").unlink()
-    runs = []
-    detections = train_module.first_stage_detections
-
-    def counted(*args, **kwargs):
-        runs.append(1)
-        return detections(*args, **kwargs)
-
-    monkeypatch.setattr(train_module, "first_stage_detections", counted)
-    # loose, as a tiny network's detections are weak
-    refine = {
-        **TINY_TRAIN["refine"],
-        "first_stage_starts": 0.5,
-        "negative_score": 0.01,
-        "negative_gate_px": 8.0,
-    }
-    train_module.train(
-        drawn_dataset, out, config={**TINY_TRAIN, "epochs": 2, "refine": refine}, progress=False
-    )
-    assert len(runs) == 1
-    _, cfg, payload = load_refiner(out / "refine_last.pt")
-    assert cfg.first_stage_starts == 0.5
-    assert len(payload["starts"]) == len(payload["negatives"])
-    assert any(np.isfinite(s).any() for s in payload["starts"])
-
-
 def test_a_run_from_before_other_renderer_repeats_resumes_only_without_them(tmp_path):
     from rebar_data.perception.training.train import _check_resumable
 

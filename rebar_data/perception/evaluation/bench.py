@@ -14,7 +14,6 @@ from __future__ import annotations
 import os
 import tempfile
 import time
-import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -285,34 +284,14 @@ def latency_frames() -> tuple[list[np.ndarray], str]:
         return [drawn_frame()], f"the drawn frame (the renderer did not start: {type(e).__name__})"
 
 
-def _onnx_session_ms(net, example, *, repeats: int) -> np.ndarray:
-    """Forward-only ms of ``net`` on ``example``, exported to ONNX and run as the detector's files are
-    (:func:`~rebar_data.perception.inference.runtime.onnx_session`, the default runtime)."""
-    import torch
-
-    from rebar_data.perception.inference.runtime import onnx_session
-
-    with tempfile.TemporaryDirectory() as tmp:
-        path = Path(tmp) / "m.onnx"
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            torch.onnx.export(
-                net.eval(), (example,), str(path), input_names=["x"], opset_version=17, dynamo=False
-            )
-        sess = onnx_session(path, THREADS, "auto")
-    x = example.numpy()
-    return _time_ms(lambda: sess.run(None, {"x": x}), repeats=repeats)
-
-
 def run(repeats: int = 100) -> list[str]:
-    """Lines to print: latency of the shipped (or an untrained) detector and of the references."""
+    """Lines to print: latency of the shipped (or an untrained) detector and of its network in eager PyTorch."""
     import torch
 
-    from rebar_data.perception.evaluation.baseline import YoloPoseLike
     from rebar_data.perception.inference.detector import SHIPPED_MODEL, Detector
     from rebar_data.perception.inference.heatmap import ray_grid
     from rebar_data.perception.inference.runtime import runtime_description
-    from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig, count_parameters
+    from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
 
     threads_before = torch.get_num_threads()
     torch.set_num_threads(THREADS)
@@ -437,14 +416,6 @@ def run(repeats: int = 100) -> list[str]:
         lines.append(
             f"perception: same network in eager PyTorch (forward only): median {np.median(eager):.1f} ms "
             f"({np.median(eager) / reference:.1f}x {ours}, end to end)"
-        )
-        yolo = YoloPoseLike().eval()
-        yolo_x = (x / 255.0).contiguous()
-        yolo_ms = _onnx_session_ms(yolo, yolo_x, repeats=max(10, repeats // 5))
-        lines.append(
-            f"perception: YOLOv8n-pose-shaped network ({count_parameters(yolo) / 1e6:.1f} M parameters vs "
-            f"{count_parameters(net) / 1e3:.0f} k), same runtime, forward only: median {np.median(yolo_ms):.1f} ms "
-            f"({np.median(yolo_ms) / reference:.1f}x {ours}, {np.median(yolo_ms) / med:.1f}x both stages)"
         )
         return lines
     finally:

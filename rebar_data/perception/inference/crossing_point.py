@@ -15,7 +15,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from rebar_data.errors import ConfigError
@@ -37,15 +36,12 @@ class CrossingPoint:
     """A loaded crossing-point stage: ``offsets(image, uv, camera)`` gives, for each sight point ``uv``, the
     (N, 2) pixel offset to where its 3D crossing point projects."""
 
-    def __init__(self, run: Callable[[np.ndarray, np.ndarray], np.ndarray], *, patch_px: int, pool: int = 1):
+    def __init__(self, run: Callable[[np.ndarray, np.ndarray], np.ndarray], *, patch_px: int):
         self._run = run
         self.patch_px = patch_px
-        self.pool = pool
 
     @classmethod
-    def load_onnx(
-        cls, path: Path, *, threads: int, pool: int = 1, runtime: str = "onnxruntime"
-    ) -> CrossingPoint:
+    def load_onnx(cls, path: Path, *, threads: int, runtime: str = "onnxruntime") -> CrossingPoint:
         from rebar_data.perception.inference.runtime import onnx_session
 
         sess = onnx_session(path, threads, runtime)
@@ -58,7 +54,7 @@ class CrossingPoint:
         def run(x: np.ndarray, rays: np.ndarray) -> np.ndarray:
             return sess.run(None, {names[0]: x, names[1]: rays})[0]
 
-        return cls(run, patch_px=size, pool=pool)
+        return cls(run, patch_px=size)
 
     def offsets(
         self, image: np.ndarray, uv: np.ndarray, camera: tuple[float, float, float, float]
@@ -68,9 +64,8 @@ class CrossingPoint:
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         if not len(uv):
             return np.zeros((0, 2))
-        x, corners = patches(image, uv, self.patch_px * self.pool)
-        x = shrink(x, self.pool)
-        return self._run(x, patch_rays(corners, camera)).astype(np.float64) * self.pool
+        x, corners = patches(image, uv, self.patch_px)
+        return self._run(x, patch_rays(corners, camera)).astype(np.float64)
 
     def points(
         self, image: np.ndarray, uv: np.ndarray, camera: tuple[float, float, float, float]
@@ -78,16 +73,6 @@ class CrossingPoint:
         """(N, 2) projected 3D crossing points of the sight points ``uv``."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         return uv + self.offsets(image, uv, camera)
-
-
-def shrink(x: np.ndarray, pool: int) -> np.ndarray:
-    """(N, S, S, 3) uint8 patches as (N, S / pool, S / pool, 3): the mean of each ``pool`` x ``pool`` block."""
-    if pool == 1 or not len(x):
-        return x
-    n, s = x.shape[0], x.shape[1]
-    flat = np.ascontiguousarray(x.transpose(1, 0, 2, 3)).reshape(s, n * s, 3)  # patches side by side
-    small = cv2.resize(flat, (n * s // pool, s // pool), interpolation=cv2.INTER_AREA)
-    return np.ascontiguousarray(small.reshape(s // pool, n, s // pool, 3).transpose(1, 0, 2, 3))
 
 
 def check_point(point: str) -> str:

@@ -62,17 +62,16 @@ def as_depth_m(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 
 
 def encode(
-    depth_patches: np.ndarray, *, scale_m: float, clip: float, pool: int = 1, gain: np.ndarray | None = None
+    depth_patches: np.ndarray, *, scale_m: float, clip: float, gain: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The network's input for (N, P, P) depth patches in metres (0 = no measurement).
 
     Channel 0 is the depth relative to the median of the patch's central ``CENTRE_PX`` square, in units
     of ``scale_m`` (times ``gain`` per patch when given), clipped to +-``clip``, 0 where there is no
-    measurement; channel 1 is 1 where there is one. With ``pool`` > 1 each ``pool`` x ``pool`` block
-    becomes one cell: the mean relative depth of its measured pixels and the share of them measured.
+    measurement; channel 1 is 1 where there is one.
 
     Returns:
-        (N, 2, P / pool, P / pool) float32 input and (N,) whether each patch's centre holds any
+        (N, 2, P, P) float32 input and (N,) whether each patch's centre holds any
         measurement.
     """
     p = np.asarray(depth_patches, np.float32)
@@ -95,12 +94,6 @@ def encode(
     np.clip(rel, -clip, clip, out=rel)
     rel[~valid] = 0.0
     share = valid.astype(np.float32)
-    if pool > 1:  # sums of strided views: several times faster than a reshape's sum over two axes
-        blocks = [(i, j) for i in range(pool) for j in range(pool)]
-        total = sum(rel[:, i::pool, j::pool] for i, j in blocks)
-        share = sum(share[:, i::pool, j::pool] for i, j in blocks)
-        rel = total / np.maximum(share, 1.0)
-        share *= np.float32(1.0 / (pool * pool))
     out = np.empty((n, 2, *rel.shape[1:]), np.float32)
     out[:, 0], out[:, 1] = rel, share
     return out, has_centre
@@ -117,11 +110,9 @@ class DepthCheck:
         patch_px: int,
         scale_m: float,
         clip: float,
-        pool: int = 1,
     ):
         self._run = run
         self.patch_px = patch_px
-        self.pool = pool
         self.scale_m = scale_m
         self.clip = clip
 
@@ -133,7 +124,6 @@ class DepthCheck:
         threads: int,
         scale_m: float,
         clip: float,
-        pool: int = 1,
         runtime: str = "onnxruntime",
     ) -> DepthCheck:
         from rebar_data.perception.inference.runtime import onnx_session
@@ -147,7 +137,7 @@ class DepthCheck:
         def run(x: np.ndarray) -> np.ndarray:
             return sess.run(None, {name: x})[0]
 
-        return cls(run, patch_px=size * pool, scale_m=scale_m, clip=clip, pool=pool)
+        return cls(run, patch_px=size, scale_m=scale_m, clip=clip)
 
     def logits(self, depth_m: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N,) logits for the (N, 2) points ``uv`` (pixels, COCO corner origin) of the float32 metres
@@ -156,9 +146,7 @@ class DepthCheck:
         out = np.full(len(uv), np.inf)
         if not len(uv):
             return out
-        x, has_centre = encode(
-            patches(depth_m, uv, self.patch_px)[0], scale_m=self.scale_m, clip=self.clip, pool=self.pool
-        )
+        x, has_centre = encode(patches(depth_m, uv, self.patch_px)[0], scale_m=self.scale_m, clip=self.clip)
         if has_centre.any():
             out[has_centre] = self._run(np.ascontiguousarray(x[has_centre])).astype(np.float64).reshape(-1)
         return out

@@ -42,8 +42,9 @@ def load_depth_check(model: Path, meta: dict[str, Any], threads: int, runtime: s
     if found is None:
         return None
     path, entry = found
-    scale_m, clip, pool = float(entry["scale_m"]), float(entry["clip"]), int(entry.get("pool", 1))
-    return DepthCheck.load_onnx(path, threads=threads, scale_m=scale_m, clip=clip, pool=pool, runtime=runtime)
+    return DepthCheck.load_onnx(
+        path, threads=threads, scale_m=float(entry["scale_m"]), clip=float(entry["clip"]), runtime=runtime
+    )
 
 
 def stage_file(
@@ -86,9 +87,7 @@ def load_crossing_point(
     found = stage_file(model, meta, "crossing_point", crossing_point_path)
     if found is None:
         return None
-    path, entry = found
-    pool = int(entry.get("pool", 1))
-    return CrossingPoint.load_onnx(path, threads=threads, pool=pool, runtime=runtime)
+    return CrossingPoint.load_onnx(found[0], threads=threads, runtime=runtime)
 
 
 def refiner_path(model: Path) -> Path:
@@ -121,7 +120,6 @@ def load_refiner(model: Path, meta: dict[str, Any], threads: int, runtime: str) 
         path,
         threads=threads,
         runtime=runtime,
-        context_scale=int(entry.get("context_scale", 0)),
         int8_path=int8,
         **refiner_passes(entry),
     )

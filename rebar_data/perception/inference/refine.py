@@ -163,23 +163,6 @@ def shrunk_around(
     return canvas, factors
 
 
-def stage_input(
-    image: np.ndarray, centres: np.ndarray, size: int, *, border: str = "mirror", context_scale: int = 0
-) -> tuple[np.ndarray, np.ndarray]:
-    """What the second stage reads around each point: :func:`patches` of ``image``, and with
-    ``context_scale`` k the patches of the same size cut around the same points from the image shrunk k
-    times (:func:`shrunk`), so each also shows the k x ``size`` square around its point, appended as
-    more channels (N, size, size, 2 C). Returns the input and the fine patches' corners."""
-    x, corners = patches(image, centres, size, border=border)
-    if not context_scale:
-        return x, corners
-    if not len(x):
-        return np.concatenate([x, x], axis=-1), corners
-    small, factors = shrunk(image, context_scale)
-    wide, _ = patches(small, np.asarray(centres, float).reshape(-1, 2) * factors, size, border=border)
-    return np.concatenate([x, wide], axis=-1), corners
-
-
 class Refiner:
     """A loaded refiner: ``refine(image, uv) -> uv`` moves each point to the crossing the patch shows;
     ``refine_and_verify`` also gives each point's verification logit when the refiner has one
@@ -208,8 +191,6 @@ class Refiner:
         patch_px: int,
         iterations: int,
         verifies: bool,
-        border: str = "mirror",
-        context_scale: int = 0,
         views: int = 1,
         step: float = 1.0,
         sizes: bool = False,
@@ -230,8 +211,6 @@ class Refiner:
         self.first_pass_views = first_pass_views
         self.step = step
         self.patch_px = patch_px
-        self.border = border
-        self.context_scale = context_scale
         self.iterations = iterations
         self.verifies = verifies
         self.sizes = sizes
@@ -244,7 +223,6 @@ class Refiner:
         *,
         threads: int,
         iterations: int = 1,
-        context_scale: int = 0,
         views: int = 1,
         step: float = 1.0,
         shrink_above_px: tuple[float, float] | None = None,
@@ -252,9 +230,7 @@ class Refiner:
         int8_path: Path | None = None,
         runtime: str = "onnxruntime",
     ) -> Refiner:
-        """The refiner in an ONNX file; ``context_scale`` is the one it was trained with (the model file's
-        meta says it: :func:`~rebar_data.perception.inference.detector.Detector.load` passes it on). ``int8_path``: the
-        int8 copy the passes after the first read (None: they read ``path``); it must take and give what
+        """The refiner in an ONNX file. ``int8_path``: the int8 copy the passes after the first read (None: they read ``path``); it must take and give what
         ``path`` does. ``runtime`` runs ``path`` (:mod:`~rebar_data.perception.inference.runtime`); the int8 copy always
         runs in ONNX Runtime."""
         from rebar_data.perception.inference.runtime import onnx_session
@@ -284,22 +260,16 @@ class Refiner:
 
         # 2: offsets; 3: offsets and the verification logit; 4: and the log box side
         columns = sess.get_outputs()[0].shape[-1]
-        # per view 3: RGB, mirrored beyond the border; 4: RGB and the mask; with context, two views
-        channels = sess.get_inputs()[0].shape[-1]
-        per_view = channels // 2 if context_scale else channels
-        if per_view not in (3, 4) or per_view * (2 if context_scale else 1) != channels:
+        if sess.get_inputs()[0].shape[-1] != 4:  # RGB and the mask of the pixels on the image
             raise ConfigError(
-                f"{path}: takes {channels} channels, which does not fit context_scale {context_scale}; "
-                "accepted: the refiner file written with its model file by `rebar train`"
+                f"{path}: does not take RGB and the border mask; accepted: the refiner file written with its "
+                "model file by `rebar train`"
             )
-        border = "mask" if per_view == 4 else "mirror"
         return cls(
             run,
             patch_px=size,
             iterations=iterations,
             verifies=columns >= 3,
-            border=border,
-            context_scale=context_scale,
             views=views,
             step=step,
             sizes=columns == 4,
@@ -380,8 +350,8 @@ class Refiner:
 
     def _inputs_at(self, image: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """What this network reads around each of ``uv`` in ``image``, and the corners its patches are
-        centred on (:func:`stage_input` with its patch size, border and context)."""
-        return stage_input(image, uv, self.patch_px, border=self.border, context_scale=self.context_scale)
+        centred on (:func:`patches` with its patch size and the border mask)."""
+        return patches(image, uv, self.patch_px, border="mask")
 
     def _runner(self, int8: bool) -> Callable[[np.ndarray], np.ndarray]:
         """The network a pass reads: the int8 copy with ``int8`` (where there is one and ``use_int8_passes``
@@ -407,8 +377,6 @@ class Refiner:
                 continue
             if f == 1.0:
                 img, factors = image, np.ones(2)
-            elif self.context_scale:  # the context view reads the whole shrunk image
-                img, factors = shrunk(image, 1.0 / f)
             else:
                 img, factors = shrunk_around(image, uv[pick], 1.0 / f, self.patch_px)
             x, corners = self._inputs_at(img, uv[pick] * factors)

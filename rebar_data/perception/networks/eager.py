@@ -56,8 +56,6 @@ def refiner(
         patch_px=net.patch_px,
         iterations=iterations,
         verifies=net.verify,
-        border=net.border,
-        context_scale=net.context_scale,
         views=views,
         step=step,
         sizes=net.size,
@@ -74,10 +72,10 @@ def depth_check(net: DepthNet, *, scale_m: float, clip: float) -> DepthCheck:
         with torch.inference_mode():
             return net(torch.from_numpy(x)).numpy()
 
-    return DepthCheck(run, patch_px=net.patch_px, scale_m=scale_m, clip=clip, pool=net.pool)
+    return DepthCheck(run, patch_px=net.patch_px, scale_m=scale_m, clip=clip)
 
 
-def crossing_point(net: CrossingNet, *, pool: int = 1) -> CrossingPoint:
+def crossing_point(net: CrossingNet) -> CrossingPoint:
     """A crossing-point stage that runs ``net``."""
     wrapped = CrossingExportWrapper(net.eval())
 
@@ -85,4 +83,4 @@ def crossing_point(net: CrossingNet, *, pool: int = 1) -> CrossingPoint:
         with torch.inference_mode():
             return wrapped(torch.from_numpy(x), torch.from_numpy(rays)).numpy()
 
-    return CrossingPoint(run, patch_px=net.patch_px, pool=pool)
+    return CrossingPoint(run, patch_px=net.patch_px)

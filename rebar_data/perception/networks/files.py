@@ -110,7 +110,6 @@ def export_onnx(
             module, names, output = PatchExportWrapper(net), ["patches"], "offset"
             inputs = (torch.zeros((4, size, size, net.channels), dtype=torch.uint8),)
         elif isinstance(net, DepthNet):
-            size = net.patch_px // net.pool
             module, names, output = net, ["depth"], "logit"
             inputs = (torch.zeros((4, 2, size, size), dtype=torch.float32),)
         elif isinstance(net, CrossingNet):

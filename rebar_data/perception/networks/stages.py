@@ -17,8 +17,8 @@ def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 
 class PatchNet(nn.Module):
-    """(N, C, P, P) patches, values 0-255 (RGB, and with ``border = "mask"`` a fourth channel that marks the
-    pixels on the image) -> (N, 2) offset (x, y) of the crossing from the patch centre,
+    """(N, 4, P, P) patches, values 0-255 (RGB and a fourth channel that marks the pixels on the image)
+    -> (N, 2) offset (x, y) of the crossing from the patch centre,
     in the patch's pixels, and with ``verify`` a third column: the logit that the patch shows a crossing
     near its centre at all; with ``size`` a fourth: the log of the crossing's box side (four bar diameters)
     over the patch's side, as the patch shows it.
@@ -37,8 +37,6 @@ class PatchNet(nn.Module):
         blocks: tuple[int, int, int] = (1, 1, 1),
         *,
         verify: bool = False,
-        border: str = "mirror",
-        context_scale: int = 0,
         size: bool = False,
     ):
         super().__init__()
@@ -46,8 +44,6 @@ class PatchNet(nn.Module):
         self.patch_px = patch_px
         self.verify = verify
         self.size = size
-        self.border = border
-        self.context_scale = context_scale
         layers = [_conv(self.channels, a)]
         for cin, cout, n in ((a, b, blocks[0]), (b, c, blocks[1]), (c, d, blocks[2])):
             layers += [_conv(cin, cout, 2), *[_conv(cout, cout) for _ in range(n)]]
@@ -60,10 +56,7 @@ class PatchNet(nn.Module):
             nn.Linear(hidden, 2 + int(verify) + int(size)),
         )
 
-    @property
-    def channels(self) -> int:
-        """Input channels: RGB (and the mask with ``border = "mask"``), twice with context."""
-        return (4 if self.border == "mask" else 3) * (2 if self.context_scale else 1)
+    channels = 4  # RGB and the mask of the pixels on the image
 
     def forward(self, patches: torch.Tensor) -> torch.Tensor:
         return self.head(self.features(patches * (1.0 / 64.0) - 2.0))
@@ -86,18 +79,17 @@ class DepthNet(nn.Module):
     that the patch shows a crossing: a 3x3 convolution at full resolution, three halvings to P / 8, two
     fully connected layers."""
 
-    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int, pool: int = 1):
+    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
         super().__init__()
         a, b, c, d = widths
         self.patch_px = patch_px
-        self.pool = pool
         self.features = nn.Sequential(
             conv_bn_relu(2, a),
             conv_bn_relu(a, b, stride=2),
             conv_bn_relu(b, c, stride=2),
             conv_bn_relu(c, d, stride=2),
         )
-        cells = -(-(patch_px // pool) // 8)
+        cells = -(-patch_px // 8)
         self.head = nn.Sequential(
             nn.Flatten(), nn.Linear(d * cells * cells, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1)
         )

@@ -23,9 +23,8 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_image
-from rebar_data.perception.inference.crossing_point import patch_rays, shrink
+from rebar_data.perception.inference.crossing_point import patch_rays
 from rebar_data.perception.inference.refine import patches
-from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx
 from rebar_data.perception.networks.stages import CrossingNet
 from rebar_data.perception.training.augment import photometric_batch
@@ -86,12 +85,12 @@ class PatchSet:
             if len(ok) > cfg.max_per_image:
                 ok = np.sort(rng.choice(ok, cfg.max_per_image, replace=False))
             centre = s.visible[ok] + rng.normal(0.0, cfg.jitter_px, (len(ok), 2))
-            cut, corners = patches(read_image(s.path), centre, cfg.context_px * cfg.pool)
-            context.append(shrink(cut, cfg.pool))
+            cut, corners = patches(read_image(s.path), centre, cfg.context_px)
+            context.append(cut)
             # the offset is the label's own, from the sight point: at inference it is added to the refined
             # detection, so where the patch centre lies (the detection's error, the rounding to a pixel
             # corner) is not this stage's to correct
-            offset.append((s.crossings[ok] - s.visible[ok]) / cfg.pool)  # in the patch's pixels
+            offset.append(s.crossings[ok] - s.visible[ok])  # in the patch's pixels
             rays.append(patch_rays(corners, s.camera))
         if not context:
             raise ConfigError(
@@ -141,22 +140,6 @@ def batches(data: PatchSet, cfg: CrossingPointConfig, aug: AugmentConfig, *, see
         out = photometric_batch(out, rng, aug)
         x = torch.from_numpy(out).permute(0, 3, 1, 2).float()
         yield x, torch.from_numpy(rays), torch.from_numpy(offset)
-
-
-def offset_errors(net: CrossingNet, samples: list[Sample], cfg: CrossingPointConfig) -> np.ndarray:
-    """(N,) pixel error of the network's 3D crossing points from the truth at every visible crossing of
-    ``samples``, each patch centred on the label's sight point (what the stage adds to a perfect
-    detection)."""
-
-    stage = eager.crossing_point(net, pool=cfg.pool)
-    errors = []
-    for s in samples:
-        if s.crossings is None or s.camera is None or not len(s.visible):
-            continue
-        ok = np.isfinite(s.crossings).all(axis=1)
-        found = stage.points(read_image(s.path), s.visible[ok], s.camera)
-        errors.append(np.linalg.norm(found - s.crossings[ok], axis=1))
-    return np.concatenate(errors) if errors else np.zeros(0)
 
 
 def train_crossing_point(
@@ -262,6 +245,6 @@ def attach(
     tmp = dst.with_name(dst.name + ".tmp")
     tmp.write_bytes(stage.read_bytes())
     tmp.replace(dst)  # the stage lands first, so the model never names a missing file
-    entry = {"patch_px": cfg.patch_px, "pool": cfg.pool, "sha256": sha256_file(dst)}
+    entry = {"patch_px": cfg.patch_px, "sha256": sha256_file(dst)}
     update_onnx_meta(model, {"crossing_point": entry})
     return dst

@@ -25,7 +25,6 @@ from rebar_data.perception.evaluation.data import Sample
 from rebar_data.perception.inference.depth_check import MM_PER_M, encode, read_depth
 from rebar_data.perception.networks.stages import DepthNet
 from rebar_data.perception.training.checkpoints import (
-    calibration_points,
     fit_weights,
     read_stage,
     resume_stage,
@@ -36,13 +35,13 @@ from rebar_data.perception.training.schedule import warmup_cosine
 
 FORMAT = "rebar-keypoint-depth-check"
 FORMAT_VERSION = 1
-EXPORT_ONLY = {"power", "threads", "quantize", "calibration_patches"}  # settings that leave training alone
+EXPORT_ONLY = {"power", "threads"}  # settings that leave training alone
 CHECKPOINT = "depth_last.pt"
 
 
 def build(cfg: DepthCheckConfig) -> DepthNet:
     """The network these settings describe."""
-    return DepthNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.pool)
+    return DepthNet(cfg.patch_px, cfg.widths, cfg.hidden)
 
 
 def save(path: Path, net: DepthNet, cfg: DepthCheckConfig, **extra: Any) -> None:
@@ -56,39 +55,6 @@ def load(path: str | Path) -> tuple[DepthNet, DepthCheckConfig, dict[str, Any]]:
     payload = read_stage(path, fmt=FORMAT, what="depth-check")
     cfg = DepthCheckConfig.model_validate(payload["depth_check_config"])
     return fit_weights(build(cfg), payload, path), cfg, payload
-
-
-def calibration_inputs(
-    samples: list[Sample], cfg: DepthCheckConfig, *, seed: int, images_used: int = 64
-) -> np.ndarray:
-    """Encoded patches as the stage meets them at inference, to set the int8 file's value ranges: around
-    :func:`~rebar_data.perception.training.checkpoints.calibration_points` of the samples with a depth image;
-    (``cfg.calibration_patches``, 2, P / pool, P / pool) float32 (fewer when the images hold fewer
-    crossings)."""
-    from rebar_data.perception.inference.refine import patches
-
-    rng = np.random.default_rng(np.random.SeedSequence([seed, 4111]))
-    points = calibration_points(
-        [s for s in samples if s.depth_path is not None],
-        count=cfg.calibration_patches,
-        jitter_px=cfg.jitter_px,
-        rng=rng,
-        images_used=images_used,
-    )
-    out = [
-        encode(
-            patches(read_depth(s.depth_path), uv, cfg.patch_px)[0],
-            scale_m=cfg.scale_m,
-            clip=cfg.clip,
-            pool=cfg.pool,
-        )[0]
-        for s, uv in points
-    ]
-    if not out:
-        raise ConfigError(
-            "no visible crossings to calibrate the int8 depth check on; accepted: quantize: none"
-        )
-    return np.concatenate(out)[: cfg.calibration_patches]
 
 
 def check_depth(samples: list[Sample]) -> None:
@@ -150,9 +116,7 @@ def patch_batches(
             for t in range(1, 4):
                 cut[turns == t] = np.rot90(cut[turns == t], t, axes=(1, 2))
             cut[flips] = cut[flips][:, :, ::-1]
-            x, _ = encode(
-                cut, scale_m=cfg.scale_m, clip=cfg.clip, pool=cfg.pool, gain=rng.uniform(*cfg.gain, len(rows))
-            )
+            x, _ = encode(cut, scale_m=cfg.scale_m, clip=cfg.clip, gain=rng.uniform(*cfg.gain, len(rows)))
             yield torch.from_numpy(x), torch.from_numpy(rows[:, 2].astype(np.float32))
 
 

@@ -63,8 +63,6 @@ def build(cfg: RefineConfig) -> PatchNet:
         cfg.hidden,
         cfg.blocks,
         verify=cfg.verify,
-        border=cfg.border,
-        context_scale=cfg.context_scale,
         size=cfg.size,
     )
 
@@ -80,7 +78,6 @@ def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
     payload = read_stage(path, fmt=FORMAT, what="refiner")
     settings = dict(payload["refine_config"])
     settings.setdefault("verify", False)  # written before the second stage could verify
-    settings.setdefault("border", "mirror")  # written before it could see the border
     settings.setdefault("size", False)  # written before it could size a crossing
     cfg = RefineConfig.model_validate(settings)
     net = fit_weights(build(cfg), payload, path, retrain=" (train the second stage again)")
@@ -97,16 +94,13 @@ def calibration_patches(
     Returns:
         (``cfg.calibration_patches``, P, P, C) uint8 patches (fewer when the images hold fewer crossings).
     """
-    from rebar_data.perception.inference.refine import stage_input
+    from rebar_data.perception.inference.refine import patches
 
     rng = np.random.default_rng(np.random.SeedSequence([seed, 4099]))
     points = calibration_points(
         samples, count=cfg.calibration_patches, jitter_px=cfg.jitter_px, rng=rng, images_used=images_used
     )
-    cut = [
-        stage_input(read_image(s.path), uv, cfg.patch_px, border=cfg.border, context_scale=cfg.context_scale)
-        for s, uv in points
-    ]
+    cut = [patches(read_image(s.path), uv, cfg.patch_px, border="mask") for s, uv in points]
     out = [x for x, _ in cut]
     if not out:
         raise ConfigError(
@@ -141,34 +135,6 @@ def negatives_in(found: list[np.ndarray], samples: list[Sample], cfg: RefineConf
             gap = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2).min(axis=1)
             uv = uv[gap > cfg.negative_gate_px]
         out.append(np.ascontiguousarray(uv, np.float64))
-    return out
-
-
-def mine_starts(
-    detector, samples: list[Sample], cfg: RefineConfig, *, images: list[np.ndarray], progress: bool = False
-) -> list[np.ndarray]:
-    """Where ``detector`` (the trained first stage alone) puts each visible crossing: per sample (N, 2) u, v,
-    its detection nearest the crossing when that lies within ``cfg.negative_gate_px`` and no other visible
-    crossing lies nearer to it; NaN where there is none (``RefineConfig.first_stage_starts``)."""
-    return starts_in(
-        first_stage_detections(detector, samples, cfg, images=images, progress=progress), samples, cfg
-    )
-
-
-def starts_in(found: list[np.ndarray], samples: list[Sample], cfg: RefineConfig) -> list[np.ndarray]:
-    """:func:`mine_starts` from each sample's first-stage detections ``found``
-    (:func:`first_stage_detections`)."""
-    out = []
-    for s, p in zip(samples, found, strict=True):
-        starts = np.full((len(s.visible), 2), np.nan)
-        uv = p[:, :2].reshape(-1, 2)
-        if len(s.visible) and len(uv):
-            d = np.linalg.norm(uv[:, None, :] - s.visible[None, :, :], axis=2)  # (detections, crossings)
-            nearest = d.argmin(axis=0)
-            mine = d.argmin(axis=1)[nearest] == np.arange(len(s.visible))
-            near = d[nearest, np.arange(len(s.visible))] <= cfg.negative_gate_px
-            starts[mine & near] = uv[nearest[mine & near]]
-        out.append(starts)
     return out
 
 
@@ -223,7 +189,6 @@ def train_refiner(
     seed: int,
     images: list[np.ndarray] | None = None,
     negatives_of: Callable[[list[Sample], list[np.ndarray]], list[np.ndarray]] | None = None,
-    starts_of: Callable[[list[Sample], list[np.ndarray]], list[np.ndarray]] | None = None,
     data: list[str] | None = None,
     progress: bool = False,
 ) -> tuple[PatchNet, list[dict[str, float]]]:
@@ -232,9 +197,7 @@ def train_refiner(
     With ``cfg.verify``, ``negatives_of(samples, images)`` gives each sample's negatives ((M, 2) points, usually
     :func:`mine_negatives` with the trained first stage); it is called once, only when there is
     training to do, and its answer is kept in the checkpoint for a resumed run. Without it there are
-    no negatives and the verification output learns from positives alone. With
-    ``cfg.first_stage_starts``, ``starts_of(samples, images)`` gives where the first stage put each
-    visible crossing (:func:`mine_starts`), called and kept alike.
+    no negatives and the verification output learns from positives alone.
 
     ``out/refine_last.pt`` holds the weights, optimiser, the negatives and the epochs done with their
     losses after every epoch. A finished one with the same settings is returned as it is, without
@@ -259,7 +222,6 @@ def train_refiner(
     payload = resume_stage(last, net, opt, load=load, settings=_training_settings, want=want, data=data)
     history: list[dict[str, float]] = payload["history"] if payload else []
     negatives: list[np.ndarray] | None = payload.get("negatives") if payload else None
-    starts: list[np.ndarray] | None = payload.get("starts") if payload else None
     if len(history) < cfg.epochs:  # otherwise a finished stage: kept as it is
         threads_before = torch.get_num_threads()
         torch.set_num_threads(cfg.threads)
@@ -277,16 +239,11 @@ def train_refiner(
                     )
             elif negatives is None:
                 negatives = [np.zeros((0, 2)) for _ in samples]
-            if starts is None and cfg.first_stage_starts > 0 and starts_of is not None:
-                if images is None:
-                    images = read_images(samples)
-                starts = starts_of(samples, images)
             _epochs(
                 net,
                 opt,
                 history,
                 negatives,
-                starts,
                 samples,
                 images,
                 out,
@@ -311,7 +268,6 @@ def _epochs(
     opt: torch.optim.Optimizer,
     history: list[dict[str, float]],
     negatives: list[np.ndarray],
-    starts: list[np.ndarray] | None,
     samples: list[Sample],
     images: list[np.ndarray] | None,
     out: Path,
@@ -327,9 +283,7 @@ def _epochs(
     steps = steps_per_epoch(samples, negatives, cfg)
     total = cfg.epochs * steps
     first = len(history) + 1
-    batches = patch_batches(
-        samples, negatives, cfg, aug, seed=seed, first=first, images=images, starts=starts
-    )
+    batches = patch_batches(samples, negatives, cfg, aug, seed=seed, first=first, images=images)
     for epoch in range(first, cfg.epochs + 1):
         net.train()
         t0, loss_sum, err_sum = time.perf_counter(), 0.0, 0.0
@@ -402,7 +356,6 @@ def _epochs(
             optimizer=opt.state_dict(),
             history=history,
             negatives=negatives,
-            starts=starts,
             data=data,
         )
 

@@ -30,8 +30,6 @@ from rebar_data.perception.training.config import AugmentConfig, RefineConfig
 
 # uint8 patches, offsets, has an offset (a labelled crossing), is a crossing in the frame (verification)
 Batch = tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]
-# how far from where the first stage put a crossing a patch cut there is centred (``first_stage_starts``)
-START_JITTER_PX = 0.5
 
 
 def patch_geometry(cfg: RefineConfig, aug: AugmentConfig) -> AugmentConfig:
@@ -48,23 +46,19 @@ def training_patch(
     geometry: AugmentConfig,
     *,
     uniform: bool = True,
-    error: np.ndarray | None = None,
     distractors: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """One patch around a labelled crossing, before colour changes, the crossing's offset from its
     centre, and how many patch pixels an image pixel became (the patch's scale); ``geometry`` is
     :func:`patch_geometry`'s. ``uniform = False`` draws the centre's error from the
-    Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing); an
-    ``error`` given is the centre's error instead of a drawn one. ``distractors`` (H, W bool, the image's
-    distractor pixels) get ``AugmentConfig.distractor_gain``'s factor in the patch (and its context view).
+    Gaussian alone (for a mined negative, which a 5 px error could move next to a real crossing). ``distractors`` (H, W bool, the image's
+    distractor pixels) get ``AugmentConfig.distractor_gain``'s factor in the patch.
 
-    With ``cfg.border = "mask"`` the patch has a fourth channel, 255 where it shows the image (0 and 0 in
+    The patch has a fourth channel, 255 where it shows the image (0 and 0 in
     colour beyond the image's border, as :func:`~rebar_data.perception.inference.refine.patches` cuts them), and a
     ``cfg.border_fraction`` of patches get a border of their own (:func:`_own_edge`)."""
     gain = draw_gain(rng, geometry, distractors)  # first: the patch's other draws stay those without it
-    if error is not None:
-        error = np.asarray(error, float)
-    elif uniform and rng.uniform() < cfg.jitter_uniform_fraction:
+    if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
     else:
         error = rng.normal(0.0, cfg.jitter_px, 2)
@@ -77,22 +71,13 @@ def training_patch(
     )
     offset = apply_affine(crossing, patch_from_image)[0] - size / 2
     scale = float(np.sqrt(abs(np.linalg.det(patch_from_image[:, :2]))))
-    if gain is not None:  # what the context view reads too: its wider square, its centre moved
-        pad = (size * max(1, cfg.context_scale) - size) / 2 + cfg.context_scale
-        span = (-pad, size + pad)
-        image, patch_from_image = _gained_around(image, distractors, patch_from_image, span, gain)
-    if cfg.border == "mirror":
-        x = warp(image, patch_from_image, size, fill=None)
-        if cfg.context_scale:
-            x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=None)], axis=2)
-        return x, offset, scale
+    if gain is not None:
+        image, patch_from_image = _gained_around(image, distractors, patch_from_image, (0.0, size), gain)
     edge = None
     if rng.uniform() < cfg.border_fraction:
         edge = _own_edge(rng, size / 2 + offset, size, cfg.border_reach_px)
     x, on_image = _masked_cut(image, patch_from_image, size, edge)
     x = np.concatenate([x, (on_image * np.uint8(255))[..., None]], axis=2)
-    if cfg.context_scale:
-        x = np.concatenate([x, _context(image, patch_from_image, rng, cfg, edge=edge)], axis=2)
     return x, offset, scale
 
 
@@ -118,38 +103,6 @@ def _gained_around(
     patch_from_part = patch_from_image.copy()
     patch_from_part[:, 2] += patch_from_image[:, :2] @ [x0, y0]
     return part, patch_from_part
-
-
-def _context(
-    image: np.ndarray,
-    patch_from_image: np.ndarray,
-    rng: np.random.Generator,
-    cfg: RefineConfig,
-    *,
-    edge: tuple[int, float, bool] | None,
-) -> np.ndarray:
-    """The context view of a training patch, as :func:`~rebar_data.perception.inference.refine.stage_input` cuts it
-    at inference: the ``context_scale`` (k) times wider square around the patch's centre, with the same
-    turn, flip and scale, shrunk k times by area averaging to the patch's size. Its centre moves by up to
-    k / 2 px, as cutting it on the shrunk image's pixel grid moves it at inference. With the border mask:
-    its own mask channel (a shrunk pixel is on the image when at least half of it is), and the patch's
-    own border (``edge``, from :func:`_own_edge`) where the patch has one."""
-    k, size = cfg.context_scale, cfg.patch_px
-    wide = k * size
-    shift = (wide - size) / 2 + rng.uniform(-k / 2, k / 2, 2)
-    wide_from_image = patch_from_image + np.c_[np.zeros((2, 2)), shift]
-    if cfg.border == "mirror":
-        return cv2.resize(
-            warp(image, wide_from_image, wide, fill=None), (size, size), interpolation=cv2.INTER_AREA
-        )
-    if edge is not None:
-        axis, at, below = edge
-        edge = (axis, at + shift[axis], below)
-    x, on_image = _masked_cut(image, wide_from_image, wide, edge)
-    x = cv2.resize(x, (size, size), interpolation=cv2.INTER_AREA)
-    on = cv2.resize(on_image * np.uint8(255), (size, size), interpolation=cv2.INTER_AREA) >= 128
-    x[~on] = 0
-    return np.concatenate([x, (on * np.uint8(255))[..., None]], axis=2)
 
 
 def _masked_cut(
@@ -216,7 +169,6 @@ def patch_batch(
     rng: np.random.Generator,
     cfg: RefineConfig,
     aug: AugmentConfig,
-    starts: list[np.ndarray] | None = None,
     distractors_of: Callable[[int], np.ndarray | None] | None = None,
 ) -> Batch:
     """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, C) uint8, their (B, 2)
@@ -225,19 +177,11 @@ def patch_batch(
     labelled crossing, and (B,) whether that crossing lies on the image the patch shows (the
     verification's label: with the border mask, not one beyond the patch's own border).
 
-    With ``cfg.first_stage_starts`` and ``starts`` (per sample, where the first stage put each visible
-    crossing: (N, 2), NaN where it found none), that share of the crossings it found are cut centred
-    where it put them, within :data:`START_JITTER_PX` (Gaussian), instead of at a drawn error.
     ``distractors_of`` (per sample, its distractor pixels or None) lets ``aug.distractor_gain`` act."""
     geometry = patch_geometry(cfg, aug)
     xs, ys = [], []
     for i, k, positive in rows:
         centre = samples[i].visible[k] if positive else negatives[i][k]
-        error = None
-        if positive and starts is not None and cfg.first_stage_starts > 0:
-            start = starts[i][k]
-            if rng.uniform() < cfg.first_stage_starts and np.isfinite(start).all():
-                error = start - centre + rng.normal(0.0, START_JITTER_PX, 2)
         x, y, scale = training_patch(
             image_of(i),
             centre,
@@ -245,7 +189,6 @@ def patch_batch(
             cfg,
             geometry,
             uniform=bool(positive),
-            error=error,
             distractors=distractors_of(i) if distractors_of is not None else None,
         )
         xs.append(x)
@@ -257,15 +200,13 @@ def patch_batch(
     x, y = np.stack(xs), np.stack(ys)
     positive = rows[:, 2].astype(bool)
     crossing = positive.copy()
-    masked = cfg.border == "mask"
-    _recolour(x, rng, aug, per_view=4 if masked else 3)
-    if masked:
-        # a crossing beyond the frame's edge is no crossing to the labels (as a mined negative just inside
-        # a real border, near a crossing just outside it, is not): its offset still trains, its
-        # verification learns "no"
-        size = x.shape[1]
-        j, i = np.clip(np.floor(size / 2 + y[:, :2]).astype(np.int64), 0, size - 1).T
-        crossing &= x[np.arange(len(x)), i, j, 3] > 0
+    _recolour(x, rng, aug)
+    # a crossing beyond the frame's edge is no crossing to the labels (as a mined negative just inside a
+    # real border, near a crossing just outside it, is not): its offset still trains, its verification
+    # learns "no"
+    size = x.shape[1]
+    j, i = np.clip(np.floor(size / 2 + y[:, :2]).astype(np.int64), 0, size - 1).T
+    crossing &= x[np.arange(len(x)), i, j, 3] > 0
     return (
         torch.from_numpy(x),
         torch.from_numpy(y).float(),
@@ -274,18 +215,10 @@ def patch_batch(
     )
 
 
-def _recolour(x: np.ndarray, rng: np.random.Generator, aug: AugmentConfig, *, per_view: int) -> None:
-    """A batch's colour, blur and noise changes, in place: each patch's views (the patch, and its context
-    view) get the same changes, drawn as for one image of them side by side; with the border mask
-    (``per_view`` 4) what lies beyond the border stays 0."""
-    size, views = x.shape[1], x.shape[3] // per_view
-    rgb = np.concatenate([x[..., v * per_view : v * per_view + 3] for v in range(views)], axis=2)
-    rgb = photometric_batch(np.ascontiguousarray(rgb), rng, aug)
-    for v in range(views):
-        part = rgb[:, :, v * size : (v + 1) * size]
-        if per_view == 4:
-            part = part * (x[..., v * 4 + 3 : v * 4 + 4] > 0)
-        x[..., v * per_view : v * per_view + 3] = part
+def _recolour(x: np.ndarray, rng: np.random.Generator, aug: AugmentConfig) -> None:
+    """A batch's colour, blur and noise changes, in place; what lies beyond the border stays 0."""
+    rgb = photometric_batch(np.ascontiguousarray(x[..., :3]), rng, aug)
+    x[..., :3] = rgb * (x[..., 3:4] > 0)
 
 
 def patch_batches(
@@ -297,11 +230,10 @@ def patch_batches(
     seed: int,
     first: int,
     images: list[np.ndarray] | None = None,
-    starts: list[np.ndarray] | None = None,
 ) -> Iterator[Batch]:
     """Every batch of the second stage's epochs ``first`` to ``cfg.epochs``, in order; each epoch's from a
     generator seeded by (seed, epoch) alone, so a resumed run gets the batches it would have got. Without
-    ``images`` each image is read when first needed; ``starts``: :func:`patch_batch`'s.
+    ``images`` each image is read when first needed.
 
     They are made in the training process: a loader process beside it, as the first stage has, made
     training slower here (181 against 133 ms a batch of 256 on two cores), as the network's two threads
@@ -319,4 +251,4 @@ def patch_batches(
         order = rng.permutation(len(keys))
         for b in range(steps):
             rows = keys[order[b * size : (b + 1) * size]]
-            yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug, starts, distractors_of)
+            yield patch_batch(rows, image_of, samples, negatives, rng, cfg, aug, distractors_of)

@@ -70,7 +70,7 @@ from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage, ada
 from rebar_data.perception.training.config import TrainConfig, resolve_config
 from rebar_data.perception.training.crossing_point import save as save_crossing_point
 from rebar_data.perception.training.crossing_point import train_crossing_point
-from rebar_data.perception.training.depth_check import calibration_inputs, check_depth, train_depth_check
+from rebar_data.perception.training.depth_check import check_depth, train_depth_check
 from rebar_data.perception.training.depth_check import save as save_depth_check
 from rebar_data.perception.training.epochs import WeightAverage, batch_stream, train_epoch
 from rebar_data.perception.training.line_check import UnfitLineCheck, fit_line_check, fitted_on
@@ -79,7 +79,6 @@ from rebar_data.perception.training.refine import (
     calibration_patches,
     first_stage_detections,
     negatives_in,
-    starts_in,
     train_refiner,
     with_lower_mat,
 )
@@ -435,9 +434,6 @@ def _run(
         if first_path.name == ADAPTED
         else []
     )
-    # the lower mat's crossings join the mined negatives (a checkpoint from before they did trains again)
-    if cfg.refine.lower_mat_negatives:
-        negatives_from.append(f"lower-mat negatives: {cfg.refine.lower_mat_negatives}")
 
     found: dict[int, list[np.ndarray]] = {}  # the trained first stage's detections, run once a sample list
 
@@ -450,14 +446,7 @@ def _run(
         return found[id(samples)]
 
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
-        mined = negatives_in(found_on(samples, images), samples, cfg.refine)  # the first stage's misses
-        r = cfg.refine  # and the lower mat's crossings
-        return with_lower_mat(
-            samples, mined, r.lower_mat_negatives, gate_px=r.negative_gate_px, seed=cfg.seed
-        )
-
-    def starts_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
-        return starts_in(found_on(samples, images), samples, cfg.refine)  # where it put the crossings
+        return negatives_in(found_on(samples, images), samples, cfg.refine)  # the first stage's misses
 
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = train_samples + refine_extra * cfg.refine.supplement_repeats
@@ -470,7 +459,6 @@ def _run(
             cfg.augment,
             seed=cfg.seed,
             negatives_of=negatives_of,
-            starts_of=starts_of,
             data=_names(refine_supplements) + negatives_from,
             progress=progress,
         )
@@ -618,11 +606,13 @@ def _finish(
         onnx_path = export_onnx(refiner, out / "best.refine.onnx")
         # int8: the file itself; later: an int8 copy beside it for the passes after the first
         later = int8_passes_path(out / "best.onnx")
-        if cfg.refine.quantize != "none":
+        if cfg.refine.quantize == "later":
             patches = calibration_patches(train_samples, cfg.refine, seed=cfg.seed)
-            quantize_onnx(onnx_path, onnx_path if cfg.refine.quantize == "int8" else later, patches)
-            what = "second stage" if cfg.refine.quantize == "int8" else "second stage's later passes"
-            _log(f"{what} quantized to int8 ({len(patches)} calibration patches)", progress)
+            quantize_onnx(onnx_path, later, patches)
+            _log(
+                f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)",
+                progress,
+            )
         meta["refiner"] = {
             "patch_px": cfg.refine.patch_px,
             "iterations": cfg.refine.iterations,
@@ -632,7 +622,6 @@ def _finish(
             "verify": refiner.verify,
             "verify_power": cfg.refine.verify_power,
             "verify_power_with_depth": cfg.refine.verify_power_with_depth,
-            "context_scale": cfg.refine.context_scale,
             "views": cfg.refine.views,
             "first_pass_views": cfg.refine.first_pass_views,
             "sha256": sha256_file(onnx_path),
@@ -646,24 +635,17 @@ def _finish(
     if depth_net is not None:
         save_depth_check(out / "best.depth.pt", depth_net, cfg.depth_check)
         depth_path = export_onnx(depth_net, out / "best.depth.onnx")
-        if cfg.depth_check.quantize == "int8":
-            inputs = calibration_inputs(train_samples, cfg.depth_check, seed=cfg.seed)
-            quantize_onnx(depth_path, depth_path, inputs, input_name="depth")
-            _log(f"depth check quantized to int8 ({len(inputs)} calibration patches)", progress)
         meta["depth_check"] = {
             "patch_px": cfg.depth_check.patch_px,
-            "pool": cfg.depth_check.pool,
             "scale_m": cfg.depth_check.scale_m,
             "clip": cfg.depth_check.clip,
             "power": cfg.depth_check.power,
-            "quantize": cfg.depth_check.quantize,
             "sha256": sha256_file(depth_path),
         }
     if crossing_net is not None:
         save_crossing_point(out / "best.crossing.pt", crossing_net, cfg.crossing_point)
         meta["crossing_point"] = {
             "patch_px": cfg.crossing_point.patch_px,
-            "pool": cfg.crossing_point.pool,
             "sha256": sha256_file(export_onnx(crossing_net, out / "best.crossing.onnx")),
         }
     detector = Detector.load(
@@ -814,9 +796,7 @@ def load_detector(path: str | Path | None = None, **kwargs: Any):
         )
     found = stage_file(p, det.meta, "crossing_point", crossing_point_path)
     if found is not None:
-        det.crossing_point = eager.crossing_point(
-            crossing_point.load(found[0])[0], pool=int(found[1].get("pool", 1))
-        )
+        det.crossing_point = eager.crossing_point(crossing_point.load(found[0])[0])
     det.attach_line_check(kwargs.get("line_check", True))
     det.reading = kwargs.get("reading", "mirrored")
     return det
