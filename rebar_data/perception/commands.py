@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rebar_data.arguments import bounded
-from rebar_data.perception.inference.focal import TOLERANCE
-from rebar_data.perception.inference.reading import READINGS
-from rebar_data.perception.inference.runtime import RUNTIMES
+from rebar_data.perception.inference.detector import READINGS
+from rebar_data.perception.inference.image import TOLERANCE
+from rebar_data.perception.inference.model_file import RUNTIMES
 
 if TYPE_CHECKING:
     import numpy as np
@@ -405,7 +405,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
 
 def _runtime_words(detector) -> str:
     """What ran ``detector``'s first stage, in words (its figures may move a little with the runtime)."""
-    from rebar_data.perception.inference.runtime import runtime_description
+    from rebar_data.perception.inference.model_file import runtime_description
 
     return "PyTorch, float32" if detector.backend == "torch" else runtime_description(detector.backend)
 
@@ -452,7 +452,7 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
     from rebar_data.config import ConfigError
     from rebar_data.outputs import OutputLock, mark_output, replace_folder
     from rebar_data.perception.evaluation.data import read_image
-    from rebar_data.perception.inference.heatmap import OPERATING_THRESHOLD
+    from rebar_data.perception.inference.detector import OPERATING_THRESHOLD
 
     files = _image_files(target)
     camera = _camera_of(args.camera)

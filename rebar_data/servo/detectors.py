@@ -147,9 +147,9 @@ def load_shipped_detector(
     flatten_behind: bool = False,
 ) -> Detector:
     """The shipped crossing detector (``path`` None) or a given model, run by ``runtime``
-    (:mod:`rebar_data.perception.inference.runtime`), reading each frame as ``reading`` says
-    (:mod:`rebar_data.perception.inference.reading`), flattening what lies behind the bars in front with
-    ``flatten_behind`` (:mod:`rebar_data.perception.inference.behind`) and told the camera's intrinsics when it takes
+    (:mod:`rebar_data.perception.inference.model_file`), reading each frame as ``reading`` says
+    (:mod:`rebar_data.perception.inference.detector`), flattening what lies behind the bars in front with
+    ``flatten_behind`` (:mod:`rebar_data.perception.inference.image`) and told the camera's intrinsics when it takes
     them; one clear ConfigError when it is not available."""
     try:
         from rebar_data.perception.inference.detector import Detector as ShippedDetector

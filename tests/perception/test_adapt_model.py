@@ -79,7 +79,7 @@ def test_adapt_draws_the_other_cameras_crops_at_the_models_focal_length(
     trained_run, drawn_dataset, other_frames, tmp_path, monkeypatch
 ):
     """The adapt epochs crop another camera's frames at the focal length the model trained at, as `detect`
-    will read them (``rebar_data.perception.inference.focal``)."""
+    will read them (``rebar_data.perception.inference.image``)."""
     from rebar_data.perception.training import adapt as adapt_train
 
     model = trained_run.out_dir / "best.onnx"

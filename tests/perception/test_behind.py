@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from rebar_data.perception.inference import detector as infer
-from rebar_data.perception.inference.behind import GAP_M, behind_mask, flatten_behind, front_depth
 from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.image import GAP_M, behind_mask, flatten_behind, front_depth
 
 H, W = 240, 320
 

@@ -10,9 +10,10 @@ import pytest
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_image
-from rebar_data.perception.inference.crossing_point import CrossingPoint, patch_rays
+from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.inference.model_file import crossing_point_path
+from rebar_data.perception.inference.refine import patch_rays
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, onnx_meta
 from rebar_data.perception.training.config import CrossingPointConfig
@@ -70,7 +71,7 @@ def test_onnx_crossing_point_gives_what_pytorch_gives(tmp_path):
     uv = np.array([[10.2, 12.7], [40.0, 30.0], [79.5, 59.5]])
     camera = (70.0, 70.0, 40.0, 30.0)
     in_torch = eager.crossing_point(net).offsets(image, uv, camera)
-    onnx = CrossingPoint.load_onnx(export_onnx(net, tmp_path / "c.onnx"), threads=1)
+    onnx = model_file.read_crossing_point(export_onnx(net, tmp_path / "c.onnx"), threads=1)
     np.testing.assert_allclose(onnx.offsets(image, uv, camera), in_torch, atol=1e-4)
     assert in_torch.shape == (3, 2) and np.isfinite(in_torch).all()
 

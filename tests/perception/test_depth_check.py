@@ -10,7 +10,8 @@ import torch
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_image
-from rebar_data.perception.inference.depth_check import DepthCheck, as_depth_m, encode, read_depth
+from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.checks import DepthCheck, as_depth_m, encode, read_depth
 from rebar_data.perception.inference.detector import Detector, verified_score
 from rebar_data.perception.inference.refine import patches
 from rebar_data.perception.networks import eager
@@ -98,7 +99,7 @@ def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
                 m.running_var.uniform_(0.5, 2.0)
     depth = np.random.default_rng(0).uniform(0.5, 1.0, (40, 50)).astype(np.float32)
     points = np.array([[10.0, 12.0], [25.5, 30.25], [0.5, 39.0]])
-    onnx_check = DepthCheck.load_onnx(
+    onnx_check = model_file.read_depth_check(
         export_onnx(net, tmp_path / "d.onnx"), threads=1, scale_m=0.05, clip=4.0
     )
     assert onnx_check.patch_px == 16

@@ -1,5 +1,5 @@
 """A frame from a camera with another focal length is read at the one the detector trained at
-(``rebar_data.perception.inference.focal``): resized to it, every stage run there, positions returned in the
+(``rebar_data.perception.inference.image``): resized to it, every stage run there, positions returned in the
 caller's pixels."""
 
 from __future__ import annotations
@@ -10,7 +10,7 @@ import pytest
 from rebar_data.perception.evaluation.metrics import Truth, match, pixel_metrics
 from rebar_data.perception.inference import detector as infer
 from rebar_data.perception.inference.detector import Detector
-from rebar_data.perception.inference.focal import (
+from rebar_data.perception.inference.image import (
     TOLERANCE,
     focal_scale,
     resample,

@@ -98,7 +98,7 @@ def test_an_int8_copy_of_another_network_is_refused():
         pytest.skip("no model shipped yet (make train ships one)")
     model = infer.SHIPPED_MODEL
     with pytest.raises(ConfigError, match="takes or gives other shapes than rebar_keypoint.refine.onnx"):
-        Refiner.load_onnx(
+        model_file.read_refiner(
             model_file.refiner_path(model), threads=1, int8_path=model_file.depth_check_path(model)
         )
 

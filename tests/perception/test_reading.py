@@ -1,4 +1,4 @@
-"""How the detector reads an image (``rebar_data.perception.inference.reading``): the mirrored reading, in which the
+"""How the detector reads an image (``rebar_data.perception.inference.detector``): the mirrored reading, in which the
 first stage reads the image and its mirror image and the second stage reads its int8 copy, and the single
 one."""
 
@@ -10,10 +10,10 @@ import pytest
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.metrics import match
 from rebar_data.perception.inference import detector as infer
-from rebar_data.perception.inference.detector import Detector
-from rebar_data.perception.inference.reading import (
+from rebar_data.perception.inference.detector import (
     MIRRORED_LATER_VIEWS,
     READINGS,
+    Detector,
     check_reading,
     mirrored_camera,
 )

@@ -10,6 +10,7 @@ import torch
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_image
+from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.detector import Detector, verified_score
 from rebar_data.perception.inference.refine import Refiner, patches, shrunk, shrunk_around
 from rebar_data.perception.networks import eager
@@ -430,7 +431,7 @@ def test_the_refiner_learns_to_move_points_onto_crossings(drawn_dataset, tmp_pat
     assert calibration.shape == (256, 16, 16, 4) and calibration.dtype == np.uint8  # RGB and the mask
     int8 = quantize_onnx(export_onnx(net, tmp_path / "f.onnx"), tmp_path / "q.onnx", calibration)
     assert any(n.op_type == "QLinearConv" for n in onnx.load(int8).graph.node)
-    quantized = Refiner.load_onnx(int8, threads=1)
+    quantized = model_file.read_refiner(int8, threads=1)
     rng = np.random.default_rng(0)
     after_int8 = []
     for s in test:
@@ -452,7 +453,7 @@ def test_onnx_refiner_gives_what_pytorch_gives(tmp_path):
     image = np.random.default_rng(0).integers(0, 256, (40, 50, 3), dtype=np.uint8)
     points = np.array([[10.0, 12.0], [25.5, 30.25], [0.5, 39.0]])
     path = export_onnx(net, tmp_path / "r.onnx")
-    onnx_refiner = Refiner.load_onnx(path, threads=1)
+    onnx_refiner = model_file.read_refiner(path, threads=1)
     assert onnx_refiner.patch_px == 16
     np.testing.assert_allclose(
         onnx_refiner.refine(image, points), eager.refiner(net).refine(image, points), atol=1e-4

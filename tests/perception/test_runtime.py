@@ -5,9 +5,9 @@ import pytest
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.inference import detector as infer
-from rebar_data.perception.inference import model_file, runtime
+from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.detector import Detector
-from rebar_data.perception.inference.runtime import (
+from rebar_data.perception.inference.model_file import (
     OpenVinoSession,
     onnx_session,
     openvino_bf16,
@@ -15,7 +15,7 @@ from rebar_data.perception.inference.runtime import (
 )
 
 needs_openvino = pytest.mark.skipif(
-    runtime._openvino_core() is None, reason="openvino is not installed (pip install openvino)"
+    model_file._openvino_core() is None, reason="openvino is not installed (pip install openvino)"
 )
 
 
@@ -27,7 +27,7 @@ def test_a_runtime_is_one_of_the_accepted_names_and_auto_follows_the_cpu():
 
 
 def test_openvino_is_refused_with_a_clear_message_where_it_is_not_installed(monkeypatch):
-    monkeypatch.setattr(runtime, "_openvino_core", lambda: None)
+    monkeypatch.setattr(model_file, "_openvino_core", lambda: None)
     assert resolve_runtime("auto") == "onnxruntime"
     with pytest.raises(ConfigError, match="needs the openvino package; accepted: pip install openvino"):
         resolve_runtime("openvino")
@@ -53,7 +53,7 @@ def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
         assert np.abs(got - want).max() <= tolerance * max(1.0, np.abs(want).max()), np.abs(got - want).max()
     assert len(ov._compiled) == 2
     # past SHAPES_KEPT sizes, one compile with the sizes left free serves the rest
-    for k in range(runtime.SHAPES_KEPT + 2):
+    for k in range(model_file.SHAPES_KEPT + 2):
         h, w = 32 * (k + 1), 64
         feed = {
             "image": rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8),
@@ -62,7 +62,7 @@ def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
         want, got = ort.run(None, feed)[0], ov.run(None, feed)[0]
         assert got.shape == want.shape
         assert np.abs(got - want).max() <= tolerance * max(1.0, np.abs(want).max())
-    assert len(ov._compiled) == runtime.SHAPES_KEPT + 1 and () in ov._compiled
+    assert len(ov._compiled) == model_file.SHAPES_KEPT + 1 and () in ov._compiled
     # that compile also takes a batch of two (a frame and its mirror image in the mirrored reading)
     h, w = 48, 80
     feed = {

@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from rebar_data.perception.inference.heatmap import decode
+from rebar_data.perception.inference.detector import decode
 from rebar_data.perception.training.loss import detection_loss
 from rebar_data.perception.training.targets import encode
 

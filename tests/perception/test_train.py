@@ -262,7 +262,7 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     assert "- Adapt epochs: 2 more after the best epoch" in card and "only in its adapt epochs" in card
     assert "hold up to 16 of the crossings each image's lower mat shows" in card  # the depth check's
     # the latency names what ran it (the default runtime), the figures the runtime training fits on
-    from rebar_data.perception.inference.runtime import runtime_description
+    from rebar_data.perception.inference.model_file import runtime_description
 
     assert f"2 CPU threads, {runtime_description('auto')}, end to end" in card
     assert "above are ONNX Runtime's in float32" in card

@@ -90,7 +90,7 @@ def line_check_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[flo
 
 def flatten_cost(det, frames: list[tuple[np.ndarray, np.ndarray]], *, repeats: int) -> tuple[float, float]:
     """Median ms of the call with the depth image (``frames``: rgb, depth) with what lies behind flattened
-    (``Detector.flatten_behind``; :mod:`~rebar_data.perception.inference.behind`) and without, timed in turn
+    (``Detector.flatten_behind``; :mod:`~rebar_data.perception.inference.image`) and without, timed in turn
     (:func:`_switched`); the detector is left as it was."""
     with det.flattening():
         return _switched(
@@ -129,9 +129,9 @@ def focal_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, f
     """Median ms of the RGB path on ``frames`` (640x480, at the camera ``detect`` assumes for them) enlarged
     twice with their intrinsics, as
     a 1280x960 camera of the same field of view gives them: read at the trained focal length (resampled,
-    :mod:`~rebar_data.perception.inference.focal`) and as they come, timed in turn (:func:`_in_turn`); the detector
+    :mod:`~rebar_data.perception.inference.image`) and as they come, timed in turn (:func:`_in_turn`); the detector
     is left as it was."""
-    from rebar_data.perception.inference.focal import resample, scaled_camera
+    from rebar_data.perception.inference.image import resample, scaled_camera
 
     before = det.resample
     large = [resample(rgb, (2 * rgb.shape[0], 2 * rgb.shape[1])) for rgb in frames]
@@ -152,7 +152,7 @@ def focal_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, f
 
 def runtime_cost(det, frames: list[np.ndarray], *, repeats: int) -> tuple[float, float]:
     """Median ms of the RGB path of ``det`` (loaded from a file, in OpenVINO) and of its file run by ONNX
-    Runtime (:mod:`~rebar_data.perception.inference.runtime`), timed in turn (:func:`_in_turn`)."""
+    Runtime (:mod:`~rebar_data.perception.inference.model_file`), timed in turn (:func:`_in_turn`)."""
     from rebar_data.perception.inference.detector import Detector
 
     onnxruntime = Detector.load(det.path, threads=THREADS, runtime="onnxruntime")
@@ -288,9 +288,8 @@ def run(repeats: int = 100) -> list[str]:
     """Lines to print: latency of the shipped (or an untrained) detector and of its network in eager PyTorch."""
     import torch
 
-    from rebar_data.perception.inference.detector import SHIPPED_MODEL, Detector
-    from rebar_data.perception.inference.heatmap import ray_grid
-    from rebar_data.perception.inference.runtime import runtime_description
+    from rebar_data.perception.inference.detector import SHIPPED_MODEL, Detector, ray_grid
+    from rebar_data.perception.inference.model_file import runtime_description
     from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
 
     threads_before = torch.get_num_threads()

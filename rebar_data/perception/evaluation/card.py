@@ -24,17 +24,17 @@ from rebar_data.perception.evaluation.evaluate import (
     predict,
 )
 from rebar_data.perception.evaluation.metrics import oks_radius_px
-from rebar_data.perception.inference import behind
+from rebar_data.perception.inference import image as behind
 from rebar_data.perception.inference.detector import DUPLICATE_PX, MODELS_DIR, SHIPPED_MODEL, Detector
-from rebar_data.perception.inference.focal import TOLERANCE
+from rebar_data.perception.inference.image import TOLERANCE
 from rebar_data.perception.inference.model_file import (
     crossing_point_path,
     depth_check_path,
     int8_passes_path,
     refiner_path,
+    runtime_description,
     stage_files,
 )
-from rebar_data.perception.inference.runtime import runtime_description
 from rebar_data.timing import machine_description
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
@@ -200,7 +200,7 @@ def _row(name: str, m: dict) -> str:
 
 
 def _reading_lines(detector: Detector) -> list[str]:
-    """How the card's figures read each image (:mod:`rebar_data.perception.inference.reading`)."""
+    """How the card's figures read each image (:mod:`rebar_data.perception.inference.detector`)."""
     how = (
         "mirrored: the first stage reads the image and its mirror image and takes their mean, the second stage "
         "reads its int8 copy, its later passes in one view"
@@ -214,7 +214,7 @@ def _reading_lines(detector: Detector) -> list[str]:
 
 
 def _focal_lines(detector: Detector) -> list[str]:
-    """At what focal length the detector reads a frame (:mod:`rebar_data.perception.inference.focal`)."""
+    """At what focal length the detector reads a frame (:mod:`rebar_data.perception.inference.image`)."""
     if detector.focal_px is None:
         return []
     return [
@@ -628,7 +628,7 @@ def _census_lines(rows: dict[str, dict]) -> list[str]:
 
 def _flattened_predictions(detector: Detector, samples: Sequence, *, progress: bool) -> list | None:
     """The detections with each sample's depth image and what lies behind the bars in front flattened
-    (``Detector.flatten_behind``, :mod:`~rebar_data.perception.inference.behind`), or None when the detector has no
+    (``Detector.flatten_behind``, :mod:`~rebar_data.perception.inference.image`), or None when the detector has no
     depth check or a sample has no depth image. The detector's setting is left as it was."""
     if detector.depth_check is None or not samples or any(s.depth_path is None for s in samples):
         return None

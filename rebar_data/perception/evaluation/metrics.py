@@ -29,7 +29,7 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
-from rebar_data.perception.inference.heatmap import OPERATING_THRESHOLD
+from rebar_data.perception.inference.detector import OPERATING_THRESHOLD
 from rebar_data.pipeline import DEFAULT_OKS_SIGMA  # stated by the dataset in info.json
 
 OKS_THRESHOLDS = np.linspace(0.5, 0.95, 10)

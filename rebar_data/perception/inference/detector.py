@@ -1,9 +1,10 @@
-"""Run the detector on an image: ``Detector.load(path).detect(rgb) -> (N, 3)`` u, v, score.
+"""The detector: ``Detector.load(path).detect(rgb) -> (N, 3)`` u, v, score, best first.
 
-``.onnx`` files (the shipped model is one; several times faster than eager PyTorch on a CPU) run in OpenVINO
-in bfloat16 where the CPU has it and in ONNX Runtime otherwise (:mod:`~rebar_data.perception.inference.runtime`);
-``.pt`` checkpoints run in PyTorch. Coordinates are in the input image's pixels with COCO's corner
-origin (the top-left corner of the top-left pixel is (0, 0)), as everywhere in the project.
+The first stage is a heatmap network at stride 4 with a sub-pixel offset per cell; its peaks are the
+candidates, which the later stages move, verify and score (:mod:`~rebar_data.perception.inference.refine`,
+:mod:`~rebar_data.perception.inference.checks`). Its ONNX files run in ONNX Runtime or OpenVINO
+(:mod:`~rebar_data.perception.inference.model_file`). Coordinates are in the input image's pixels with COCO's
+corner origin (the top-left corner of the top-left pixel is (0, 0)), as everywhere in the project.
 """
 
 from __future__ import annotations
@@ -13,47 +14,118 @@ from collections.abc import Callable, Iterator
 from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
 
 from rebar_data.errors import ConfigError
-from rebar_data.perception.inference.behind import flatten_behind
-from rebar_data.perception.inference.crossing_point import CrossingPoint, check_point
-from rebar_data.perception.inference.depth_check import DepthCheck, as_depth_m
-from rebar_data.perception.inference.focal import focal_scale, resample, resampled_size, scaled_camera
-from rebar_data.perception.inference.heatmap import (
-    INPUT_MULTIPLE,
-    OPERATING_THRESHOLD,
-    STRIDE,
-    decode,
-    ray_grid,
+from rebar_data.perception.inference.checks import DepthCheck, LineCheck, as_depth_m
+from rebar_data.perception.inference.image import (
+    flatten_behind,
+    focal_scale,
+    resample,
+    resampled_size,
+    scaled_camera,
 )
-from rebar_data.perception.inference.line_check import LineCheck
 from rebar_data.perception.inference.model_file import (
     META_KEY,
     load_crossing_point,
     load_depth_check,
     load_refiner,
+    onnx_session,
+    resolve_runtime,
 )
-from rebar_data.perception.inference.reading import (
-    MIRRORED_LATER_VIEWS,
-    check_reading,
-    mean_with_mirror,
-    mirrored_camera,
-)
-from rebar_data.perception.inference.refine import Refiner
-from rebar_data.perception.inference.runtime import onnx_session, resolve_runtime
+from rebar_data.perception.inference.refine import CrossingPoint, Refiner, check_point
+
+STRIDE = 4
+INPUT_MULTIPLE = 16  # the encoder halves the size four times
+OPERATING_THRESHOLD = 0.5  # the score ``detect`` returns from by default, and the metrics' operating point
+
+
+def ray_grid(
+    height: int, width: int, camera: tuple[float, float, float, float], *, stride: int = STRIDE
+) -> np.ndarray:
+    """(2, H / stride, W / stride) viewing rays ((u - cx) / fx, (v - cy) / fy) at the centres of the
+    stride x stride cells of an H x W image (COCO corner origin: cell j's centre is at stride * (j + 0.5))."""
+    fx, fy, cx, cy = camera
+    u = (stride * (np.arange(-(-width // stride), dtype=np.float64) + 0.5) - cx) / fx
+    v = (stride * (np.arange(-(-height // stride), dtype=np.float64) + 0.5) - cy) / fy
+    return np.stack(np.broadcast_arrays(u[None, :], v[:, None])).astype(np.float32)
+
+
+def decode(
+    heat_logit: np.ndarray,
+    offset: np.ndarray,
+    *,
+    threshold: float,
+    max_detections: int = 1000,
+) -> np.ndarray:
+    """Crossings from one output: local maxima (3x3) of the heatmap with a score of at least ``threshold``.
+
+    Peaks are found on the logits, which do not saturate the way float32 probabilities do near 1, so two
+    neighbouring cells never tie and give one crossing twice.
+
+    Args:
+        heat_logit: (H, W) heatmap logits.
+        offset: (2, H, W) offsets in cells.
+        threshold: Lowest score (probability) kept, in (0, 1).
+        max_detections: Most crossings returned, best first.
+
+    Returns:
+        (N, 3) u, v, score in input pixels (COCO corner origin), sorted by score, best first.
+    """
+    heat_logit = np.ascontiguousarray(heat_logit, np.float32)
+    t = np.clip(threshold, 1e-7, 1 - 1e-7)
+    floor = np.log(t / (1 - t))
+    peak = (heat_logit >= cv2.dilate(heat_logit, np.ones((3, 3), np.uint8))) & (heat_logit >= floor)
+    i, j = np.nonzero(peak)
+    logit = heat_logit[i, j].astype(np.float64)
+    order = np.argsort(-logit, kind="stable")[:max_detections]
+    i, j, logit = i[order], j[order], logit[order]
+    u = STRIDE * (j + 0.5 + offset[0, i, j])
+    v = STRIDE * (i + 0.5 + offset[1, i, j])
+    return np.c_[u, v, 1.0 / (1.0 + np.exp(-logit))]
+
+
+# how the stages read an image: "mirrored" (the first stage reads the image and its mirror image and takes
+# the mean of the two, the second stage reads every pass in its int8 copy) or "single"
+Reading = Literal["mirrored", "single"]
+READINGS: tuple[str, ...] = get_args(Reading)
+# the views the second stage's later passes read in the mirrored reading (the single one: the file's)
+MIRRORED_LATER_VIEWS = 1
+
+
+def check_reading(reading: str) -> str:
+    """``reading`` if it names one of :data:`READINGS`; ConfigError otherwise."""
+    if reading not in READINGS:
+        raise ConfigError(f"reading = {reading!r} is not accepted; accepted: one of {', '.join(READINGS)}")
+    return reading
+
+
+def mirrored_camera(
+    camera: tuple[float, float, float, float], width: int
+) -> tuple[float, float, float, float]:
+    """The intrinsics of an image ``width`` pixels wide turned left for right: the principal point mirrored
+    (COCO corner origin: u becomes ``width`` - u)."""
+    fx, fy, cx, cy = camera
+    return fx, fy, width - cx, cy
+
+
+def mean_with_mirror(out: np.ndarray, mirrored: np.ndarray) -> np.ndarray:
+    """The mean of the first stage's output ``out`` (3, H, W: heatmap logit, column and row offsets) and its
+    output for the mirror image ``mirrored``, already turned back cell for cell: a column offset read in the
+    mirror image points the other way."""
+    mean = 0.5 * (out + mirrored)
+    mean[1] = 0.5 * (out[1] - mirrored[1])
+    return mean
+
 
 DEFAULT_FOCAL_PER_WIDTH = 525.0 / 640.0  # Kinect v1 colour camera, when neither caller nor model says
 MODELS_DIR = Path(__file__).parent.parent / "models"
 SHIPPED_MODEL = MODELS_DIR / "rebar_keypoint.onnx"
 RUN_FILES = ("best.onnx", "best.pt", "last.pt")
-# two detections placed nearer than this are one crossing (the second stage's passes can move two
-# detections of one crossing onto it); no two visible crossings of paper-tunnel's test split lie nearer
-# than 7.5 px
-DUPLICATE_PX = 3.0
+DUPLICATE_PX = 3.0  # two detections placed nearer than this are one crossing
 
 
 def resolve_model_path(path: str | Path | None) -> Path:
@@ -81,42 +153,26 @@ def resolve_model_path(path: str | Path | None) -> Path:
 
 
 class Detector:
-    """A loaded keypoint detector.
+    """A loaded keypoint detector; set a stage to None to leave it out.
 
     Attributes:
-        path: The file it was loaded from (None when built from a network in memory).
+        path: The file it was loaded from (None for a network in memory).
         meta: What the model file says about itself (training data, settings, scores).
-        backend: what runs the first stage: ``onnxruntime``, ``openvino`` or ``torch``.
-        score_bias: Logit shift applied to the heatmap before scores are read (``meta["score_bias"]``,
-            chosen on the validation split so that score 0.5 is the operating point; 0 when absent).
-        score_bias_without_depth: The same for a call without a depth image, when the model has a depth
-            check (it removes false detections, so its operating point lies elsewhere).
-        refiner: The second stage, which moves each detection to the crossing its full-resolution patch
-            shows (:mod:`rebar_data.perception.inference.refine`); loaded with the model when the file names one.
-            Set it to None to get the heatmap network's positions alone.
-        depth_check: The third stage, which lowers the scores of detections whose depth patch shows no
-            crossing (:mod:`rebar_data.perception.inference.depth_check`); used when ``detect`` gets a depth image.
-        depth_power: How hard the third stage counts (``meta["depth_check"]["power"]``).
-        verify_power: How hard the second stage's verification counts without the depth check
-            (``RefineConfig.verify_power``); ``verify_power_with_depth`` beside it.
-        crossing_point: The stage that gives where each detection's 3D crossing point projects
-            (:mod:`rebar_data.perception.inference.crossing_point`); used when ``detect`` is asked for
-            ``point="crossing"``.
-        line_check: Weighs each detection's score with the scores along its two bars
-            (:mod:`rebar_data.perception.inference.line_check`; ``meta["line_check"]``); used when ``detect`` gets
-            no depth image. Set it to None to get the RGB stages' scores alone.
-        reading: How the stages read an image, "mirrored" or "single" (:mod:`rebar_data.perception.inference.reading`;
-            ``Detector.load``'s default is "mirrored", a network in memory's "single").
-        focal_px: The focal length (pixels) its first stage trained at (``meta["focal_px"]``; None for a file
-            written before it was stored).
-        resample: Whether ``detect`` resizes a frame taken with another focal length to ``focal_px`` before
-            reading it (:mod:`rebar_data.perception.inference.focal`; on by default). Positions come back in the
-            caller's pixels either way.
-        flatten_behind: Whether ``detect``, given a depth image, first takes what lies far behind the bars
-            in front out of the colour image (:mod:`rebar_data.perception.inference.behind`). Off by default: it
-            places crossings better on every held-out set, but needs the depth image registered to the
-            colour one within about a pixel, and doubled the paper servo run's worst PBVS error (the module
-            text has the figures).
+        backend: What runs the first stage: ``onnxruntime``, ``openvino`` or ``torch``.
+        score_bias: Logit shift of the heatmap that puts the operating point at score 0.5 (chosen on val).
+        score_bias_without_depth: The same for a call without a depth image.
+        refiner: The second stage: moves each detection onto its crossing and verifies it.
+        depth_check: Lowers the score of a detection whose depth patch shows no crossing (given depth).
+        depth_power: How hard the depth check counts.
+        verify_power: How hard the second stage's verification counts (``verify_power_with_depth`` beside
+            the depth check).
+        crossing_point: Where each detection's 3D crossing point projects (``point="crossing"``).
+        line_check: Weighs each score with the scores along the detection's two bars (without depth).
+        reading: "mirrored" (the first stage also reads the mirror image and takes the mean) or "single".
+        focal_px: The focal length (pixels) the first stage trained at (None: unknown).
+        resample: Whether ``detect`` reads a frame at ``focal_px`` when its camera's focal length differs.
+        flatten_behind: Whether ``detect``, given depth, first takes what lies far behind the front bars out
+            of the colour image (off by default: it needs depth registered to colour within a pixel).
     """
 
     def __init__(
@@ -128,16 +184,12 @@ class Detector:
         path: Path | None,
     ):
         self._run = run
-        # the first stage on a batch of two images and their rays, where the runtime takes one (a frame and
-        # its mirror image in one call: 1.03-1.06 times as fast on 2 cores, the same numbers); None: two calls
+        # the first stage on a batch of two images and their rays, where the runtime takes one; None: two calls
         self._run_pair: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None
         self.meta = meta
         self.reading: str = "single"
         self.score_bias = float(meta.get("score_bias", 0.0))
-        # the operating point of the RGB stages alone, when a depth check changed the other one
         self.score_bias_without_depth = float(meta.get("score_bias_without_depth", self.score_bias))
-        # how hard the second stage's verification counts (files written before it was stored: fully), and
-        # how hard beside the depth check (files written before it was stored: as without)
         self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))
         self.verify_power_with_depth = float(
             (meta.get("refiner") or {}).get("verify_power_with_depth", self.verify_power)
@@ -150,8 +202,6 @@ class Detector:
         self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
         self.crossing_point: CrossingPoint | None = None
         self.line_check: LineCheck | None = None
-        # the focal length its first stage trained at (files written before it was stored: unknown), and
-        # whether ``detect`` reads a frame taken with another at that one (:mod:`~rebar_data.perception.inference.focal`)
         focal = meta.get("focal_px")
         self.focal_px: float | None = float(focal) if focal else None
         self.resample = True
@@ -175,7 +225,7 @@ class Detector:
             threads: CPU threads for inference.
             line_check: Load the file's line check; False leaves it out (to fit a new one, whatever the
                 file holds).
-            runtime: What runs an ``.onnx`` file's float stages (:mod:`~rebar_data.perception.inference.runtime`):
+            runtime: What runs an ``.onnx`` file's float stages (:mod:`~rebar_data.perception.inference.model_file`):
                 "auto" (OpenVINO in bfloat16 where the CPU has it), "onnxruntime" or "openvino".
             reading: How the stages read an image: "mirrored" or "single" (the ``reading`` attribute).
         """
@@ -234,7 +284,7 @@ class Detector:
 
     @contextmanager
     def flattening(self, on: bool = True) -> Iterator[Detector]:
-        """Within the block, ``flatten_behind`` is ``on`` (:mod:`rebar_data.perception.inference.behind`); afterwards it
+        """Within the block, ``flatten_behind`` is ``on`` (:mod:`rebar_data.perception.inference.image`); afterwards it
         is as it was."""
         before, self.flatten_behind = self.flatten_behind, on
         try:
@@ -310,7 +360,7 @@ class Detector:
             camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin; None assumes the principal
                 point at the centre and the training data's focal length for this width (its field of
                 view). A frame whose focal length is not the one the detector trained at is read resized
-                to it (``resample``; :mod:`~rebar_data.perception.inference.focal`).
+                to it (``resample``; :mod:`~rebar_data.perception.inference.image`).
             max_detections: Most crossings returned.
             point: What u, v stand for: ``"sight"``, where the image shows the two bars cross (the
                 dataset's labels); ``"crossing"``, where the 3D crossing point (the centerlines' midpoint,

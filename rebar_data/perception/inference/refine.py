@@ -1,23 +1,15 @@
-"""The detector's second stage at inference: each crossing found by the heatmap network is moved to where
-a small network, looking at the full-resolution patch around it, places the crossing.
+"""The patch stages, each a small network reading the full-resolution patch around every detection.
 
-Why a second stage: the heatmap network sees the image at stride 4 (its finest features are a quarter
-of the image's resolution), which keeps a whole frame within a few milliseconds, but a 2 px error is
-half an output cell. Close-ups of rusty bars, where a crossing is a 30 px patch of texture, are where its
-errors concentrate. The refiner sees a ``patch_px`` square at full resolution centred on the first
-stage's estimate and regresses the crossing's offset from the patch centre, in pixels; a frame's
-detections go through it as one batch. A refiner trained with verification also gives, per patch, the
-logit that it shows a crossing at all, which lowers the scores of the first stage's false detections.
-How it is trained: :mod:`rebar_data.perception.training.refine`.
-
-This module needs no PyTorch for ONNX files, so the servo's detector loads without it.
+- The second stage (:class:`Refiner`) moves each detection to where it places the crossing and gives the
+  logit that the patch shows one at all, which lowers the scores of false detections.
+- The crossing-point stage (:class:`CrossingPoint`) gives where each detection's 3D crossing point (the
+  centerlines' midpoint, inside the steel) projects, from the patch and its viewing ray.
 """
 
 from __future__ import annotations
 
 from collections.abc import Callable
 from fractions import Fraction
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -216,68 +208,6 @@ class Refiner:
         self.sizes = sizes
         self.shrink_above_px = tuple(shrink_above_px) if shrink_above_px is not None else None
 
-    @classmethod
-    def load_onnx(
-        cls,
-        path: Path,
-        *,
-        threads: int,
-        iterations: int = 1,
-        views: int = 1,
-        step: float = 1.0,
-        shrink_above_px: tuple[float, float] | None = None,
-        first_pass_views: int | None = None,
-        int8_path: Path | None = None,
-        runtime: str = "onnxruntime",
-    ) -> Refiner:
-        """The refiner in an ONNX file. ``int8_path``: the int8 copy the passes after the first read (None: they read ``path``); it must take and give what
-        ``path`` does. ``runtime`` runs ``path`` (:mod:`~rebar_data.perception.inference.runtime`); the int8 copy always
-        runs in ONNX Runtime."""
-        from rebar_data.perception.inference.runtime import onnx_session
-
-        sess = onnx_session(path, threads, runtime)
-        name = sess.get_inputs()[0].name
-        size = sess.get_inputs()[0].shape[1]
-        if not isinstance(size, int):
-            raise ConfigError(f"{path}: is not a refiner file (its patch size is not fixed)")
-
-        def run(x: np.ndarray) -> np.ndarray:
-            return sess.run(None, {name: x})[0]
-
-        int8_run = None
-        if int8_path is not None:
-            int8 = onnx_session(int8_path, threads)
-            signature = (sess.get_inputs()[0].shape, sess.get_outputs()[0].shape)
-            if (int8.get_inputs()[0].shape, int8.get_outputs()[0].shape) != signature:
-                raise ConfigError(
-                    f"{int8_path}: takes or gives other shapes than {path.name}; accepted: the int8 copy "
-                    f"written from it by `rebar train` (quantize: later)"
-                )
-            int8_name = int8.get_inputs()[0].name
-
-            def int8_run(x: np.ndarray) -> np.ndarray:
-                return int8.run(None, {int8_name: x})[0]
-
-        # 2: offsets; 3: offsets and the verification logit; 4: and the log box side
-        columns = sess.get_outputs()[0].shape[-1]
-        if sess.get_inputs()[0].shape[-1] != 4:  # RGB and the mask of the pixels on the image
-            raise ConfigError(
-                f"{path}: does not take RGB and the border mask; accepted: the refiner file written with its "
-                "model file by `rebar train`"
-            )
-        return cls(
-            run,
-            patch_px=size,
-            iterations=iterations,
-            verifies=columns >= 3,
-            views=views,
-            step=step,
-            sizes=columns == 4,
-            shrink_above_px=shrink_above_px,
-            first_pass_views=first_pass_views,
-            int8_run=int8_run,
-        )
-
     @property
     def has_int8_passes(self) -> bool:
         """Whether this refiner has an int8 copy for the passes after the first."""
@@ -406,3 +336,49 @@ class Refiner:
         plain = out[0].copy()  # SYMMETRIES[0] is the identity
         plain[:, :2] = np.mean([turned_back(o[:, :2], s) for o, s in zip(out, sym, strict=True)], axis=0)
         return plain
+
+
+# what a detection's pixel stands for: the sight point (where the image shows the bars cross, the
+# dataset's labels) or the projected 3D crossing point (this stage's output)
+POINTS = ("sight", "crossing")
+
+
+def patch_rays(corners: np.ndarray, camera: tuple[float, float, float, float]) -> np.ndarray:
+    """(N, 2) float32 viewing ray ((u - cx) / fx, (v - cy) / fy) of each patch centre (pixel corner)."""
+    fx, fy, cx, cy = camera
+    c = np.asarray(corners, np.float64).reshape(-1, 2)
+    return np.c_[(c[:, 0] - cx) / fx, (c[:, 1] - cy) / fy].astype(np.float32)
+
+
+class CrossingPoint:
+    """A loaded crossing-point stage: ``offsets(image, uv, camera)`` gives, for each sight point ``uv``, the
+    (N, 2) pixel offset to where its 3D crossing point projects."""
+
+    def __init__(self, run: Callable[[np.ndarray, np.ndarray], np.ndarray], *, patch_px: int):
+        self._run = run
+        self.patch_px = patch_px
+
+    def offsets(
+        self, image: np.ndarray, uv: np.ndarray, camera: tuple[float, float, float, float]
+    ) -> np.ndarray:
+        """(N, 2) offsets from the (N, 2) sight points ``uv`` of the RGB ``image`` (pixels, COCO corner
+        origin) to their projected 3D crossing points; ``camera`` is (fx, fy, cx, cy)."""
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        if not len(uv):
+            return np.zeros((0, 2))
+        x, corners = patches(image, uv, self.patch_px)
+        return self._run(x, patch_rays(corners, camera)).astype(np.float64)
+
+    def points(
+        self, image: np.ndarray, uv: np.ndarray, camera: tuple[float, float, float, float]
+    ) -> np.ndarray:
+        """(N, 2) projected 3D crossing points of the sight points ``uv``."""
+        uv = np.asarray(uv, np.float64).reshape(-1, 2)
+        return uv + self.offsets(image, uv, camera)
+
+
+def check_point(point: str) -> str:
+    """``point`` if it is one of :data:`POINTS`, else ConfigError."""
+    if point not in POINTS:
+        raise ConfigError(f"point = {point!r} is not accepted; accepted: one of {', '.join(POINTS)}")
+    return point

@@ -9,10 +9,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from rebar_data.perception.inference.crossing_point import CrossingPoint
-from rebar_data.perception.inference.depth_check import DepthCheck
+from rebar_data.perception.inference.checks import DepthCheck
 from rebar_data.perception.inference.detector import Detector
-from rebar_data.perception.inference.refine import Refiner
+from rebar_data.perception.inference.refine import CrossingPoint, Refiner
 from rebar_data.perception.networks.keypoint_net import KeypointNet
 from rebar_data.perception.networks.stages import (
     CrossingExportWrapper,

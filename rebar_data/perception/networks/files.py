@@ -20,7 +20,7 @@ import torch
 from torch import nn
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.inference.heatmap import STRIDE
+from rebar_data.perception.inference.detector import STRIDE
 from rebar_data.perception.inference.model_file import FORMAT, FORMAT_VERSION, META_KEY
 from rebar_data.perception.networks.keypoint_net import ExportWrapper, KeypointNet, ModelConfig
 from rebar_data.perception.networks.stages import (

@@ -75,7 +75,7 @@ class PatchExportWrapper(nn.Module):
 
 
 class DepthNet(nn.Module):
-    """(N, 2, P, P) encoded depth patches (:func:`~rebar_data.perception.inference.depth_check.encode`) -> (N,) logit
+    """(N, 2, P, P) encoded depth patches (:func:`~rebar_data.perception.inference.checks.encode`) -> (N,) logit
     that the patch shows a crossing: a 3x3 convolution at full resolution, three halvings to P / 8, two
     fully connected layers."""
 

@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from rebar_data.perception.inference.heatmap import STRIDE
+from rebar_data.perception.inference.detector import STRIDE
 from rebar_data.perception.training.config import AugmentConfig
 
 SEAM_PX = 3.0  # crossings this close to a mosaic seam are cut in two: neither positive nor negative
@@ -53,7 +53,7 @@ class Source:
     hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     distractors: np.ndarray | None = None  # (H, W) bool: the distractors' pixels, when known
     # every crop's scale is multiplied by it: a frame from another focal length drawn at the model's
-    # (rebar_data.perception.inference.focal, as the detector reads such a frame)
+    # (rebar_data.perception.inference.image, as the detector reads such a frame)
     gain: float = 1.0
 
 

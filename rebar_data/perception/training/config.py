@@ -138,7 +138,7 @@ class RefineConfig(Strict):
 
 
 class DepthCheckConfig(Strict):
-    """The depth check (:mod:`rebar_data.perception.inference.depth_check`): lowers the score of a detection
+    """The depth check (:mod:`rebar_data.perception.inference.checks`): lowers the score of a detection
     whose depth patch shows no crossing."""
 
     enabled: bool = True  # train and ship the depth check
@@ -165,7 +165,7 @@ class DepthCheckConfig(Strict):
 
 
 class CrossingPointConfig(Strict):
-    """The crossing-point stage (:mod:`rebar_data.perception.inference.crossing_point`): where each
+    """The crossing-point stage (:mod:`rebar_data.perception.inference.refine`): where each
     detection's 3D crossing point projects."""
 
     enabled: bool = True  # train and ship the crossing-point stage
@@ -191,7 +191,7 @@ class CrossingPointConfig(Strict):
 
 
 class LineCheckConfig(Strict):
-    """The line check (:mod:`rebar_data.perception.inference.line_check`): a score without depth read again
+    """The line check (:mod:`rebar_data.perception.inference.checks`): a score without depth read again
     with the scores along the detection's two bars."""
 
     enabled: bool = True  # fit and ship the line check

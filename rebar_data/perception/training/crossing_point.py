@@ -1,4 +1,4 @@
-"""Training and model files of the detector's crossing-point stage (:mod:`rebar_data.perception.inference.crossing_point`).
+"""Training and model files of the detector's crossing-point stage (:mod:`rebar_data.perception.inference.refine`).
 
 It trains on its own, from the labels alone: for each visible crossing of the training images, the
 patch around its sight point (the label's u, v) and the offset to its projected 3D crossing point
@@ -23,8 +23,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_image
-from rebar_data.perception.inference.crossing_point import patch_rays
-from rebar_data.perception.inference.refine import patches
+from rebar_data.perception.inference.refine import patch_rays, patches
 from rebar_data.perception.networks.files import export_onnx
 from rebar_data.perception.networks.stages import CrossingNet
 from rebar_data.perception.training.augment import photometric_batch

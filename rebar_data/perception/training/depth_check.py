@@ -1,4 +1,4 @@
-"""Training and model files of the detector's third stage (:mod:`rebar_data.perception.inference.depth_check`).
+"""Training and model files of the detector's third stage (:mod:`rebar_data.perception.inference.checks`).
 
 It trains on depth patches around the training images' visible crossings (positives) and around the
 places where the trained first stage finds crossings that are not there (negatives, the second stage's
@@ -22,7 +22,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample
-from rebar_data.perception.inference.depth_check import MM_PER_M, encode, read_depth
+from rebar_data.perception.inference.checks import MM_PER_M, encode, read_depth
 from rebar_data.perception.networks.stages import DepthNet
 from rebar_data.perception.training.checkpoints import (
     fit_weights,

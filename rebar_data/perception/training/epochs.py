@@ -19,8 +19,8 @@ from tqdm import tqdm
 
 from rebar_data.perception.evaluation.data import Sample, per_file, read_distractors, read_image, read_images
 from rebar_data.perception.evaluation.lower_mat import lower_mat_of
-from rebar_data.perception.inference.focal import focal_scale
-from rebar_data.perception.inference.heatmap import STRIDE
+from rebar_data.perception.inference.detector import STRIDE
+from rebar_data.perception.inference.image import focal_scale
 from rebar_data.perception.networks.keypoint_net import KeypointNet
 from rebar_data.perception.training.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.training.config import TrainConfig

@@ -1,10 +1,10 @@
-"""Fitting the line check (:mod:`rebar_data.perception.inference.line_check`) to a trained detector.
+"""Fitting the line check (:mod:`rebar_data.perception.inference.checks`) to a trained detector.
 
 The detector, without depth and without a line check, reads each fitting image as the check would
 (``Detector.line_inputs``); each checked candidate, where the second stage places it, within the 5 px gate
 of a visible crossing (one-to-one, as the scorer matches) is a positive, one matched to a crossing the labels ignore is left
 out, every other a negative. scikit-learn's logistic regression (L2, ``LineCheckConfig.regularization``)
-is fitted on their :data:`~rebar_data.perception.inference.line_check.FEATURES`, and its bias then moved so that
+is fitted on their :data:`~rebar_data.perception.inference.checks.FEATURES`, and its bias then moved so that
 score 0.5 is the best F1 on the validation images, as the detector's other operating points are.
 """
 
@@ -21,8 +21,8 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_sample_image
 from rebar_data.perception.evaluation.evaluate import calibrate_score_bias, predict, truth_of
 from rebar_data.perception.evaluation.metrics import GATE_PX, match
+from rebar_data.perception.inference.checks import LineCheck, line_features
 from rebar_data.perception.inference.detector import Detector
-from rebar_data.perception.inference.line_check import LineCheck, line_features
 from rebar_data.perception.training.config import LineCheckConfig
 
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rebar_data.perception.inference.heatmap import STRIDE
+from rebar_data.perception.inference.detector import STRIDE
 
 OFFSET_RADIUS = 1  # offsets are learned in the (2r+1)^2 cells around each crossing
 IGNORE_RADIUS = 2  # cells around an ignored point left out of the heatmap loss
