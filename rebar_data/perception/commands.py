@@ -654,7 +654,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--flatten-behind",
         action="store_true",
         help="with the dataset's depth images, take what lies far behind the bars in front (lower mat, "
-        "ground) out of each colour image before reading it (rebar_data/perception/behind.py; off by default)",
+        "ground) out of each colour image before reading it (rebar_data/perception/inference/image.py; off by default)",
     )
     d.add_argument(
         "--oks-sigma",

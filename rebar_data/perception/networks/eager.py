@@ -12,12 +12,10 @@ import torch
 from rebar_data.perception.inference.checks import DepthCheck
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.inference.refine import CrossingPoint, Refiner
-from rebar_data.perception.networks.keypoint_net import KeypointNet
+from rebar_data.perception.networks.keypoint_net import KeypointNet, UInt8Input
 from rebar_data.perception.networks.stages import (
-    CrossingExportWrapper,
     CrossingNet,
     DepthNet,
-    PatchExportWrapper,
     PatchNet,
 )
 
@@ -44,7 +42,7 @@ def refiner(
     first_pass_views: int | None = None,
 ) -> Refiner:
     """A second stage that runs ``net``, its passes as the arguments say (:class:`Refiner`)."""
-    wrapped = PatchExportWrapper(net.eval())  # uint8 (N, P, P, C) in, as the ONNX file takes them
+    wrapped = UInt8Input(net.eval())  # uint8 (N, P, P, C) in, as the ONNX file takes them
 
     def run(x: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
@@ -76,7 +74,7 @@ def depth_check(net: DepthNet, *, scale_m: float, clip: float) -> DepthCheck:
 
 def crossing_point(net: CrossingNet) -> CrossingPoint:
     """A crossing-point stage that runs ``net``."""
-    wrapped = CrossingExportWrapper(net.eval())
+    wrapped = UInt8Input(net.eval())
 
     def run(x: np.ndarray, rays: np.ndarray) -> np.ndarray:
         with torch.inference_mode():

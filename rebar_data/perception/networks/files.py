@@ -22,43 +22,52 @@ from torch import nn
 from rebar_data.config import ConfigError
 from rebar_data.perception.inference.detector import STRIDE
 from rebar_data.perception.inference.model_file import FORMAT, FORMAT_VERSION, META_KEY
-from rebar_data.perception.networks.keypoint_net import ExportWrapper, KeypointNet, ModelConfig
+from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig, UInt8Input
 from rebar_data.perception.networks.stages import (
-    CrossingExportWrapper,
     CrossingNet,
     DepthNet,
-    PatchExportWrapper,
     PatchNet,
 )
 
 
-def save_checkpoint(path: str | Path, net: KeypointNet, meta: dict[str, Any], **extra: Any) -> None:
-    """Write weights, architecture and ``meta`` (plus any training state in ``extra``) atomically."""
+def write_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
+    """Write a ``.pt`` checkpoint atomically (a temporary file renamed into place)."""
     path = Path(path)
-    payload = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "model_config": net.cfg.model_dump(mode="json"),
-        "state_dict": net.state_dict(),
-        "meta": meta,
-        **extra,
-    }
     tmp = path.with_name(path.name + ".tmp")
     torch.save(payload, tmp)
     tmp.replace(path)
 
 
-def load_checkpoint(path: str | Path) -> tuple[KeypointNet, dict[str, Any], dict[str, Any]]:
-    """Rebuild the network of a ``.pt`` file; returns (network in eval mode, meta, the whole payload)."""
+def read_checkpoint(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
+    """A ``.pt`` checkpoint's payload; ConfigError when the file cannot be read or is not a ``fmt`` file."""
     path = Path(path)
     try:
         payload = torch.load(path, map_location="cpu", weights_only=False)
     except Exception as e:  # a truncated or foreign file: say which
-        raise ConfigError(f"{path}: cannot be read as a detector checkpoint ({type(e).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != FORMAT:
-        raise ConfigError(
-            f"{path}: is not a {FORMAT} checkpoint; accepted: a .pt file written by `rebar train`"
-        )
+        raise ConfigError(f"{path}: cannot be read as a {what} checkpoint ({type(e).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != fmt:
+        raise ConfigError(f"{path}: is not a {fmt} checkpoint; accepted: a .pt file written by `rebar train`")
+    return payload
+
+
+def save_checkpoint(path: str | Path, net: KeypointNet, meta: dict[str, Any], **extra: Any) -> None:
+    """Write the first stage's weights, architecture and ``meta`` (plus any training state in ``extra``)."""
+    write_checkpoint(
+        path,
+        {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "model_config": net.cfg.model_dump(mode="json"),
+            "state_dict": net.state_dict(),
+            "meta": meta,
+            **extra,
+        },
+    )
+
+
+def load_checkpoint(path: str | Path) -> tuple[KeypointNet, dict[str, Any], dict[str, Any]]:
+    """Rebuild the network of a ``.pt`` file; returns (network in eval mode, meta, the whole payload)."""
+    payload = read_checkpoint(path, fmt=FORMAT, what="detector")
     if payload.get("format_version", 0) > FORMAT_VERSION:
         raise ConfigError(
             f"{path}: format_version {payload['format_version']} is newer than this code reads ({FORMAT_VERSION})"
@@ -103,17 +112,17 @@ def export_onnx(
             )
             names.append("rays")
             axes["rays"] = {2: "cells_y", 3: "cells_x"}
-        module, output = ExportWrapper(net), "output"
+        module, output = UInt8Input(net), "output"
     else:
         size = net.patch_px
         if isinstance(net, PatchNet):
-            module, names, output = PatchExportWrapper(net), ["patches"], "offset"
+            module, names, output = UInt8Input(net), ["patches"], "offset"
             inputs = (torch.zeros((4, size, size, net.channels), dtype=torch.uint8),)
         elif isinstance(net, DepthNet):
             module, names, output = net, ["depth"], "logit"
             inputs = (torch.zeros((4, 2, size, size), dtype=torch.float32),)
         elif isinstance(net, CrossingNet):
-            module, names, output = CrossingExportWrapper(net), ["patches", "rays"], "offset"
+            module, names, output = UInt8Input(net), ["patches", "rays"], "offset"
             inputs = (
                 torch.zeros((4, size, size, 3), dtype=torch.uint8),
                 torch.zeros((4, 2), dtype=torch.float32),

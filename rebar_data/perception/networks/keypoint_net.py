@@ -133,17 +133,16 @@ class KeypointNet(nn.Module):
         return self.head(f4)
 
 
-class ExportWrapper(nn.Module):
-    """What the ONNX file holds: uint8 RGB (1, H, W, 3) and, with ray channels, the output cells' rays
-    (1, 2, H/4, W/4) in; the network's (1, 3, H/4, W/4) out. The caller only pads the image and decodes
-    peaks."""
+class UInt8Input(nn.Module):
+    """Any of the detector's networks as its ONNX file holds it: uint8 images or patches (N, H, W, C) in,
+    as the run time cuts them, and the network's other inputs (the viewing rays) passed on as they come."""
 
-    def __init__(self, net: KeypointNet):
+    def __init__(self, net: nn.Module):
         super().__init__()
         self.net = net
 
-    def forward(self, image: torch.Tensor, rays: torch.Tensor | None = None) -> torch.Tensor:
-        return self.net(image.permute(0, 3, 1, 2).float(), rays)
+    def forward(self, x: torch.Tensor, *rest: torch.Tensor) -> torch.Tensor:
+        return self.net(x.permute(0, 3, 1, 2).float(), *rest)
 
 
 def count_parameters(net: nn.Module) -> int:

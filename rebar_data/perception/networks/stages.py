@@ -1,6 +1,5 @@
 """The later stages' networks: the second stage (:class:`PatchNet`), the depth check (:class:`DepthNet`) and
-the crossing-point stage (:class:`CrossingNet`), each with the wrapper that gives it the inputs its ONNX
-file takes."""
+the crossing-point stage (:class:`CrossingNet`)."""
 
 from __future__ import annotations
 
@@ -62,18 +61,6 @@ class PatchNet(nn.Module):
         return self.head(self.features(patches * (1.0 / 64.0) - 2.0))
 
 
-class PatchExportWrapper(nn.Module):
-    """What the refiner's ONNX file holds: uint8 patches (N, P, P, C) in (C = 4 with the border mask), offsets (N, 2) out (with the
-    verification logit as a third column, (N, 3), when the network has one)."""
-
-    def __init__(self, net: PatchNet):
-        super().__init__()
-        self.net = net
-
-    def forward(self, patches: torch.Tensor) -> torch.Tensor:
-        return self.net(patches.permute(0, 3, 1, 2).float())
-
-
 class DepthNet(nn.Module):
     """(N, 2, P, P) encoded depth patches (:func:`~rebar_data.perception.inference.checks.encode`) -> (N,) logit
     that the patch shows a crossing: a 3x3 convolution at full resolution, three halvings to P / 8, two
@@ -120,14 +107,3 @@ class CrossingNet(nn.Module):
     def forward(self, patches: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
         f = self.features(patches * (1.0 / 64.0) - 2.0).flatten(1)
         return self.head(torch.cat([f, rays], dim=1))
-
-
-class CrossingExportWrapper(nn.Module):
-    """What the ONNX file holds: uint8 patches (N, P, P, 3) and float32 rays (N, 2) in, offsets (N, 2) out."""
-
-    def __init__(self, net: CrossingNet):
-        super().__init__()
-        self.net = net
-
-    def forward(self, patches: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
-        return self.net(patches.permute(0, 3, 1, 2).float(), rays)

@@ -17,8 +17,14 @@ from typing import Any
 
 import torch
 
+from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample
-from rebar_data.perception.networks.files import load_checkpoint, save_checkpoint
+from rebar_data.perception.networks.files import (
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+    write_checkpoint,
+)
 from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
 from rebar_data.perception.training.epochs import WeightAverage, batch_stream, train_epoch
 
@@ -103,16 +109,18 @@ def adapt_first_stage(
             log(f"adapt epoch {epoch}/{a.epochs}: loss {row['train_loss']:.4f}")
         state["history"].append({**row, "seconds": row["train_seconds"]})
         state["epoch"] = epoch
-        _save(
+        write_checkpoint(
             path,
-            format=FORMAT,
-            want=want,
-            state_dict=net.state_dict(),
-            average_state_dict=avg.net.state_dict(),
-            average_updates=avg.updates,
-            optimizer=opt.state_dict(),
-            torch_rng=torch.get_rng_state(),
-            state=state,
+            {
+                "format": FORMAT,
+                "want": want,
+                "state_dict": net.state_dict(),
+                "average_state_dict": avg.net.state_dict(),
+                "average_updates": avg.updates,
+                "optimizer": opt.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+                "state": state,
+            },
         )
     batches = None  # stops the loader process
     save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
@@ -130,16 +138,9 @@ def _read(path: Path) -> dict[str, Any] | None:
     if not path.exists():
         return None
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception:
+        return read_checkpoint(path, fmt=FORMAT, what="adapt")
+    except ConfigError:
         return None
-    return payload if isinstance(payload, dict) and payload.get("format") == FORMAT else None
-
-
-def _save(path: Path, **payload: Any) -> None:
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
 
 
 def adapt_model(

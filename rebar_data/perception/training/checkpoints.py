@@ -1,8 +1,5 @@
-"""Model files of the detector's later stages (the second stage, :mod:`~rebar_data.perception.training.refine`,
-and the depth check, :mod:`~rebar_data.perception.training.depth_check`): their checkpoints, written
-atomically and read back with one clear error; their ONNX export; and the points that calibrate an int8
-file. Each stage keeps its own format name, settings and network; what they share is here.
-"""
+"""What the later stages' training shares: their checkpoints (written and read through
+:mod:`rebar_data.perception.networks.files`), resuming from one, and the points that calibrate an int8 file."""
 
 from __future__ import annotations
 
@@ -16,6 +13,7 @@ from torch import nn
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample
+from rebar_data.perception.networks.files import write_checkpoint
 
 
 def save_stage(
@@ -23,28 +21,16 @@ def save_stage(
 ) -> None:
     """Write a stage's checkpoint atomically: its format, settings (under ``config_key``), weights and
     ``extra`` (training state)."""
-    payload = {
-        "format": fmt,
-        "format_version": version,
-        config_key: cfg.model_dump(mode="json"),
-        "state_dict": net.state_dict(),
-        **extra,
-    }
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
-
-
-def read_stage(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
-    """A stage's checkpoint payload; ConfigError when the file cannot be read or is not a ``fmt`` file."""
-    path = Path(path)
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
-    except Exception as e:
-        raise ConfigError(f"{path}: cannot be read as a {what} checkpoint ({type(e).__name__})") from None
-    if not isinstance(payload, dict) or payload.get("format") != fmt:
-        raise ConfigError(f"{path}: is not a {fmt} checkpoint; accepted: a file written by `rebar train`")
-    return payload
+    write_checkpoint(
+        path,
+        {
+            "format": fmt,
+            "format_version": version,
+            config_key: cfg.model_dump(mode="json"),
+            "state_dict": net.state_dict(),
+            **extra,
+        },
+    )
 
 
 def resume_stage(

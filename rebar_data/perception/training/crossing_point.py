@@ -24,10 +24,10 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_image
 from rebar_data.perception.inference.refine import patch_rays, patches
-from rebar_data.perception.networks.files import export_onnx
+from rebar_data.perception.networks.files import export_onnx, read_checkpoint
 from rebar_data.perception.networks.stages import CrossingNet
 from rebar_data.perception.training.augment import photometric_batch
-from rebar_data.perception.training.checkpoints import fit_weights, read_stage, resume_stage, save_stage
+from rebar_data.perception.training.checkpoints import fit_weights, resume_stage, save_stage
 from rebar_data.perception.training.config import AugmentConfig, CrossingPointConfig
 from rebar_data.perception.training.schedule import warmup_cosine
 
@@ -56,7 +56,7 @@ def save(path: Path, net: CrossingNet, cfg: CrossingPointConfig, **extra: Any) -
 
 def load(path: str | Path) -> tuple[CrossingNet, CrossingPointConfig, dict[str, Any]]:
     """Rebuild the network from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    payload = read_stage(path, fmt=FORMAT, what="crossing-point")
+    payload = read_checkpoint(path, fmt=FORMAT, what="crossing-point")
     cfg = CrossingPointConfig.model_validate(payload["crossing_point_config"])
     return fit_weights(build(cfg), payload, path), cfg, payload
 

@@ -23,10 +23,10 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample
 from rebar_data.perception.inference.checks import MM_PER_M, encode, read_depth
+from rebar_data.perception.networks.files import read_checkpoint
 from rebar_data.perception.networks.stages import DepthNet
 from rebar_data.perception.training.checkpoints import (
     fit_weights,
-    read_stage,
     resume_stage,
     save_stage,
 )
@@ -52,7 +52,7 @@ def save(path: Path, net: DepthNet, cfg: DepthCheckConfig, **extra: Any) -> None
 
 def load(path: str | Path) -> tuple[DepthNet, DepthCheckConfig, dict[str, Any]]:
     """Rebuild the network from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    payload = read_stage(path, fmt=FORMAT, what="depth-check")
+    payload = read_checkpoint(path, fmt=FORMAT, what="depth-check")
     cfg = DepthCheckConfig.model_validate(payload["depth_check_config"])
     return fit_weights(build(cfg), payload, path), cfg, payload
 

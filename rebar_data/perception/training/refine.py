@@ -27,11 +27,11 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_image, read_images
 from rebar_data.perception.evaluation.lower_mat import lower_mat_of
+from rebar_data.perception.networks.files import read_checkpoint
 from rebar_data.perception.networks.stages import PatchNet
 from rebar_data.perception.training.checkpoints import (
     calibration_points,
     fit_weights,
-    read_stage,
     resume_stage,
     save_stage,
 )
@@ -75,7 +75,7 @@ def save(path: Path, net: PatchNet, cfg: RefineConfig, **extra: Any) -> None:
 
 def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
     """Rebuild a refiner from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    payload = read_stage(path, fmt=FORMAT, what="refiner")
+    payload = read_checkpoint(path, fmt=FORMAT, what="refiner")
     settings = dict(payload["refine_config"])
     settings.setdefault("verify", False)  # written before the second stage could verify
     settings.setdefault("size", False)  # written before it could size a crossing
