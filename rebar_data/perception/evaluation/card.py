@@ -24,9 +24,8 @@ from rebar_data.perception.evaluation.evaluate import (
     predict,
 )
 from rebar_data.perception.evaluation.metrics import oks_radius_px
-from rebar_data.perception.inference import image as behind
 from rebar_data.perception.inference.detector import DUPLICATE_PX, MODELS_DIR, SHIPPED_MODEL, Detector
-from rebar_data.perception.inference.image import TOLERANCE
+from rebar_data.perception.inference.image import GAP_M, TOLERANCE
 from rebar_data.perception.inference.model_file import (
     crossing_point_path,
     depth_check_path,
@@ -567,7 +566,7 @@ def write_card(
                 "- `without depth`: the same images given to `detect` without their depth images, as a folder of",
                 f"  photographs would be: {rgb_path.replace('the RGB', 'the two RGB')}, at their own operating point. The other rows",
                 "  (but `first stage alone`) give the detector each image's depth image, as the robot's RGB-D camera does.",
-                f"- `{FLATTENED}`: given the depth image, every pixel more than {behind.GAP_M:g} m behind the nearest surface",
+                f"- `{FLATTENED}`: given the depth image, every pixel more than {GAP_M:g} m behind the nearest surface",
                 "  around it (the mat beneath, the ground) is first replaced by the blurred colour of such pixels nearby",
                 "  (`Detector.flatten_behind`, off by default: it needs the depth image registered to the colour one",
                 "  within a pixel; README, the detector section).",
