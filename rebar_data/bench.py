@@ -11,7 +11,7 @@ SECTIONS = {
     "mesh": "rebar_data.geometry.bench",
     "render": "rebar_data.render.bench",
     "dataset": "rebar_data.dataset.bench",
-    "detector": "rebar_data.perception.bench",
+    "detector": "rebar_data.perception.evaluation.bench",
     "servo": "rebar_data.servo.bench",
 }
 

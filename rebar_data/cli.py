@@ -8,9 +8,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
-import math
 import sys
-from collections.abc import Callable
 
 from rebar_data.config import ConfigError
 
@@ -22,45 +20,8 @@ COMMAND_MODULES = [
     "rebar_data.servo.commands",
     "rebar_data.perception.commands",
 ]
-
-
-class bounded:
-    """An argparse ``type`` for a number within bounds, such as ``bounded(int, 1)`` for 1, 2, 3, ...
-
-    ``low`` and ``high`` are inclusive (None: no bound). ``str()`` gives the accepted range in words, for
-    the flag's help, so the help and the check say the same thing. A value outside is argparse's error: a
-    usage line and one line naming the flag, the value and the range, exit status 2.
-    """
-
-    def __init__(
-        self, kind: Callable[[str], int | float], low: float | None = None, high: float | None = None
-    ):
-        self.kind = kind
-        self.low = low
-        self.high = high
-        self.__name__ = kind.__name__  # argparse names the type by it in its own messages
-
-    def __str__(self) -> str:
-        noun = "an integer" if self.kind is int else "a number"
-        low, high = (
-            None if x is None else f"{x:d}" if self.kind is int else f"{x:g}" for x in (self.low, self.high)
-        )
-        if low is not None and high is not None:
-            return f"{noun} from {low} to {high}"
-        if low is not None:
-            return f"{noun} >= {low}"
-        return f"{noun} <= {high}" if high is not None else noun
-
-    def __call__(self, text: str) -> int | float:
-        try:
-            value = self.kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not a number; accepted: {self}") from None
-        if isinstance(value, float) and not math.isfinite(value):
-            raise argparse.ArgumentTypeError(f"{text} is not accepted; accepted: {self}")
-        if (self.low is not None and value < self.low) or (self.high is not None and value > self.high):
-            raise argparse.ArgumentTypeError(f"{text} is out of range; accepted: {self}")
-        return value
+# modules whose commands join another module's group: `rebar dataset publish|diff`
+SUBCOMMAND_MODULES = {"rebar_data.publish.commands": "rebar_data.dataset.commands"}
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -68,8 +29,9 @@ def build_parser() -> argparse.ArgumentParser:
         prog="rebar", description="Synthetic rebar data, detector and servo evaluation."
     )
     sub = p.add_subparsers(dest="command", required=True)
-    for name in COMMAND_MODULES:
-        importlib.import_module(name).register(sub)
+    groups = {name: importlib.import_module(name).register(sub) for name in COMMAND_MODULES}
+    for name, group in SUBCOMMAND_MODULES.items():
+        importlib.import_module(name).add_commands(groups[group])
     return p
 
 

@@ -2,7 +2,7 @@
 
 A pipeline file (``pipelines/<name>.yaml``) has the dataset's identity (``name``, ``version``,
 ``seed``), the rebar mesh (``mesh``, ``realism``) and the rendering sections defined in
-:mod:`rebar_data.scene.config`; :mod:`rebar_data.dataset.config` reads the whole file, for every command
+:mod:`rebar_data.scene.config`; :mod:`rebar_data.pipeline` reads the whole file, for every command
 that takes one. Unknown keys are errors: a typo must never be silently ignored.
 """
 
@@ -16,14 +16,12 @@ import numpy as np
 import yaml
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from rebar_data.errors import ConfigError  # noqa: F401  (raised by every config reader)
+
 Positive = Annotated[float, Field(gt=0)]
 NonNegative = Annotated[float, Field(ge=0)]
 Fraction = Annotated[float, Field(ge=0, le=1)]
 Vec3 = tuple[float, float, float]
-
-
-class ConfigError(Exception):
-    """A user's config (or the file holding it) is wrong; the message says what and how to fix it."""
 
 
 class Strict(BaseModel):
@@ -67,9 +65,6 @@ class PlanarMesh(MeshBase):
         _check_fits("spacing_y_m", self.spacing_y_m, "height_m", self.height_m, self.end_cover_m)
         _check_thickness(self)
         return self
-
-    def extents(self) -> tuple[float, float]:
-        return self.width_m, self.height_m
 
 
 class TunnelSegmentMesh(MeshBase):

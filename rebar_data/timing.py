@@ -24,10 +24,6 @@ class StageTimer:
             self.seconds[name] += time.perf_counter() - t0
             self.calls[name] += 1
 
-    def reset(self) -> None:
-        self.seconds.clear()
-        self.calls.clear()
-
     def totals(self) -> dict[str, tuple[float, int]]:
         """``{stage: (seconds, calls)}``, a plain dict that pickles across processes."""
         return {k: (self.seconds[k], self.calls[k]) for k in self.seconds}

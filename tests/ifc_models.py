@@ -10,8 +10,8 @@ import ifcopenshell.guid
 import numpy as np
 import yaml
 
-from rebar_data.dataset.config import load_mesh_config
 from rebar_data.geometry.build import build_rebar_mesh
+from rebar_data.pipeline import load_mesh_config
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -34,7 +34,7 @@ def _numeric_flags():
 
 
 def test_every_numeric_flag_states_and_enforces_its_bounds():
-    from rebar_data.cli import bounded
+    from rebar_data.arguments import bounded
 
     flags = list(_numeric_flags())
     assert {(n, f) for n, f, _ in flags} >= {

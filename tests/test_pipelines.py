@@ -12,7 +12,7 @@ from pathlib import Path
 
 import pytest
 
-from rebar_data.dataset.config import load_pipeline
+from rebar_data.pipeline import load_pipeline
 
 ROOT = Path(__file__).resolve().parents[1]
 PIPELINES = sorted((ROOT / "pipelines").glob("*.yaml"))

@@ -72,10 +72,10 @@ def _breakdown_lines(cfg_path: Path, tmp: Path, *, trajectories: int = 3) -> lis
     import multiprocessing as mp
 
     from rebar_data.dataset.build import prepare_staging
-    from rebar_data.dataset.config import load_pipeline
     from rebar_data.dataset.plan import make_plan
     from rebar_data.dataset.worker import init_process, run_in_process, stage_seconds_in_process
     from rebar_data.geometry.build import build_rebar_mesh
+    from rebar_data.pipeline import load_pipeline
 
     cfg = load_pipeline(cfg_path)
     rm = build_rebar_mesh(cfg.mesh_config())

@@ -32,7 +32,6 @@ from tqdm import tqdm
 import rebar_data
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
-from rebar_data.dataset.config import PipelineConfig, load_pipeline
 from rebar_data.dataset.layout import DatasetInfo
 from rebar_data.dataset.plan import Plan, Sample, make_plan
 from rebar_data.dataset.worker import FrameRecord, FrameWorker, init_process, run_in_process
@@ -43,6 +42,7 @@ from rebar_data.dataset.writers.tables import keypoints_table, samples_table, wr
 from rebar_data.dataset.writers.yolo import write_data_yaml, write_yolo
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
 from rebar_data.outputs import OutputLock, input_file, output_folder, replace_folder, restore_interrupted_swap
+from rebar_data.pipeline import PipelineConfig, load_pipeline
 from rebar_data.render.engines import check_engine, engine_record
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample

@@ -89,7 +89,7 @@ def run_audit(args: argparse.Namespace) -> int:
     return 0
 
 
-def register(sub: argparse._SubParsersAction) -> None:
+def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     d = sub.add_parser("dataset", help="build, validate, audit, publish and compare datasets")
     dsub = d.add_subparsers(dest="dataset_command", required=True)
     b = dsub.add_parser("build", help="render and label a dataset; prints its folder last")
@@ -126,6 +126,4 @@ def register(sub: argparse._SubParsersAction) -> None:
     a = dsub.add_parser("audit", help="label-quality checks, report and contact sheet (audit/)")
     a.add_argument("path")
     a.set_defaults(func=run_audit)
-    from rebar_data.publish.commands import add_commands
-
-    add_commands(dsub)
+    return dsub

@@ -15,9 +15,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from rebar_data.dataset.config import PipelineConfig, SplitConfig
 from rebar_data.dataset.layout import SPLITS
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.pipeline import PipelineConfig, SplitConfig
 from rebar_data.scene.cameras import trajectory_poses
 from rebar_data.scene.sample import SceneSample, sample_scene
 

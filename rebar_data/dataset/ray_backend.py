@@ -23,9 +23,9 @@ from pathlib import Path
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.build import Task, build_dataset, check_paths, check_workers, plural
-from rebar_data.dataset.config import PipelineConfig, load_pipeline
 from rebar_data.dataset.worker import FrameRecord, FrameWorker
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.pipeline import PipelineConfig, load_pipeline
 
 INSTALL_HINT = "pip install -e '.[ray]' (or pip install 'ray>=2.30,<3')"
 SHARDS_IN_FLIGHT_PER_ACTOR = 2  # one running, one queued, so an actor never waits for the driver

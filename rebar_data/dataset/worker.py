@@ -16,10 +16,10 @@ import cv2
 import numpy as np
 
 from rebar_data.dataset import layout
-from rebar_data.dataset.config import PipelineConfig
 from rebar_data.dataset.plan import Sample
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
 from rebar_data.labels.keypoints import CrossingParts, FrameLabels, LabelRule, label_frame
+from rebar_data.pipeline import PipelineConfig
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample, sample_sensor
 from rebar_data.timing import StageTimer

@@ -7,11 +7,11 @@ import time
 import numpy as np
 
 from rebar_data.config import PAPER_PIPELINE, MeshConfig
-from rebar_data.dataset.config import load_mesh_config
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.solids import build_parts, merge
 from rebar_data.geometry.specs import build_layout
+from rebar_data.pipeline import load_mesh_config
 
 
 def _timed(fn, repeat: int = 3):

@@ -42,7 +42,6 @@ def require_ifcopenshell(what: str) -> None:
 
 def run_mesh(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError
-    from rebar_data.dataset.config import load_mesh_config
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.geometry.export import write_mesh_outputs
     from rebar_data.outputs import (
@@ -52,6 +51,7 @@ def run_mesh(args: argparse.Namespace) -> None:
         output_folder,
         replace_folder,
     )
+    from rebar_data.pipeline import load_mesh_config
 
     def check_out() -> Path:
         return output_folder(args.out, arg="--out", command=COMMAND, owned=is_mesh_folder, swapped=True)

@@ -1,7 +1,12 @@
-"""Rebar-crossing keypoint detector: model, training loop, metrics, inference and plots.
+"""Rebar-crossing keypoint detector: ``Detector.load().detect(rgb) -> (N, 3)`` u, v, score.
 
-The detector predicts a heatmap of crossings at stride 4 with a sub-pixel offset per cell
-(CenterNet-like) from a compact depthwise-separable network, and returns (u, v, score) in the input
-image's pixels with COCO's corner origin. It is trained from scratch on a dataset in the project's
-layout; nothing is downloaded.
+- :mod:`~rebar_data.perception.inference`: the run time (numpy, OpenCV, ONNX Runtime or OpenVINO).
+- :mod:`~rebar_data.perception.networks`: the PyTorch networks and the one writer of their model files.
+- :mod:`~rebar_data.perception.training`: training every stage, its data, settings and losses.
+- :mod:`~rebar_data.perception.evaluation`: metrics, the model card, the bench and plots.
+- :mod:`~rebar_data.perception.commands`: the ``rebar train|detect|adapt-model`` commands.
 """
+
+from rebar_data.perception.inference.detector import Detector
+
+__all__ = ["Detector"]

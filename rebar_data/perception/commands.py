@@ -11,10 +11,10 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from rebar_data.cli import bounded
-from rebar_data.perception.focal import TOLERANCE
-from rebar_data.perception.reading import READINGS
-from rebar_data.perception.runtime import RUNTIMES
+from rebar_data.arguments import bounded
+from rebar_data.perception.inference.detector import READINGS
+from rebar_data.perception.inference.image import TOLERANCE
+from rebar_data.perception.inference.model_file import RUNTIMES
 
 if TYPE_CHECKING:
     import numpy as np
@@ -87,8 +87,9 @@ def _crossing_point_folder(folder: Path) -> bool:
 def run_train(args: argparse.Namespace) -> None:
     from rebar_data.config import ConfigError, read_yaml
     from rebar_data.outputs import outside_inputs
-    from rebar_data.perception.data import check_dataset, read_info
-    from rebar_data.perception.train import check_run_folder, resolve_config, train
+    from rebar_data.perception.evaluation.data import check_dataset, read_info
+    from rebar_data.perception.training.config import resolve_config
+    from rebar_data.perception.training.train import check_run_folder, train
 
     root = check_dataset(args.dataset)
     if args.eval and not args.ship:
@@ -117,7 +118,7 @@ def run_train(args: argparse.Namespace) -> None:
         progress=not args.quiet,
     )
     if args.ship:
-        from rebar_data.perception.card import ship
+        from rebar_data.perception.evaluation.card import ship
 
         model = ship(out, evaluate_on=args.eval or (), progress=not args.quiet)
         print(f"shipped {model}", file=sys.stderr)
@@ -129,30 +130,21 @@ def run_train(args: argparse.Namespace) -> None:
     print(out)
 
 
-def _added_stage_inputs(args: argparse.Namespace, *, model_settings: bool = False):
-    """What `rebar add-crossing-point`, `add-line-check` and `add-int8-passes` share: the dataset (checked)
-    and its info, the model file, the training settings (``--config``; without it the defaults, or with
-    ``model_settings`` those the model file records) and every image of the supplements with their
-    records."""
+def _added_stage_inputs(args: argparse.Namespace):
+    """What `rebar add-crossing-point` reads: the dataset (checked), the model file, the training settings
+    (``--config``, else the defaults) and every image of the supplements."""
     from rebar_data.config import read_yaml
-    from rebar_data.perception.data import check_dataset, read_info
-    from rebar_data.perception.export import check_model_file, onnx_meta
-    from rebar_data.perception.infer import resolve_model_path
-    from rebar_data.perception.train import resolve_config, supplement_images
+    from rebar_data.perception.evaluation.data import check_dataset, read_info
+    from rebar_data.perception.inference.detector import resolve_model_path
+    from rebar_data.perception.training.config import resolve_config
+    from rebar_data.perception.training.train import supplement_images
 
     root = check_dataset(args.dataset)
-    info = read_info(root)
     model = resolve_model_path(args.model)
-    if args.config:
-        settings, source = read_yaml(args.config), str(args.config)
-    elif model_settings:
-        settings = onnx_meta(check_model_file(model)).get("train_config")
-        source = f"{model}'s train settings"
-    else:
-        settings, source = None, "train settings"
+    settings, source = (read_yaml(args.config), str(args.config)) if args.config else (None, "train settings")
     cfg = resolve_config(settings, {}, source=source)
-    extra, records = supplement_images(args.supplement or (), trained_on=info.get("name"))
-    return root, info, model, cfg, extra, records
+    extra, _ = supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
+    return root, model, cfg, extra
 
 
 def _training_out(args: argparse.Namespace, command: str, owned, inputs) -> Path:
@@ -177,13 +169,13 @@ def _writing(out: Path, command: str, owned):
 
 
 def run_add_crossing_point(args: argparse.Namespace) -> None:
-    from rebar_data.perception.crossing_point_train import attach
-    from rebar_data.perception.data import load_split
+    from rebar_data.perception.evaluation.data import load_split
+    from rebar_data.perception.training.crossing_point import attach
 
     out = _training_out(
         args, ADD_CROSSING_POINT, _crossing_point_folder, [args.dataset, *(args.supplement or ())]
     )
-    root, _, model, cfg, extra, _ = _added_stage_inputs(args)
+    root, model, cfg, extra = _added_stage_inputs(args)
     samples = load_split(root, "train") + extra
     with _writing(out, ADD_CROSSING_POINT, _crossing_point_folder):
         stage = attach(
@@ -193,49 +185,13 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
     print(stage)
 
 
-def run_add_line_check(args: argparse.Namespace) -> None:
-    from rebar_data.config import ConfigError
-    from rebar_data.perception.data import load_split
-    from rebar_data.perception.line_check_train import attach, fitted_on
-
-    root, info, model, cfg, extra, records = _added_stage_inputs(args)
-    val = load_split(root, "val")
-    if not val:
-        raise ConfigError(f"{root}: the val split has no images; accepted: the dataset the model trained on")
-    entry = attach(
-        model,
-        val + extra,
-        val,
-        cfg.line_check,
-        data=fitted_on(info.get("name"), records),
-        progress=not args.quiet,
-    )
-    print(
-        f"line check in {model}: fitted on {entry['candidates']} candidates of {entry['images']} images",
-        file=sys.stderr,
-    )
-    print(model)
-
-
-def run_add_int8_passes(args: argparse.Namespace) -> None:
-    from rebar_data.perception.data import load_split
-    from rebar_data.perception.refine_train import attach_int8_passes, calibrated_on
-
-    root, info, model, cfg, extra, records = _added_stage_inputs(args, model_settings=True)
-    samples = load_split(root, "train") + extra
-    out = attach_int8_passes(
-        model, samples, cfg.refine, seed=cfg.seed, data=calibrated_on(info.get("name"), records)
-    )
-    print(f"second stage's later passes in int8 beside {model}: {out}", file=sys.stderr)
-    print(out)
-
-
 def run_adapt(args: argparse.Namespace) -> None:
     from rebar_data.config import read_yaml
-    from rebar_data.perception.adapt_train import adapt_model
-    from rebar_data.perception.data import check_dataset, load_split, read_info
-    from rebar_data.perception.infer import resolve_model_path
-    from rebar_data.perception.train import resolve_config, supplement_images
+    from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
+    from rebar_data.perception.inference.detector import resolve_model_path
+    from rebar_data.perception.training.adapt import adapt_model
+    from rebar_data.perception.training.config import resolve_config
+    from rebar_data.perception.training.train import supplement_images
 
     out = _training_out(args, ADAPT, _adapt_folder, [args.dataset, *args.frames])
     root = check_dataset(args.dataset)
@@ -261,7 +217,7 @@ def run_adapt(args: argparse.Namespace) -> None:
 def run_detect(args: argparse.Namespace) -> int:
     from rebar_data.config import ConfigError
     from rebar_data.outputs import input_file, input_folder
-    from rebar_data.perception.infer import Detector, resolve_model_path
+    from rebar_data.perception.inference.detector import resolve_model_path
 
     target = Path(args.input)
     accepted = "a dataset folder, an image or a folder of images"
@@ -299,7 +255,9 @@ def run_detect(args: argparse.Namespace) -> int:
         _images_out(target, args)
         _camera_of(args.camera)
     resolve_model_path(args.model)  # a wrong --model is named before anything loads
-    detector = Detector.load(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
+    from rebar_data.perception.training.train import load_detector
+
+    detector = load_detector(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
     detector.resample = not args.no_resample
     detector.flatten_behind = args.flatten_behind
     if dataset:
@@ -377,7 +335,7 @@ def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> 
     """The predictions file, with `rebar detect`'s mark in its Parquet metadata."""
     import pyarrow.parquet as pq
 
-    from rebar_data.perception.evaluate import write_predictions
+    from rebar_data.perception.evaluation.evaluate import write_predictions
 
     def write(tmp: Path) -> None:
         table = pq.read_table(write_predictions(tmp, image_ids, preds))
@@ -390,10 +348,10 @@ def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> 
 def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
     from rebar_data.config import ConfigError
     from rebar_data.outputs import OutputLock
-    from rebar_data.perception.data import SPLITS, stated_oks_sigma
-    from rebar_data.perception.evaluate import LOW_THRESHOLD, load_splits, predict, score
-    from rebar_data.perception.false_detections import false_detection_census, format_census
-    from rebar_data.perception.metrics import format_summary
+    from rebar_data.perception.evaluation.data import SPLITS, stated_oks_sigma
+    from rebar_data.perception.evaluation.evaluate import LOW_THRESHOLD, load_splits, predict, score
+    from rebar_data.perception.evaluation.false_detections import false_detection_census, format_census
+    from rebar_data.perception.evaluation.metrics import format_summary
 
     samples = load_splits(root, SPLITS if args.split == "all" else (args.split,), truth=args.truth)
     if not samples:
@@ -447,7 +405,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
 
 def _runtime_words(detector) -> str:
     """What ran ``detector``'s first stage, in words (its figures may move a little with the runtime)."""
-    from rebar_data.perception.runtime import runtime_description
+    from rebar_data.perception.inference.model_file import runtime_description
 
     return "PyTorch, float32" if detector.backend == "torch" else runtime_description(detector.backend)
 
@@ -493,8 +451,8 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
     end; an image that cannot be read is named and skipped, and the command then ends with status 1."""
     from rebar_data.config import ConfigError
     from rebar_data.outputs import OutputLock, mark_output, replace_folder
-    from rebar_data.perception.data import read_image
-    from rebar_data.perception.metrics import OPERATING_THRESHOLD
+    from rebar_data.perception.evaluation.data import read_image
+    from rebar_data.perception.inference.detector import OPERATING_THRESHOLD
 
     files = _image_files(target)
     camera = _camera_of(args.camera)
@@ -534,7 +492,7 @@ def _detect_image(detector, f: Path, rgb: np.ndarray, out: Path, camera, thresho
     was read with."""
     import cv2
 
-    from rebar_data.perception.plots import draw_overlay
+    from rebar_data.perception.evaluation.plots import draw_overlay
 
     used, how = camera, "--camera"
     if camera is None:
@@ -560,20 +518,6 @@ def _photo_camera(
     if found is None:
         return None, "the training camera's field of view" + ("" if exif else ", --no-exif")
     return found.camera, f"EXIF {found.focal_35mm:g} mm equivalent, fx {found.camera[0]:.0f} px"
-
-
-def _added_stage_parser(
-    sub: argparse._SubParsersAction, name: str, *, help: str, dataset: str, supplement: str, config: str
-) -> argparse.ArgumentParser:
-    """The parser of a command that adds a stage to a model file in place (`rebar add-line-check`,
-    `add-int8-passes`): the dataset, --model, --supplement, --config and --quiet, helped as given."""
-    c = sub.add_parser(name, help=help)
-    c.add_argument("dataset", help=dataset)
-    c.add_argument("--model", help="the model's .onnx file, changed in place (default: the shipped model)")
-    c.add_argument("--supplement", action="append", metavar="DATASET", help=supplement)
-    c.add_argument("--config", help=config)
-    c.add_argument("--quiet", action="store_true", help="no progress lines")
-    return c
 
 
 def register(sub: argparse._SubParsersAction) -> None:
@@ -644,23 +588,6 @@ def register(sub: argparse._SubParsersAction) -> None:
     a.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
     a.set_defaults(func=run_add_crossing_point)
 
-    _added_stage_parser(
-        sub,
-        "add-line-check",
-        help="fit the line check (scores read along each detection's bars) into a model file",
-        dataset="the dataset the model trained on (its val split fits and calibrates it)",
-        supplement="a dataset whose every image the check also fits on (repeatable; make train: LINE_SUPPLEMENTS)",
-        config="YAML of training settings, as for `rebar train` (its line_check)",
-    ).set_defaults(func=run_add_line_check)
-    _added_stage_parser(
-        sub,
-        "add-int8-passes",
-        help="write the int8 copy of a model's second stage that its passes after the first read",
-        dataset="the dataset the model trained on (its train split calibrates the copy)",
-        supplement="a dataset whose every image calibrates it too (repeatable; make train: SUPPLEMENTS)",
-        config="YAML of training settings (default: those the model trained with)",
-    ).set_defaults(func=run_add_int8_passes)
-
     p = sub.add_parser(
         "adapt",
         help="train a model's first stage a few more epochs on another camera's or renderer's labelled frames",
@@ -727,7 +654,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--flatten-behind",
         action="store_true",
         help="with the dataset's depth images, take what lies far behind the bars in front (lower mat, "
-        "ground) out of each colour image before reading it (rebar_data/perception/behind.py; off by default)",
+        "ground) out of each colour image before reading it (rebar_data/perception/inference/image.py; off by default)",
     )
     d.add_argument(
         "--oks-sigma",

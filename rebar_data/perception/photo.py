@@ -9,7 +9,7 @@ tag, with 0 there (the standard's "unknown") or with a value no lens has (:data:
 None: the detector then assumes the training camera's field of view (``Detector.default_camera``).
 
 Why it matters: the detector reads a frame at the focal length it trained at and gives each output cell
-its viewing ray (:mod:`~rebar_data.perception.focal`). The training camera (525 px across 640, the Kinect v1)
+its viewing ray (:mod:`~rebar_data.perception.inference.image`). The training camera (525 px across 640, the Kinect v1)
 is a 28 mm equivalent. A phone's main camera (24-26 mm) lies within the 15% the detector reads as it
 comes, but its ultra-wide (13 mm) shows a bar at half the size the field-of-view guess expects and a
 telephoto (70-77 mm) at 2.5 times. Bars twice the trained size (the cross-renderer sets enlarged twice,

@@ -36,8 +36,8 @@ def _rss_mb() -> float:
 
 def _paper_mesh():
     from rebar_data.config import PAPER_PIPELINE
-    from rebar_data.dataset.config import load_mesh_config
     from rebar_data.geometry.build import build_rebar_mesh
+    from rebar_data.pipeline import load_mesh_config
 
     return build_rebar_mesh(load_mesh_config(PAPER_PIPELINE))
 

@@ -8,7 +8,7 @@ import sys
 import tempfile
 from pathlib import Path
 
-from rebar_data.cli import bounded
+from rebar_data.arguments import bounded
 
 COMMAND = "rebar render"
 FRAMES = bounded(int, 1)
@@ -27,9 +27,9 @@ def is_render_folder(folder: Path) -> bool:
 def run_render(args: argparse.Namespace) -> None:
     import numpy as np
 
-    from rebar_data.dataset.config import load_pipeline
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_folder
+    from rebar_data.pipeline import load_pipeline
     from rebar_data.render.engines import check_engine
     from rebar_data.scene.cameras import intrinsics_from_config
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from rebar_data.cli import bounded
+from rebar_data.arguments import bounded
 
 EPISODES = bounded(int, 1)
 

@@ -14,8 +14,8 @@ from typing import Annotated, Literal
 from pydantic import Field, model_validator
 
 from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, read_yaml, validate
-from rebar_data.perception.reading import Reading
-from rebar_data.perception.runtime import Runtime
+from rebar_data.perception.inference.detector import Reading
+from rebar_data.perception.inference.model_file import Runtime
 from rebar_data.scene.config import SceneConfig
 
 Vec3 = tuple[float, float, float]
@@ -201,10 +201,10 @@ class SuiteConfig(Strict):
     seed: Annotated[int, Field(ge=0)] = 0
     detector: Literal["shipped", "ground_truth"] = "shipped"
     detector_path: str | None = None
-    # what runs the shipped detector's model files (rebar_data.perception.runtime): auto is OpenVINO in
+    # what runs the shipped detector's model files (rebar_data.perception.inference.model_file): auto is OpenVINO in
     # bfloat16 where the CPU has it, ONNX Runtime in float32 elsewhere; pin one to compare machines
     detector_runtime: Runtime = "auto"
-    # how the shipped detector reads each frame (rebar_data.perception.reading): single (the default) reads it
+    # how the shipped detector reads each frame (rebar_data.perception.inference.detector): single (the default) reads it
     # once; mirrored also reads its mirror image, as Detector.load does by default. The servo keeps the single
     # reading: the robot's frames come with depth, where the mirrored reading adds little (paper-tunnel test
     # recall at precision 0.99 0.990 against 0.993), and on eval/paper.yaml it moved the worst IBVS visit's
@@ -212,7 +212,7 @@ class SuiteConfig(Strict):
     # others 0.5 mm or less); the servo README has the figures
     detector_reading: Reading = "single"
     # whether the shipped detector first takes what lies far behind the bars in front out of each frame, from
-    # its depth image (rebar_data.perception.behind; off, as Detector.load has it). Measured with it on:
+    # its depth image (rebar_data.perception.inference.image; off, as Detector.load has it). Measured with it on:
     # eval/paper.yaml worst true lateral error IBVS / PBVS 0.98 / 0.50 mm (0.97 / 0.24 without),
     # eval/paper-lower-mat.yaml 1.44 / 0.51 mm (1.80 / 1.51 without)
     detector_flatten_behind: bool = False

@@ -1,7 +1,7 @@
 """Crossing detectors for the servo loop: the protocol, a ground-truth detector, faults, and the shipped model.
 
 Anything with ``detect(rgb) -> (N, 3)`` rows ``(u, v, score)`` in pixels drops into the loop. The
-shipped model is :class:`rebar_data.perception.infer.Detector`; :class:`GroundTruthDetector` projects
+shipped model is :class:`rebar_data.perception.Detector`; :class:`GroundTruthDetector` projects
 the crossings that are really visible with the exact camera pose (for tests and for separating control
 from perception errors), and :class:`FaultyDetector` wraps either one with dropped frames, pixel noise
 and spurious detections.
@@ -147,15 +147,15 @@ def load_shipped_detector(
     flatten_behind: bool = False,
 ) -> Detector:
     """The shipped crossing detector (``path`` None) or a given model, run by ``runtime``
-    (:mod:`rebar_data.perception.runtime`), reading each frame as ``reading`` says
-    (:mod:`rebar_data.perception.reading`), flattening what lies behind the bars in front with
-    ``flatten_behind`` (:mod:`rebar_data.perception.behind`) and told the camera's intrinsics when it takes
+    (:mod:`rebar_data.perception.inference.model_file`), reading each frame as ``reading`` says
+    (:mod:`rebar_data.perception.inference.detector`), flattening what lies behind the bars in front with
+    ``flatten_behind`` (:mod:`rebar_data.perception.inference.image`) and told the camera's intrinsics when it takes
     them; one clear ConfigError when it is not available."""
     try:
-        from rebar_data.perception.infer import Detector as ShippedDetector
+        from rebar_data.perception import Detector as ShippedDetector
     except ImportError as e:
         raise ConfigError(
-            f"detector = 'shipped' needs rebar_data.perception.infer, which cannot be imported ({e}); "
+            f"detector = 'shipped' needs rebar_data.perception, which cannot be imported ({e}); "
             "accepted: detector: ground_truth until the detector is built"
         ) from None
     try:

@@ -22,8 +22,8 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError
-from rebar_data.dataset.config import load_pipeline
 from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_folder
+from rebar_data.pipeline import load_pipeline
 from rebar_data.servo.camera import CameraModel
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.detectors import GroundTruthDetector, load_shipped_detector

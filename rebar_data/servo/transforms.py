@@ -38,7 +38,3 @@ def apply(T: np.ndarray, points: np.ndarray) -> np.ndarray:
     """Transform points (N, 3) or (3,) by a 4x4 matrix."""
     p = np.asarray(points, float)
     return p @ T[:3, :3].T + T[:3, 3]
-
-
-def quaternion_xyzw(R: np.ndarray) -> np.ndarray:
-    return Rotation.from_matrix(R).as_quat()

@@ -30,8 +30,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from rebar_data.config import ConfigError, Pose
-from rebar_data.dataset.config import load_mesh_config
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
+from rebar_data.pipeline import load_mesh_config
 from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.servo import ur5
 from rebar_data.servo.client import BulletClient, quiet_stdout

@@ -383,7 +383,7 @@ def test_ctrl_c_and_kill_9_leave_a_build_that_resumes(tmp_path):
 
 RENDER_ONE_FRAME = """
 import numpy as np
-from rebar_data.dataset.config import load_pipeline
+from rebar_data.pipeline import load_pipeline
 from rebar_data.dataset.plan import make_plan
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.render.renderer import Renderer

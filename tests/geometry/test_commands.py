@@ -10,7 +10,7 @@ import yaml
 import rebar_data.config
 from rebar_data.cli import main
 from rebar_data.config import ConfigError
-from rebar_data.dataset.config import load_mesh_config
+from rebar_data.pipeline import load_mesh_config
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from rebar_data.config import MeshConfig
-from rebar_data.dataset.config import load_mesh_config
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.geometry.export import write_mesh_outputs
 from rebar_data.geometry.specs import positions
+from rebar_data.pipeline import load_mesh_config
 
 
 def _cfg(**mesh) -> MeshConfig:

@@ -11,10 +11,10 @@ pytest.importorskip("ifcopenshell")
 
 from rebar_data.cli import main  # noqa: E402
 from rebar_data.config import ConfigError  # noqa: E402
-from rebar_data.dataset.config import load_mesh_config  # noqa: E402
 from rebar_data.geometry.build import build_rebar_mesh  # noqa: E402
 from rebar_data.geometry.ifc_samples import WALL_YAW_DEG, world_from_wall, write_wall  # noqa: E402
 from rebar_data.geometry.ifc_write import write_ifc  # noqa: E402
+from rebar_data.pipeline import load_mesh_config  # noqa: E402
 from rebar_data.scene.cameras import trajectory_poses  # noqa: E402
 from rebar_data.scene.config import OrbitArc, RandomLookAt  # noqa: E402
 from rebar_data.scene.mat_surface import MatSurface  # noqa: E402

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from rebar_data.perception.config import AugmentConfig
-from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+from rebar_data.perception.training.config import AugmentConfig
 
 # every colour, blur and noise change off: augmentation is geometry only, so pixels can be compared
 COLOUR_OFF = dict(
@@ -30,12 +30,12 @@ def render_one_frame(tmp_path: Path):
     camera (640x480 Kinect v1): a scene and pose the shipped model has never seen."""
     import yaml
 
-    from rebar_data.dataset.config import PipelineConfig
     from rebar_data.dataset.plan import make_plan
     from rebar_data.dataset.worker import FrameWorker
     from rebar_data.geometry.build import build_rebar_mesh
-    from rebar_data.perception.data import read_image
-    from rebar_data.perception.depth_check import read_depth
+    from rebar_data.perception.evaluation.data import read_image
+    from rebar_data.perception.inference.checks import read_depth
+    from rebar_data.pipeline import PipelineConfig
 
     smoke = yaml.safe_load((Path(__file__).parents[2] / "pipelines/smoke.yaml").read_text())
     cfg = PipelineConfig.model_validate(
@@ -88,7 +88,7 @@ def rendered_depth(_rendered):
 def shipped_model_copy(folder: Path) -> Path:
     """The shipped model's files copied into ``folder`` (a test that changes a model file in place works on
     this); skips the test when no model is shipped yet."""
-    from rebar_data.perception import infer
+    from rebar_data.perception.inference import detector as infer
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
@@ -119,8 +119,6 @@ TINY_TRAIN = {
         "epochs": 1,
         "batch_size": 32,
         "threads": 1,
-        "quantize": "int8",  # not the default (float), so the tests cover the int8 file too
-        "context_scale": 2,  # so the tests cover a second stage that reads a context view
     },
     "depth_check": {
         "patch_px": 16,
@@ -160,7 +158,7 @@ def drawn_dataset(tmp_path_factory):
 @pytest.fixture(scope="session")
 def trained_run(drawn_dataset, tmp_path_factory):
     """A tiny model trained for two epochs on the drawn dataset."""
-    from rebar_data.perception.train import train
+    from rebar_data.perception.training.train import train
 
     before = torch.get_num_threads()
     out = tmp_path_factory.mktemp("runs") / "tiny"

@@ -7,13 +7,13 @@ import pytest
 
 from rebar_data.cli import main
 from rebar_data.config import ConfigError
-from rebar_data.perception.adapt_train import adapt_model
-from rebar_data.perception.data import load_split, read_sample_image
-from rebar_data.perception.evaluate import load_splits
-from rebar_data.perception.export import onnx_meta
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
-from rebar_data.perception.train import resolve_config
+from rebar_data.perception.evaluation.data import load_split, read_sample_image
+from rebar_data.perception.evaluation.evaluate import load_splits
+from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.networks.files import onnx_meta
+from rebar_data.perception.training.adapt import adapt_model
+from rebar_data.perception.training.config import resolve_config
 
 from .conftest import TINY_TRAIN
 
@@ -79,8 +79,8 @@ def test_adapt_draws_the_other_cameras_crops_at_the_models_focal_length(
     trained_run, drawn_dataset, other_frames, tmp_path, monkeypatch
 ):
     """The adapt epochs crop another camera's frames at the focal length the model trained at, as `detect`
-    will read them (``rebar_data.perception.focal``)."""
-    from rebar_data.perception import adapt_train
+    will read them (``rebar_data.perception.inference.image``)."""
+    from rebar_data.perception.training import adapt as adapt_train
 
     model = trained_run.out_dir / "best.onnx"
     asked: dict = {}

@@ -6,7 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
-from rebar_data.perception.augment import (
+from rebar_data.perception.evaluation.data import Sample
+from rebar_data.perception.inference.detector import ray_grid
+from rebar_data.perception.training.augment import (
     Source,
     apply_affine,
     crop_rays,
@@ -17,9 +19,7 @@ from rebar_data.perception.augment import (
     single_crop,
     warp,
 )
-from rebar_data.perception.config import AugmentConfig
-from rebar_data.perception.data import Sample
-from rebar_data.perception.model import ray_grid
+from rebar_data.perception.training.config import AugmentConfig
 
 from .conftest import COLOUR_OFF, STILL
 
@@ -114,8 +114,8 @@ def test_a_frame_from_another_focal_length_is_cropped_at_the_models_with_the_sam
     """A source's gain multiplies every crop's scale (the same random draws): two points 40 px apart land
     half as far apart in a crop with gain 0.5 as with gain 1, each on its spot; the training images give a
     frame of twice the model's focal length that gain, and one within the tolerance 1."""
-    from rebar_data.perception.epochs import TrainingImages
-    from rebar_data.perception.focal import TOLERANCE
+    from rebar_data.perception.inference.image import TOLERANCE
+    from rebar_data.perception.training.epochs import TrainingImages
 
     pts = np.array([[40.0, 60.0], [80.0, 60.0]])
     image = _blob_image(pts)

@@ -3,9 +3,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rebar_data.perception import infer
-from rebar_data.perception.behind import GAP_M, behind_mask, flatten_behind, front_depth
-from rebar_data.perception.infer import Detector
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.image import GAP_M, behind_mask, flatten_behind, front_depth
 
 H, W = 240, 320
 
@@ -69,7 +69,7 @@ def test_the_shipped_model_reads_a_rendered_frame_with_depth_through_it(
 ):
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
-    from rebar_data.perception.metrics import Truth, pixel_metrics
+    from rebar_data.perception.evaluation.metrics import Truth, pixel_metrics
 
     rgb, truth, box, camera = rendered_frame
     assert behind_mask(rendered_depth).mean() > 0.2  # the frame shows the ground between the bars

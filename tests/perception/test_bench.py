@@ -2,8 +2,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from rebar_data.perception.bench import detector_latency, drawn_frame, flatten_cost
-from rebar_data.perception.infer import Detector
+from rebar_data.perception.evaluation.bench import detector_latency, drawn_frame, flatten_cost
+from rebar_data.perception.inference.detector import Detector
 
 
 def test_latency_counts_the_later_stages_candidates_apart_from_what_they_keep(trained_run):
@@ -30,7 +30,7 @@ def test_a_one_stage_detector_has_no_second_stage_figure(trained_run):
 
 
 def test_flattening_is_timed_on_and_off_and_the_detector_left_as_it_was(trained_run, monkeypatch):
-    from rebar_data.perception import infer
+    from rebar_data.perception.inference import detector as infer
 
     det = Detector.load(trained_run.out_dir, threads=1)
     rgb, depth = drawn_frame()

@@ -3,8 +3,8 @@ from __future__ import annotations
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.card import CARD_NAME, ship
-from rebar_data.perception.infer import Detector
+from rebar_data.perception.evaluation.card import CARD_NAME, ship
+from rebar_data.perception.inference.detector import Detector
 
 
 def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
@@ -22,8 +22,6 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     # the second stage's verification is described where the model and its training are
     assert "sigmoid(first-stage logit + 1 log p; 0.5 log p beside the depth check)" in card
     assert "farther than 6 px from every" in card
-    # and its context view (the tests' settings give it one, 2 times wider)
-    assert "context view: the 2 times wider square" in card
     # latency is timed on rendered frames like the training data's, not on the drawn worst case
     assert "over 8 rendered paper-tunnel frames" in card and "candidates" in card
     # its figures read each image as Detector.load does by default: the mirrored reading
@@ -46,7 +44,7 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     import shutil
 
     from rebar_data.dataset.build import build_dataset
-    from rebar_data.perception.card import evaluation_rows
+    from rebar_data.perception.evaluation.card import evaluation_rows
     from tests.dataset.conftest import TINY, write_config
 
     own = build_dataset(write_config(tmp_path, {**TINY, "name": "own"}), tmp_path / "data", workers=1)
@@ -63,7 +61,7 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     assert rgb["n_gt"] == vs_3d["n_gt"] == rows["own v0.0.1 (all splits)"]["n_gt"] > 0
     assert rgb["mean_px"] != vs_3d["mean_px"]
     # and with its depth images, as they come and with what lies behind flattened: the same crossings
-    from rebar_data.perception.card import FLATTENED
+    from rebar_data.perception.evaluation.card import FLATTENED
 
     with_depth = rows["other v0.0.1, cycles renderer, with depth"]
     flat = rows[f"other v0.0.1, cycles renderer, with depth, {FLATTENED}"]
@@ -85,8 +83,8 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     assert sum(m["n_gt"] for m in split.values()) == rgb["n_gt"] and split
     assert not any(k.startswith("own v0.0.1") and "scenes" in k for k in rows)
     # and where its confident false detections lie, which the card lists under its table
-    from rebar_data.perception.card import _census_lines
-    from rebar_data.perception.false_detections import PLACES, format_census
+    from rebar_data.perception.evaluation.card import _census_lines
+    from rebar_data.perception.evaluation.false_detections import PLACES, format_census
 
     census = rgb["false_detections"]
     assert census["recall"] == 0.97 and census["false"] == sum(census[k] for k in PLACES)
@@ -104,7 +102,7 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
 def test_the_card_names_every_renderer_that_drew_training_images():
     """The Limits line counts the frames another renderer drew (a dataset that names no renderer was built
     by Open3D, before datasets recorded it)."""
-    from rebar_data.perception.card import _renderer_line
+    from rebar_data.perception.evaluation.card import _renderer_line
 
     own = {"renderer": "open3d", "supplements": [{"name": "lower", "images": 720}]}
     assert "all from one renderer (Open3D)" in _renderer_line(own)

@@ -14,11 +14,10 @@ pytest.importorskip("bpy", reason="Blender's bpy module is not installed (pip in
 
 def test_shipped_model_finds_the_crossings_of_a_fresh_cycles_frame():
     from rebar_data.config import PAPER_PIPELINE
-    from rebar_data.dataset.config import load_mesh_config
     from rebar_data.geometry.build import build_rebar_mesh
     from rebar_data.labels.keypoints import CrossingParts, label_frame
-    from rebar_data.perception.infer import Detector
-    from rebar_data.perception.metrics import OPERATING_THRESHOLD
+    from rebar_data.perception.inference.detector import OPERATING_THRESHOLD, Detector
+    from rebar_data.pipeline import load_mesh_config
     from rebar_data.render.cycles import CyclesRenderer
     from rebar_data.scene.cameras import PRESETS, look_at
     from rebar_data.scene.config import CyclesConfig, RenderConfig, SceneConfig

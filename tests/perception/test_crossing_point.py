@@ -9,12 +9,15 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.config import CrossingPointConfig
-from rebar_data.perception.crossing_point import CrossingPoint, patch_rays, shrink
-from rebar_data.perception.crossing_point_train import PatchSet, attach, batches, build, export_onnx
-from rebar_data.perception.data import load_split, read_image
-from rebar_data.perception.export import onnx_meta
-from rebar_data.perception.infer import Detector, crossing_point_path
+from rebar_data.perception.evaluation.data import load_split, read_image
+from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.model_file import crossing_point_path
+from rebar_data.perception.inference.refine import patch_rays
+from rebar_data.perception.networks import eager
+from rebar_data.perception.networks.files import export_onnx, onnx_meta
+from rebar_data.perception.training.config import CrossingPointConfig
+from rebar_data.perception.training.crossing_point import PatchSet, attach, batches, build
 
 from .conftest import STILL, TINY_TRAIN
 
@@ -55,25 +58,22 @@ def test_turns_flips_and_scales_move_the_offset_and_the_ray_with_the_patch():
         assert cos == pytest.approx(1.0, abs=1e-5)
 
 
-def test_shrink_is_the_block_mean_and_patch_rays_the_normalised_pixel():
-    x = np.random.default_rng(0).integers(0, 256, (3, 8, 8, 3)).astype(np.uint8)
-    ref = x.reshape(3, 4, 2, 4, 2, 3).astype(float).mean(axis=(2, 4))
-    assert np.abs(shrink(x, 2).astype(float) - ref).max() <= 0.5
+def test_patch_rays_are_the_normalised_pixel():
     np.testing.assert_allclose(
         patch_rays(np.array([[420.0, 140.0]]), (500.0, 400.0, 320.0, 240.0)), [[0.2, -0.25]]
     )
 
 
 def test_onnx_crossing_point_gives_what_pytorch_gives(tmp_path):
-    cfg = CrossingPointConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8, pool=2)
+    cfg = CrossingPointConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8)
     net = build(cfg)
     image = np.random.default_rng(1).integers(0, 256, (60, 80, 3)).astype(np.uint8)
     uv = np.array([[10.2, 12.7], [40.0, 30.0], [79.5, 59.5]])
     camera = (70.0, 70.0, 40.0, 30.0)
-    eager = CrossingPoint.from_network(net, pool=2).offsets(image, uv, camera)
-    onnx = CrossingPoint.load_onnx(export_onnx(net, tmp_path / "c.onnx"), threads=1, pool=2)
-    np.testing.assert_allclose(onnx.offsets(image, uv, camera), eager, atol=1e-4)
-    assert eager.shape == (3, 2) and np.isfinite(eager).all()
+    in_torch = eager.crossing_point(net).offsets(image, uv, camera)
+    onnx = model_file.read_crossing_point(export_onnx(net, tmp_path / "c.onnx"), threads=1)
+    np.testing.assert_allclose(onnx.offsets(image, uv, camera), in_torch, atol=1e-4)
+    assert in_torch.shape == (3, 2) and np.isfinite(in_torch).all()
 
 
 def test_a_trained_run_ships_the_stage_and_detect_gives_the_crossing_points(
@@ -97,7 +97,7 @@ def test_a_trained_run_ships_the_stage_and_detect_gives_the_crossing_points(
         det.detect(rgb, point="middle")
     lone = tmp_path / "lone"
     lone.mkdir()
-    for name in ("best.onnx", "best.refine.onnx", "best.depth.onnx"):
+    for name in ("best.onnx", "best.refine.onnx", "best.refine.int8.onnx", "best.depth.onnx"):
         shutil.copy(out / name, lone / name)
     with pytest.raises(ConfigError, match="best.crossing.onnx is missing"):
         Detector.load(lone / "best.onnx")
@@ -106,11 +106,11 @@ def test_a_trained_run_ships_the_stage_and_detect_gives_the_crossing_points(
 def test_the_stage_is_added_beside_a_model_trained_without_it(trained_run, drawn_dataset, tmp_path):
     model_dir = tmp_path / "model"
     model_dir.mkdir()
-    for name in ("best.onnx", "best.refine.onnx", "best.depth.onnx"):
+    for name in ("best.onnx", "best.refine.onnx", "best.refine.int8.onnx", "best.depth.onnx"):
         shutil.copy(trained_run.out_dir / name, model_dir / name)
     model = model_dir / "best.onnx"
     # as a model written before the stage existed: its metadata names none
-    from rebar_data.perception.export import update_onnx_meta
+    from rebar_data.perception.networks.files import update_onnx_meta
 
     update_onnx_meta(model, {"crossing_point": None})
     det = Detector.load(model)

@@ -9,18 +9,15 @@ import pytest
 import torch
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.config import DepthCheckConfig
-from rebar_data.perception.data import load_split, read_image
-from rebar_data.perception.depth_check import DepthCheck, as_depth_m, encode, read_depth
-from rebar_data.perception.depth_check_train import (
-    PaddedDepth,
-    build,
-    export_onnx,
-    patch_batches,
-    train_depth_check,
-)
-from rebar_data.perception.infer import Detector, verified_score
-from rebar_data.perception.refine import patches
+from rebar_data.perception.evaluation.data import load_split, read_image
+from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.checks import DepthCheck, as_depth_m, encode, read_depth
+from rebar_data.perception.inference.detector import Detector, verified_score
+from rebar_data.perception.inference.refine import patches
+from rebar_data.perception.networks import eager
+from rebar_data.perception.networks.files import export_onnx
+from rebar_data.perception.training.config import DepthCheckConfig
+from rebar_data.perception.training.depth_check import PaddedDepth, build, patch_batches, train_depth_check
 from tests.perception.conftest import TINY_TRAIN
 
 
@@ -36,16 +33,6 @@ def test_a_patch_is_depth_relative_to_its_centre_with_a_mask_of_measurements():
     assert x[0, 0, 0, 7] == 0.0 and x[0, 1, 0, 7] == 0.0 and x[0, 1, 4, 4] == 1.0
     doubled, _ = encode(p, scale_m=0.05, clip=10.0, gain=np.array([2.0, 1.0]))
     assert doubled[0, 0, 4, 0] == pytest.approx(8.0)
-
-
-def test_pooled_cells_hold_the_mean_of_their_measured_pixels_and_the_share_measured():
-    p = np.full((1, 8, 8), 1.0, np.float32)
-    p[0, 0, 0], p[0, 0, 1], p[0, 1, 0] = 1.1, 0.0, 0.0  # the top-left 2x2 block: 1.1, 1.0 and two holes
-    full, _ = encode(p, scale_m=0.05, clip=4.0)
-    x, has_centre = encode(p, scale_m=0.05, clip=4.0, pool=2)
-    assert x.shape == (1, 2, 4, 4) and has_centre.tolist() == [True]
-    assert x[0, 0, 0, 0] == pytest.approx((2.0 + 0.0) / 2) and x[0, 1, 0, 0] == pytest.approx(0.5)
-    np.testing.assert_allclose(x[0, :, 1:, 1:], full[0, :, 2:, 2:].reshape(2, 3, 2, 3, 2).mean(axis=(2, 4)))
 
 
 def test_the_reference_depth_is_the_median_of_the_centres_measurements():
@@ -104,7 +91,7 @@ def test_a_detection_with_no_depth_at_its_centre_keeps_its_score():
 
 def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
     torch.manual_seed(1)
-    net = build(DepthCheckConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8, pool=2)).eval()
+    net = build(DepthCheckConfig(patch_px=16, widths=(4, 4, 8, 8), hidden=8)).eval()
     with torch.no_grad():
         for m in net.modules():
             if isinstance(m, torch.nn.BatchNorm2d):
@@ -112,13 +99,13 @@ def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
                 m.running_var.uniform_(0.5, 2.0)
     depth = np.random.default_rng(0).uniform(0.5, 1.0, (40, 50)).astype(np.float32)
     points = np.array([[10.0, 12.0], [25.5, 30.25], [0.5, 39.0]])
-    onnx_check = DepthCheck.load_onnx(
-        export_onnx(net, tmp_path / "d.onnx"), threads=1, scale_m=0.05, clip=4.0, pool=net.pool
+    onnx_check = model_file.read_depth_check(
+        export_onnx(net, tmp_path / "d.onnx"), threads=1, scale_m=0.05, clip=4.0
     )
-    assert onnx_check.patch_px == 16 and net.pool == 2
+    assert onnx_check.patch_px == 16
     np.testing.assert_allclose(
         onnx_check.logits(depth, points),
-        DepthCheck.from_network(net, scale_m=0.05, clip=4.0).logits(depth, points),
+        eager.depth_check(net, scale_m=0.05, clip=4.0).logits(depth, points),
         atol=1e-4,
     )
 
@@ -152,7 +139,7 @@ def test_the_depth_check_learns_crossings_from_points_far_behind_the_bars(drawn_
     cfg = DepthCheckConfig(patch_px=16, widths=(8, 8, 16, 16), hidden=16, epochs=6, batch_size=64, threads=1)
     net, history = train_depth_check(samples, negatives, tmp_path, cfg, seed=0)
     assert history[-1]["loss"] < history[0]["loss"]
-    check = DepthCheck.from_network(net, scale_m=cfg.scale_m, clip=cfg.clip)
+    check = eager.depth_check(net, scale_m=cfg.scale_m, clip=cfg.clip)
     s = load_split(drawn_dataset, "test")[0]
     depth = read_depth(s.depth_path)
     assert np.median(check.logits(depth, s.visible)) > 0
@@ -219,7 +206,7 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     assert det.depth_check is not None
     lone = tmp_path / "lone"
     lone.mkdir()
-    for name in ("best.onnx", "best.refine.onnx"):
+    for name in ("best.onnx", "best.refine.onnx", "best.refine.int8.onnx"):
         shutil.copy(out / name, lone / name)
     with pytest.raises(ConfigError, match="best.depth.onnx is missing"):
         Detector.load(lone / "best.onnx")

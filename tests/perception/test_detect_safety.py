@@ -11,7 +11,7 @@ import pytest
 
 from rebar_data.cli import main
 from rebar_data.outputs import OWNER_FILE
-from rebar_data.perception.evaluate import load_splits
+from rebar_data.perception.evaluation.evaluate import load_splits
 from tests.read_only import read_only_fixture  # noqa: F401  (the read_only fixture)
 
 from .conftest import shipped_model_copy

@@ -1,5 +1,5 @@
 """A frame from a camera with another focal length is read at the one the detector trained at
-(``rebar_data.perception.focal``): resized to it, every stage run there, positions returned in the
+(``rebar_data.perception.inference.image``): resized to it, every stage run there, positions returned in the
 caller's pixels."""
 
 from __future__ import annotations
@@ -7,10 +7,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rebar_data.perception import infer
-from rebar_data.perception.focal import TOLERANCE, focal_scale, resample, resampled_size, scaled_camera
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.metrics import Truth, match, pixel_metrics
+from rebar_data.perception.evaluation.metrics import Truth, match, pixel_metrics
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.image import (
+    TOLERANCE,
+    focal_scale,
+    resample,
+    resampled_size,
+    scaled_camera,
+)
 
 CAMERA = (525.0, 525.0, 320.0, 240.0)
 
@@ -23,7 +29,7 @@ def _shipped() -> Detector:
 
 def _frame() -> tuple[np.ndarray, np.ndarray, Truth]:
     """The bench's drawn 640x480 frame (focal length 525 px), its depth and its visible crossings."""
-    from rebar_data.perception.bench import drawn_frame_labelled
+    from rebar_data.perception.evaluation.bench import drawn_frame_labelled
 
     rgb, records, depth = drawn_frame_labelled()
     vis = [r for r in records if r["visibility"] == 2]
@@ -143,7 +149,7 @@ def test_a_camera_beside_a_dataset_is_refused(drawn_dataset, tmp_path, capsys):
 
 
 def test_the_bench_times_a_large_frame_both_ways_and_leaves_the_detector_as_it_was(monkeypatch):
-    from rebar_data.perception.bench import drawn_frame, focal_cost
+    from rebar_data.perception.evaluation.bench import drawn_frame, focal_cost
 
     det = _shipped()
     read_at: list[tuple[int, int]] = []

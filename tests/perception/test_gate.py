@@ -1,4 +1,4 @@
-"""The detector's regression gate (:mod:`rebar_data.perception.gate`): the shipped model scored on the gate set,
+"""The detector's regression gate (:mod:`rebar_data.perception.evaluation.gate`): the shipped model scored on the gate set,
 which the suite builds once, against the reference figures shipped beside it (``models/gate.json``)."""
 
 from __future__ import annotations
@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from rebar_data.dataset.config import load_pipeline
 from rebar_data.dataset.writers.manifest import sha256_file
-from rebar_data.perception import gate
-from rebar_data.perception.data import Sample
-from rebar_data.perception.infer import SHIPPED_MODEL
+from rebar_data.perception.evaluation import gate
+from rebar_data.perception.evaluation.data import Sample
+from rebar_data.perception.inference.detector import SHIPPED_MODEL
+from rebar_data.pipeline import load_pipeline
 
 
 @pytest.fixture(scope="session")
@@ -31,7 +31,7 @@ def reference():
         pytest.skip("no model shipped yet (make train ships one)")
     assert gate.GATE_FILE.exists(), (
         f"the shipped model has no {gate.GATE_FILE.name} beside it: write it with "
-        "`python -m rebar_data.perception.gate` (shipping a model writes it)"
+        "`python -m rebar_data.perception.evaluation.gate` (shipping a model writes it)"
     )
     return gate.read_reference()
 
@@ -44,7 +44,7 @@ def measured(gate_set):
 
 def test_the_reference_is_the_shipped_models_on_this_gate_set(reference):
     assert reference["model"]["sha256"] == sha256_file(SHIPPED_MODEL), (
-        f"{gate.GATE_FILE.name} was written for another model: rewrite it with `python -m rebar_data.perception.gate`"
+        f"{gate.GATE_FILE.name} was written for another model: rewrite it with `python -m rebar_data.perception.evaluation.gate`"
     )
     cfg = load_pipeline(gate.GATE_PIPELINE)
     assert (reference["set"]["name"], reference["set"]["version"]) == (cfg.name, cfg.version)

@@ -5,11 +5,13 @@ import pytest
 import torch
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import infer
-from rebar_data.perception.config import ModelConfig
-from rebar_data.perception.export import export_onnx, load_checkpoint, save_checkpoint
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.model import KeypointNet
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.networks import eager
+from rebar_data.perception.networks.files import export_onnx, load_checkpoint, save_checkpoint
+from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
+from rebar_data.perception.training.train import load_detector
 
 from .conftest import TINY_MODEL
 
@@ -30,14 +32,14 @@ def test_onnx_export_gives_the_same_output_as_pytorch(tiny_net, tmp_path):
     rgb = np.random.default_rng(0).integers(0, 256, (96, 128, 3), dtype=np.uint8)
     path = export_onnx(tiny_net, tmp_path / "m.onnx", {"note": "test"})
     onnx_det = Detector.load(path, threads=1, runtime="onnxruntime", reading="single")  # the export itself
-    torch_det = Detector.from_network(tiny_net)
+    torch_det = eager.detector(tiny_net)
     camera = (100.0, 100.0, 64.0, 48.0)
     np.testing.assert_allclose(onnx_det.raw(rgb, camera=camera), torch_det.raw(rgb, camera=camera), atol=1e-4)
     assert onnx_det.meta["note"] == "test" and onnx_det.backend == "onnxruntime"
 
 
 def test_detect_pads_any_size_and_returns_points_inside(tiny_net):
-    det = Detector.from_network(tiny_net)
+    det = eager.detector(tiny_net)
     rgb = np.random.default_rng(1).integers(0, 256, (101, 131, 3), dtype=np.uint8)
     assert det.raw(rgb).shape == (3, 26, 33)
     out = det.detect(rgb, threshold=0.01)
@@ -68,7 +70,9 @@ def test_checkpoint_round_trip(tiny_net, tmp_path):
     x = torch.rand(1, 3, 32, 32) * 255
     rays = torch.zeros(1, 2, 8, 8)
     torch.testing.assert_close(net(x, rays), tiny_net(x, rays))
-    assert Detector.load(tmp_path / "m.pt").backend == "torch"
+    assert load_detector(tmp_path / "m.pt").backend == "torch"
+    with pytest.raises(ConfigError, match="reads .onnx files"):
+        Detector.load(tmp_path / "m.pt")
 
 
 def test_load_names_what_is_wrong(tmp_path, monkeypatch):
@@ -84,11 +88,11 @@ def test_load_names_what_is_wrong(tmp_path, monkeypatch):
         Detector.load(tmp_path)
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ConfigError, match="cannot be read"):
-        Detector.load(tmp_path / "bad.pt")
+        load_detector(tmp_path / "bad.pt")
 
 
 def test_detect_rejects_what_is_not_an_rgb_image(tiny_net):
-    det = Detector.from_network(tiny_net)
+    det = eager.detector(tiny_net)
     with pytest.raises(ConfigError, match="RGB array"):
         det.detect(np.zeros((32, 32), np.uint8))
     with pytest.raises(ConfigError, match="threshold"):
@@ -98,7 +102,7 @@ def test_detect_rejects_what_is_not_an_rgb_image(tiny_net):
 def test_shipped_model_detects_the_crossings_of_a_freshly_rendered_frame(rendered_frame):
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
-    from rebar_data.perception.metrics import Truth, pixel_metrics
+    from rebar_data.perception.evaluation.metrics import Truth, pixel_metrics
 
     rgb, truth, box, camera = rendered_frame
     assert len(truth) >= 20
@@ -115,9 +119,9 @@ def test_a_model_file_without_first_pass_views_reads_every_pass_in_its_views():
         pytest.skip("no model shipped yet (make train ships one)")
     meta = Detector.load(threads=1).meta
     entry = {k: v for k, v in meta["refiner"].items() if k != "first_pass_views"} | {"views": 4}
-    old = infer._load_refiner(infer.SHIPPED_MODEL, {**meta, "refiner": entry}, 1, "onnxruntime")
+    old = model_file.load_refiner(infer.SHIPPED_MODEL, {**meta, "refiner": entry}, 1, "onnxruntime")
     assert old.views == old.first_pass_views == 4
-    stored = infer._load_refiner(
+    stored = model_file.load_refiner(
         infer.SHIPPED_MODEL, {**meta, "refiner": {**entry, "first_pass_views": 1}}, 1, "onnxruntime"
     )
     assert stored.views == 4 and stored.first_pass_views == 1
@@ -129,7 +133,7 @@ def test_the_later_passes_skip_only_detections_that_cannot_reach_the_threshold(m
     sparing them, at the operating point and at a low threshold."""
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
-    from rebar_data.perception.bench import drawn_frame
+    from rebar_data.perception.evaluation.bench import drawn_frame
 
     det = Detector.load(threads=1)
     rgb, depth = drawn_frame()  # dense with bars on the ground: many candidates the later stages reject
@@ -153,15 +157,15 @@ def test_the_later_passes_skip_only_detections_that_cannot_reach_the_threshold(m
 
 
 def test_an_onnx_file_turns_back_into_the_network_it_was_exported_from(tiny_net, tmp_path):
-    from rebar_data.perception.export import network_from_onnx
+    from rebar_data.perception.networks.files import network_from_onnx
 
     rgb = np.random.default_rng(2).integers(0, 256, (96, 128, 3), dtype=np.uint8)
     path = export_onnx(tiny_net, tmp_path / "m.onnx", {"note": "back"})
     net, meta = network_from_onnx(path)
     assert meta == {"note": "back"} and net.cfg == tiny_net.cfg
     camera = (100.0, 100.0, 64.0, 48.0)
-    want = Detector.from_network(tiny_net).raw(rgb, camera=camera)
-    np.testing.assert_allclose(Detector.from_network(net).raw(rgb, camera=camera), want, atol=1e-4)
+    want = eager.detector(tiny_net).raw(rgb, camera=camera)
+    np.testing.assert_allclose(eager.detector(net).raw(rgb, camera=camera), want, atol=1e-4)
     # and it exports again to the same outputs: the round trip loses nothing
     again = Detector.load(
         export_onnx(net, tmp_path / "again.onnx", meta), threads=1, runtime="onnxruntime", reading="single"
@@ -172,7 +176,7 @@ def test_an_onnx_file_turns_back_into_the_network_it_was_exported_from(tiny_net,
 def test_a_file_without_detector_metadata_is_refused(tmp_path):
     import onnx
 
-    from rebar_data.perception.export import network_from_onnx
+    from rebar_data.perception.networks.files import network_from_onnx
 
     bare = tmp_path / "bare.onnx"
     onnx.save(onnx.helper.make_model(onnx.helper.make_graph([], "g", [], [])), str(bare))

@@ -7,13 +7,13 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import infer
-from rebar_data.perception.config import RefineConfig
-from rebar_data.perception.data import load_split, read_sample_image
-from rebar_data.perception.export import onnx_meta, update_onnx_meta
-from rebar_data.perception.infer import Detector, int8_passes_path
-from rebar_data.perception.refine import Refiner
-from rebar_data.perception.refine_train import attach_int8_passes
+from rebar_data.perception.evaluation.data import load_split, read_sample_image
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.model_file import int8_passes_path
+from rebar_data.perception.inference.refine import Refiner
+from rebar_data.perception.networks.files import onnx_meta
 
 from .conftest import shipped_model_copy
 
@@ -57,31 +57,14 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
     assert not Refiner(_network(0, 0, [], "f"), patch_px=16, iterations=2, verifies=True).has_int8_passes
 
 
-@pytest.fixture(scope="module")
-def float_model(tmp_path_factory):
-    """A copy of the shipped model whose second stage's passes all read the float file."""
-    model = shipped_model_copy(tmp_path_factory.mktemp("float"))
-    int8_passes_path(model).unlink(missing_ok=True)
-    entry = dict(onnx_meta(model)["refiner"])
-    for key in ("int8_sha256", "int8_calibrated_on"):
-        entry.pop(key, None)
-    update_onnx_meta(model, {"refiner": {**entry, "quantize": "none"}})
-    return model
+def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, tmp_path):
+    from rebar_data.perception.evaluation.bench import int8_passes_cost
+    from rebar_data.perception.evaluation.card import _int8_passes_lines
 
-
-def test_add_int8_passes_writes_the_copy_and_the_detector_reads_its_later_passes_with_it(
-    float_model, drawn_dataset
-):
-    from rebar_data.perception.bench import int8_passes_cost
-    from rebar_data.perception.card import _int8_passes_lines
-
-    model = float_model
-    assert not Detector.load(model, threads=1).refiner.has_int8_passes
-    cfg = RefineConfig(calibration_patches=64)
-    out = attach_int8_passes(model, load_split(drawn_dataset, "train"), cfg, seed=0, data=["drawn train"])
-    assert out == int8_passes_path(model) and out.is_file() and out.stat().st_size < model.stat().st_size
-    entry = onnx_meta(model)["refiner"]
-    assert entry["quantize"] == "later" and entry["int8_calibrated_on"]["data"] == ["drawn train"]
+    model = shipped_model_copy(tmp_path)
+    out = model_file.int8_passes_path(model)
+    assert out.is_file() and out.stat().st_size < model.stat().st_size
+    assert onnx_meta(model)["refiner"]["quantize"] == "later"
     det = Detector.load(model, threads=1, reading="single")  # the first pass in float (the mirrored: int8)
     assert det.refiner.has_int8_passes
     assert f"`{out.name}`" in " ".join(_int8_passes_lines(model, det))
@@ -108,17 +91,6 @@ def test_add_int8_passes_writes_the_copy_and_the_detector_reads_its_later_passes
     out.unlink()
     with pytest.raises(ConfigError, match="refine.int8.onnx is missing"):
         Detector.load(model)
-    out.write_bytes(keep)
-
-
-def test_add_int8_passes_refuses_what_it_cannot_add_to(float_model, trained_run, drawn_dataset):
-    samples = load_split(drawn_dataset, "train")
-    with pytest.raises(ConfigError, match="int8 throughout already"):  # the tiny run ships int8
-        attach_int8_passes(trained_run.out_dir / "best.onnx", samples, RefineConfig(), seed=0, data=[])
-    with pytest.raises(ConfigError, match="reads 32 px patches"):
-        attach_int8_passes(float_model, samples, RefineConfig(patch_px=48), seed=0, data=[])
-    with pytest.raises(ConfigError, match="no such ONNX model"):
-        attach_int8_passes(float_model.with_suffix(".pt"), samples, RefineConfig(), seed=0, data=[])
 
 
 def test_an_int8_copy_of_another_network_is_refused():
@@ -126,7 +98,9 @@ def test_an_int8_copy_of_another_network_is_refused():
         pytest.skip("no model shipped yet (make train ships one)")
     model = infer.SHIPPED_MODEL
     with pytest.raises(ConfigError, match="takes or gives other shapes than rebar_keypoint.refine.onnx"):
-        Refiner.load_onnx(infer.refiner_path(model), threads=1, int8_path=infer.depth_check_path(model))
+        model_file.read_refiner(
+            model_file.refiner_path(model), threads=1, int8_path=model_file.depth_check_path(model)
+        )
 
 
 def test_the_shipped_files_stay_within_five_megabytes():
@@ -135,7 +109,7 @@ def test_the_shipped_files_stay_within_five_megabytes():
         pytest.skip("no model shipped yet (make train ships one)")
     files = sorted(infer.MODELS_DIR.glob(f"{infer.SHIPPED_MODEL.stem}*.onnx"))
     det = Detector.load(None, threads=1)
-    loaded = [infer.SHIPPED_MODEL, infer.refiner_path(infer.SHIPPED_MODEL)]
+    loaded = [infer.SHIPPED_MODEL, model_file.refiner_path(infer.SHIPPED_MODEL)]
     loaded += [int8_passes_path(infer.SHIPPED_MODEL)] if det.refiner.has_int8_passes else []
     assert set(loaded) <= set(files)
     assert sum(f.stat().st_size for f in files) <= 5_000_000, [(f.name, f.stat().st_size) for f in files]

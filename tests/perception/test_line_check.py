@@ -5,13 +5,13 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import line_check as lc
-from rebar_data.perception.config import LineCheckConfig
-from rebar_data.perception.data import load_split, read_sample_image
-from rebar_data.perception.depth_check import read_depth
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.line_check import FEATURES, LineCheck
-from rebar_data.perception.line_check_train import attach
+from rebar_data.perception.evaluation.data import load_split, read_sample_image
+from rebar_data.perception.inference import checks as lc
+from rebar_data.perception.inference.checks import FEATURES, LineCheck, read_depth
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.networks.files import update_onnx_meta
+from rebar_data.perception.training.config import LineCheckConfig
+from rebar_data.perception.training.line_check import fit_line_check
 
 from .conftest import shipped_model_copy
 
@@ -114,16 +114,20 @@ def test_a_check_fitted_on_other_features_is_refused():
 
 @pytest.fixture(scope="module")
 def checked_model(drawn_dataset, tmp_path_factory):
-    """A copy of the shipped model with a line check fitted into it by ``attach`` on the drawn frames (a
-    model trained in a test finds too few crossings to fit one)."""
+    """A copy of the shipped model with a line check fitted on the drawn frames written into it (a model
+    trained in a test finds too few crossings to fit one)."""
     model = shipped_model_copy(tmp_path_factory.mktemp("checked"))
     val = load_split(drawn_dataset, "val")
-    entry = attach(model, val + load_split(drawn_dataset, "train"), val, LineCheckConfig(), data=["drawn"])
+    detector = Detector.load(model, threads=2, line_check=False, runtime="onnxruntime")
+    entry, _ = fit_line_check(
+        detector, val + load_split(drawn_dataset, "train"), val, LineCheckConfig(), data=["drawn"]
+    )
+    update_onnx_meta(model, {"line_check": entry})
     return model, entry
 
 
-def test_add_line_check_writes_the_fitted_check_into_the_model_file(checked_model):
-    from rebar_data.perception.card import _line_check_lines
+def test_the_fitted_check_in_the_model_file_loads_with_it(checked_model):
+    from rebar_data.perception.evaluation.card import _line_check_lines
 
     model, entry = checked_model
     assert entry["fitted_on"] == ["drawn"] and entry["candidates"] > entry["crossings"] > 0
@@ -131,8 +135,6 @@ def test_add_line_check_writes_the_fitted_check_into_the_model_file(checked_mode
     assert det.line_check is not None
     np.testing.assert_allclose(det.line_check.weights, entry["weights"])
     assert f"Fitted on {entry['candidates']} candidates of `drawn`" in " ".join(_line_check_lines(det))
-    with pytest.raises(ConfigError, match="no such ONNX model"):
-        attach(model.with_suffix(".pt"), [], [], LineCheckConfig())
 
 
 def test_with_a_line_check_the_detector_returns_the_same_at_any_threshold(checked_model, drawn_dataset):
@@ -162,7 +164,7 @@ def test_with_a_line_check_the_detector_returns_the_same_at_any_threshold(checke
 
 
 def test_the_bench_times_the_rgb_path_with_and_without_the_check(checked_model):
-    from rebar_data.perception.bench import line_check_cost
+    from rebar_data.perception.evaluation.bench import line_check_cost
 
     model, _ = checked_model
     det = Detector.load(model, threads=1)

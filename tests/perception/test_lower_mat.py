@@ -11,13 +11,13 @@ import pytest
 from rebar_data.config import MeshConfig
 from rebar_data.dataset.worker import INSTANCE_OFFSET
 from rebar_data.geometry.build import build_rebar_mesh
-from rebar_data.perception.adapt_train import adapt_settings
-from rebar_data.perception.config import AdaptConfig, TrainConfig
-from rebar_data.perception.data import load_split, read_distractors
-from rebar_data.perception.epochs import TrainingImages, make_batch
-from rebar_data.perception.evaluate import score
-from rebar_data.perception.lower_mat import lower_mat_crossings, lower_mat_of, lower_mat_places
-from rebar_data.perception.refine_train import with_lower_mat
+from rebar_data.perception.evaluation.data import load_split, read_distractors
+from rebar_data.perception.evaluation.evaluate import score
+from rebar_data.perception.evaluation.lower_mat import lower_mat_crossings, lower_mat_of, lower_mat_places
+from rebar_data.perception.training.adapt import adapt_settings
+from rebar_data.perception.training.config import AdaptConfig, TrainConfig
+from rebar_data.perception.training.epochs import TrainingImages, make_batch
+from rebar_data.perception.training.refine import with_lower_mat
 from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.scene.surroundings import DISTRACTOR_ID
 from tests.dataset.conftest import TINY, write_config
@@ -173,7 +173,7 @@ def test_training_images_know_their_distractors_pixels_only_when_the_gain_is_on(
 
 
 def test_the_census_puts_each_false_detection_at_the_place_it_lies(lower_dataset):
-    from rebar_data.perception.false_detections import false_detection_census, format_census
+    from rebar_data.perception.evaluation.false_detections import false_detection_census, format_census
 
     samples = load_split(lower_dataset, "train")
     places = lower_mat_places(lower_dataset, samples)
@@ -228,7 +228,7 @@ def test_the_census_puts_each_false_detection_at_the_place_it_lies(lower_dataset
 
 
 def test_a_dataset_without_a_lower_mat_counts_no_false_detection_there(drawn_dataset):
-    from rebar_data.perception.false_detections import false_detection_census
+    from rebar_data.perception.evaluation.false_detections import false_detection_census
 
     samples = load_split(drawn_dataset, "train")
     preds = [

@@ -6,7 +6,7 @@ import io
 import numpy as np
 import pytest
 
-from rebar_data.perception.metrics import (
+from rebar_data.perception.evaluation.metrics import (
     DEFAULT_OKS_SIGMA,
     Truth,
     ap_ceiling,
@@ -189,8 +189,8 @@ def test_pixel_metrics_agree_with_a_plain_reimplementation_of_the_scorer():
 
 
 def test_score_bias_puts_score_one_half_at_the_best_f1():
-    from rebar_data.perception.data import Sample
-    from rebar_data.perception.evaluate import calibrate_score_bias
+    from rebar_data.perception.evaluation.data import Sample
+    from rebar_data.perception.evaluation.evaluate import calibrate_score_bias
 
     gt = np.array([[10.0, 10.0], [50.0, 10.0], [90.0, 10.0], [130.0, 10.0]])
     sample = Sample("a", None, 200, 40, gt, np.full(4, 30.0))
@@ -209,7 +209,7 @@ def _two_scenes(tmp_path, *, lower_mat: bool = True):
     import pyarrow as pa
     import pyarrow.parquet as pq
 
-    from rebar_data.perception.data import Sample
+    from rebar_data.perception.evaluation.data import Sample
 
     uv = np.array([[50.0, 40.0], [3.0, 40.0]])
     samples = [
@@ -229,7 +229,7 @@ def _two_scenes(tmp_path, *, lower_mat: bool = True):
 
 
 def test_setting_the_border_aside_ignores_the_crossings_and_drops_the_detections_there(tmp_path):
-    from rebar_data.perception.evaluate import score, set_border_aside
+    from rebar_data.perception.evaluation.evaluate import score, set_border_aside
 
     samples, preds = _two_scenes(tmp_path)
     every = score(samples, preds, sigma=DEFAULT_OKS_SIGMA)
@@ -243,7 +243,7 @@ def test_setting_the_border_aside_ignores_the_crossings_and_drops_the_detections
 
 
 def test_the_breakdown_scores_the_frames_inside_and_the_scenes_with_and_without_a_lower_mat(tmp_path):
-    from rebar_data.perception.evaluate import breakdown
+    from rebar_data.perception.evaluation.evaluate import breakdown
 
     samples, preds = _two_scenes(tmp_path)
     rows = breakdown(tmp_path, samples, preds, sigma=DEFAULT_OKS_SIGMA)

@@ -9,11 +9,11 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from rebar_data.perception import infer
-from rebar_data.perception.data import read_image
-from rebar_data.perception.focal import resample
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.metrics import Truth, pixel_metrics
+from rebar_data.perception.evaluation.data import read_image
+from rebar_data.perception.evaluation.metrics import Truth, pixel_metrics
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.image import resample
 from rebar_data.perception.photo import EXIF_IFD, FOCAL_LENGTH_35MM, focal_35mm, photo_camera
 
 ORIENTATION = 0x0112

@@ -1,4 +1,4 @@
-"""How the detector reads an image (``rebar_data.perception.reading``): the mirrored reading, in which the
+"""How the detector reads an image (``rebar_data.perception.inference.detector``): the mirrored reading, in which the
 first stage reads the image and its mirror image and the second stage reads its int8 copy, and the single
 one."""
 
@@ -8,11 +8,16 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import infer
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.metrics import match
-from rebar_data.perception.reading import MIRRORED_LATER_VIEWS, READINGS, check_reading, mirrored_camera
-from rebar_data.perception.refine import Refiner
+from rebar_data.perception.evaluation.metrics import match
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference.detector import (
+    MIRRORED_LATER_VIEWS,
+    READINGS,
+    Detector,
+    check_reading,
+    mirrored_camera,
+)
+from rebar_data.perception.inference.refine import Refiner
 
 
 def _shipped(**kw) -> Detector:
@@ -35,7 +40,7 @@ def test_the_mirrored_reading_of_a_mirror_image_is_the_mirrored_reading_turned_b
     """The two readings swap roles for the mirror image: its output is the image's own, cell for cell
     turned left for right, the column offsets pointing the other way (to rounding: the same two network
     calls, added in the other order)."""
-    from rebar_data.perception.bench import drawn_frame
+    from rebar_data.perception.evaluation.bench import drawn_frame
 
     det = _shipped()
     rgb, _ = drawn_frame()
@@ -60,7 +65,7 @@ def test_the_mirror_image_lands_on_the_cells_of_the_image_at_any_size(width, hei
     """The image is padded to whole blocks before it is mirrored, so the mirror's cells fall on the image's
     own: the first stage's peaks in the two readings lie where each other's do (a cell off would move every
     one by half a cell, 2 px, one way)."""
-    from rebar_data.perception.bench import drawn_frame
+    from rebar_data.perception.evaluation.bench import drawn_frame
 
     det = _shipped()
     rgb = np.ascontiguousarray(drawn_frame()[0][:height, :width])
@@ -107,7 +112,7 @@ def test_the_mirrored_reading_reads_every_second_stage_pass_in_the_int8_copy_and
 
 
 def test_the_shipped_detector_reads_mirrored_by_default_and_finds_the_crossings_either_way():
-    from rebar_data.perception.bench import drawn_frame
+    from rebar_data.perception.evaluation.bench import drawn_frame
 
     det = _shipped()
     assert det.reading == "mirrored" and _shipped(reading="single").reading == "single"
@@ -122,7 +127,7 @@ def test_the_shipped_detector_reads_mirrored_by_default_and_finds_the_crossings_
 
 
 def test_the_bench_times_the_two_readings_in_turn_and_leaves_the_detector_as_it_was():
-    from rebar_data.perception.bench import drawn_frame, reading_cost
+    from rebar_data.perception.evaluation.bench import drawn_frame, reading_cost
 
     det = _shipped()
     rgb, _ = drawn_frame()

@@ -4,12 +4,18 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception import infer, runtime
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.runtime import OpenVinoSession, onnx_session, openvino_bf16, resolve_runtime
+from rebar_data.perception.inference import detector as infer
+from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.inference.model_file import (
+    OpenVinoSession,
+    onnx_session,
+    openvino_bf16,
+    resolve_runtime,
+)
 
 needs_openvino = pytest.mark.skipif(
-    runtime._openvino_core() is None, reason="openvino is not installed (pip install openvino)"
+    model_file._openvino_core() is None, reason="openvino is not installed (pip install openvino)"
 )
 
 
@@ -21,7 +27,7 @@ def test_a_runtime_is_one_of_the_accepted_names_and_auto_follows_the_cpu():
 
 
 def test_openvino_is_refused_with_a_clear_message_where_it_is_not_installed(monkeypatch):
-    monkeypatch.setattr(runtime, "_openvino_core", lambda: None)
+    monkeypatch.setattr(model_file, "_openvino_core", lambda: None)
     assert resolve_runtime("auto") == "onnxruntime"
     with pytest.raises(ConfigError, match="needs the openvino package; accepted: pip install openvino"):
         resolve_runtime("openvino")
@@ -47,7 +53,7 @@ def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
         assert np.abs(got - want).max() <= tolerance * max(1.0, np.abs(want).max()), np.abs(got - want).max()
     assert len(ov._compiled) == 2
     # past SHAPES_KEPT sizes, one compile with the sizes left free serves the rest
-    for k in range(runtime.SHAPES_KEPT + 2):
+    for k in range(model_file.SHAPES_KEPT + 2):
         h, w = 32 * (k + 1), 64
         feed = {
             "image": rng.integers(0, 256, (1, h, w, 3), dtype=np.uint8),
@@ -56,7 +62,7 @@ def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
         want, got = ort.run(None, feed)[0], ov.run(None, feed)[0]
         assert got.shape == want.shape
         assert np.abs(got - want).max() <= tolerance * max(1.0, np.abs(want).max())
-    assert len(ov._compiled) == runtime.SHAPES_KEPT + 1 and () in ov._compiled
+    assert len(ov._compiled) == model_file.SHAPES_KEPT + 1 and () in ov._compiled
     # that compile also takes a batch of two (a frame and its mirror image in the mirrored reading)
     h, w = 48, 80
     feed = {
@@ -74,7 +80,7 @@ def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
 def test_openvino_reads_a_frame_and_its_mirror_image_in_one_call_with_the_same_numbers():
     """The mirrored reading's two first-stage reads go through OpenVINO as one batch of two; ONNX Runtime,
     whose files take one image, reads them in two calls. The batch gives what the two calls give."""
-    from rebar_data.perception.bench import drawn_frame
+    from rebar_data.perception.evaluation.bench import drawn_frame
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
@@ -103,7 +109,7 @@ def test_openvino_reads_a_frame_and_its_mirror_image_in_one_call_with_the_same_n
 
 @needs_openvino
 def test_a_batch_of_patches_is_padded_for_openvino_and_comes_back_as_long():
-    path = infer.refiner_path(infer.SHIPPED_MODEL)
+    path = model_file.refiner_path(infer.SHIPPED_MODEL)
     if not path.exists():
         pytest.skip("no model shipped yet (make train ships one)")
     ort, ov = onnx_session(path, 1), onnx_session(path, 1, "openvino")
@@ -129,8 +135,8 @@ def test_a_batch_of_patches_is_padded_for_openvino_and_comes_back_as_long():
 
 @needs_openvino
 def test_an_int8_file_runs_in_onnx_runtime_whatever_the_runtime(trained_run):
-    # the tests' tiny run quantizes its whole second stage (quantize: int8), which OpenVINO does not read
-    path = infer.refiner_path(trained_run.out_dir / "best.onnx")
+    # the tests' tiny run writes the int8 copy its second stage's later passes read, which OpenVINO does not read
+    path = model_file.int8_passes_path(trained_run.out_dir / "best.onnx")
     assert not isinstance(onnx_session(path, 1, "openvino"), OpenVinoSession)
     with pytest.raises(ConfigError, match="cannot be loaded as an ONNX model"):
         onnx_session(trained_run.out_dir / "config.json", 1, "openvino")
@@ -138,7 +144,7 @@ def test_an_int8_file_runs_in_onnx_runtime_whatever_the_runtime(trained_run):
 
 @needs_openvino
 def test_the_shipped_detector_finds_the_same_crossings_in_either_runtime():
-    from rebar_data.perception.bench import drawn_frame
+    from rebar_data.perception.evaluation.bench import drawn_frame
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
@@ -164,7 +170,7 @@ def test_the_shipped_model_loads_in_onnx_runtime_and_in_the_default_runtime():
 
 @needs_openvino
 def test_the_bench_times_the_two_runtimes_in_turn(trained_run):
-    from rebar_data.perception.bench import drawn_frame, runtime_cost
+    from rebar_data.perception.evaluation.bench import drawn_frame, runtime_cost
 
     rgb, _ = drawn_frame()
     det = Detector.load(trained_run.out_dir / "best.onnx", threads=1, runtime="openvino")

@@ -5,7 +5,7 @@ import json
 import numpy as np
 import pyarrow.parquet as pq
 
-from rebar_data.perception.data import load_split, read_image
+from rebar_data.perception.evaluation.data import load_split, read_image
 
 
 def test_drawn_dataset_follows_the_contract_layout(drawn_dataset):

@@ -3,8 +3,9 @@ from __future__ import annotations
 import numpy as np
 import torch
 
-from rebar_data.perception.loss import detection_loss
-from rebar_data.perception.targets import decode, encode
+from rebar_data.perception.inference.detector import decode
+from rebar_data.perception.training.loss import detection_loss
+from rebar_data.perception.training.targets import encode
 
 
 def _logit(p: np.ndarray) -> np.ndarray:

@@ -9,13 +9,14 @@ import pytest
 import torch
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.config import TrainConfig
-from rebar_data.perception.data import load_split, read_info
-from rebar_data.perception.epochs import TrainingImages, make_batch
-from rebar_data.perception.infer import Detector
-from rebar_data.perception.loss import detection_loss
-from rebar_data.perception.model import KeypointNet
-from rebar_data.perception.train import read_history, train
+from rebar_data.perception.evaluation.data import load_split, read_info
+from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.networks import eager
+from rebar_data.perception.networks.keypoint_net import KeypointNet
+from rebar_data.perception.training.config import TrainConfig
+from rebar_data.perception.training.epochs import TrainingImages, make_batch
+from rebar_data.perception.training.loss import detection_loss
+from rebar_data.perception.training.train import read_history, train
 
 from .conftest import TINY_TRAIN
 
@@ -71,7 +72,7 @@ def test_training_writes_the_run_and_its_model_detects(trained_run, drawn_datase
     det = Detector.load(out)
     assert det.path.name == "best.onnx" and det.meta["oks_sigma"] == results["oks_sigma"]
     sample = load_split(drawn_dataset, "test")[0]
-    from rebar_data.perception.data import read_image
+    from rebar_data.perception.evaluation.data import read_image
 
     assert det.detect(read_image(sample.path), threshold=0.01).shape[1] == 3
 
@@ -109,7 +110,7 @@ def test_bad_settings_and_datasets_are_one_clear_error(drawn_dataset, tmp_path):
 
 
 def test_batches_are_the_same_with_or_without_a_loader_process(drawn_dataset):
-    from rebar_data.perception.epochs import batch_stream
+    from rebar_data.perception.training.epochs import batch_stream
 
     samples = load_split(drawn_dataset, "train")
     here = TrainConfig.model_validate({**TINY_TRAIN, "loader_workers": 0})
@@ -126,7 +127,7 @@ def test_batches_are_the_same_with_or_without_a_loader_process(drawn_dataset):
 
 
 def test_a_supplement_adds_its_images_to_training_and_is_recorded(drawn_dataset, tmp_path):
-    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     extra = write_synthetic_dataset(tmp_path / "data", spec, seed=5, name="drawn-extra")
@@ -141,7 +142,7 @@ def test_a_supplement_adds_its_images_to_training_and_is_recorded(drawn_dataset,
     recorded = json.loads((tmp_path / "both/results.json").read_text())["dataset"]["supplements"]
     assert [(d["name"], d["images"]) for d in recorded] == [("drawn-extra", n_extra)]
     assert set(both.results) == {"val", "test"}  # scored on the first dataset's splits alone
-    from rebar_data.perception.card import CARD_NAME, ship
+    from rebar_data.perception.evaluation.card import CARD_NAME, ship
 
     ship(tmp_path / "both", models_dir=tmp_path / "models", gate=False)
     assert "`drawn-extra` v0.0.0 (6 images)" in (tmp_path / "models" / CARD_NAME).read_text()
@@ -155,10 +156,10 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     """A finished run resumed with a second-stage supplement keeps its first stage and trains the second
     again on its images and the supplement's (each repeated), and the card says so; resumed again with the
     same supplement, nothing trains."""
-    from rebar_data.perception.card import CARD_NAME, ship
-    from rebar_data.perception.export import load_checkpoint
-    from rebar_data.perception.refine_train import load as load_refiner
-    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+    from rebar_data.perception.evaluation.card import CARD_NAME, ship
+    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+    from rebar_data.perception.networks.files import load_checkpoint
+    from rebar_data.perception.training.refine import load as load_refiner
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     extra = write_synthetic_dataset(tmp_path / "data", spec, seed=6, name="drawn-second")
@@ -215,11 +216,11 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     """With a second-stage supplement the first stage trains its adapt epochs from its best epoch (kept in
     best.pt) on its images and the supplement's; the adapted weights ship in best.onnx and the later stages
     train beside them; resumed again nothing trains, and with no adapt epochs the best epoch ships again."""
-    from rebar_data.perception.adapt_train import ADAPT_LAST, ADAPTED
-    from rebar_data.perception.card import CARD_NAME, ship
-    from rebar_data.perception.export import load_checkpoint
-    from rebar_data.perception.refine_train import load as load_refiner
-    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+    from rebar_data.perception.evaluation.card import CARD_NAME, ship
+    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+    from rebar_data.perception.networks.files import load_checkpoint
+    from rebar_data.perception.training.adapt import ADAPT_LAST, ADAPTED
+    from rebar_data.perception.training.refine import load as load_refiner
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     extra = write_synthetic_dataset(tmp_path / "data", spec, seed=7, name="drawn-other")
@@ -248,11 +249,11 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     image = np.random.default_rng(0).integers(0, 255, (144, 192, 3), dtype=np.uint8)
     # float32, as trained, read once, as a network in memory reads
     shipped = Detector.load(run / "best.onnx", runtime="onnxruntime", reading="single").raw(image)
-    np.testing.assert_allclose(shipped, Detector.from_network(adapted).raw(image), atol=1e-3)
-    assert not np.allclose(shipped, Detector.from_network(best_after).raw(image), atol=1e-3)
+    np.testing.assert_allclose(shipped, eager.detector(adapted).raw(image), atol=1e-3)
+    assert not np.allclose(shipped, eager.detector(best_after).raw(image), atol=1e-3)
     refine = load_refiner(run / "refine_last.pt")[2]
     assert refine["data"][0] == "drawn-other v0.0.0" and refine["data"][-1].startswith("adapted:")
-    from rebar_data.perception.depth_check_train import load as load_depth_check
+    from rebar_data.perception.training.depth_check import load as load_depth_check
 
     depth_data = load_depth_check(run / "depth_last.pt")[2]["data"]
     assert depth_data[-2].startswith("adapted:") and depth_data[-1] == "its own lower-mat negatives: 16"
@@ -261,7 +262,7 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     assert "- Adapt epochs: 2 more after the best epoch" in card and "only in its adapt epochs" in card
     assert "hold up to 16 of the crossings each image's lower mat shows" in card  # the depth check's
     # the latency names what ran it (the default runtime), the figures the runtime training fits on
-    from rebar_data.perception.runtime import runtime_description
+    from rebar_data.perception.inference.model_file import runtime_description
 
     assert f"2 CPU threads, {runtime_description('auto')}, end to end" in card
     assert "above are ONNX Runtime's in float32" in card
@@ -275,7 +276,7 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     assert not (run / ADAPTED).exists() and not (run / ADAPT_LAST).exists()
     np.testing.assert_allclose(
         Detector.load(run / "best.onnx", runtime="onnxruntime", reading="single").raw(image),
-        Detector.from_network(best_after).raw(image),
+        eager.detector(best_after).raw(image),
         atol=1e-3,
     )
     assert load_refiner(run / "refine_last.pt")[2]["data"][-1].startswith("first stage: epoch")
@@ -284,8 +285,8 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
 def test_other_renderer_repeats_put_the_second_stage_supplements_in_the_first_epochs(drawn_dataset, tmp_path):
     """With ``other_renderer_repeats`` the second-stage supplements' images join the first epochs that many
     times (their steps count them), the card says so, and a resumed run must keep those supplements."""
-    from rebar_data.perception.card import CARD_NAME, ship
-    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+    from rebar_data.perception.evaluation.card import CARD_NAME, ship
+    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     extra = write_synthetic_dataset(tmp_path / "data", spec, seed=8, name="drawn-early")
@@ -322,9 +323,9 @@ def test_interrupted_adapt_epochs_resume_after_their_last_epoch(
 ):
     """Adapt epochs stopped during the second go on from the first's checkpoint to the same weights as
     epochs that were not stopped."""
-    from rebar_data.perception import adapt_train
-    from rebar_data.perception.export import load_checkpoint
-    from rebar_data.perception.synthetic import SyntheticSpec, write_synthetic_dataset
+    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+    from rebar_data.perception.networks.files import load_checkpoint
+    from rebar_data.perception.training import adapt as adapt_train
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=2, frames=2)
     extra = load_split(write_synthetic_dataset(tmp_path / "data", spec, seed=8, name="drawn-x"), "train")
@@ -354,46 +355,8 @@ def test_interrupted_adapt_epochs_resume_after_their_last_epoch(
         torch.testing.assert_close(b.state_dict()[k], v)
 
 
-def test_a_run_with_first_stage_starts_mines_negatives_and_starts_from_one_run_of_the_first_stage(
-    trained_run, drawn_dataset, tmp_path, monkeypatch
-):
-    """The second stage's negatives and starts come from the same detections: the first stage runs
-    over its images once, and the starts are kept in its checkpoint beside the negatives."""
-    import shutil
-
-    from rebar_data.perception import train as train_module
-    from rebar_data.perception.refine_train import load as load_refiner
-
-    out = tmp_path / "run"
-    shutil.copytree(trained_run.out_dir, out)
-    (out / "refine_last.pt").unlink()
-    runs = []
-    detections = train_module.first_stage_detections
-
-    def counted(*args, **kwargs):
-        runs.append(1)
-        return detections(*args, **kwargs)
-
-    monkeypatch.setattr(train_module, "first_stage_detections", counted)
-    # loose, as a tiny network's detections are weak
-    refine = {
-        **TINY_TRAIN["refine"],
-        "first_stage_starts": 0.5,
-        "negative_score": 0.01,
-        "negative_gate_px": 8.0,
-    }
-    train_module.train(
-        drawn_dataset, out, config={**TINY_TRAIN, "epochs": 2, "refine": refine}, progress=False
-    )
-    assert len(runs) == 1
-    _, cfg, payload = load_refiner(out / "refine_last.pt")
-    assert cfg.first_stage_starts == 0.5
-    assert len(payload["starts"]) == len(payload["negatives"])
-    assert any(np.isfinite(s).any() for s in payload["starts"])
-
-
 def test_a_run_from_before_other_renderer_repeats_resumes_only_without_them(tmp_path):
-    from rebar_data.perception.train import _check_resumable
+    from rebar_data.perception.training.train import _check_resumable
 
     saved = TrainConfig().model_dump(mode="json")
     del saved["other_renderer_repeats"]  # a run folder written before the setting existed

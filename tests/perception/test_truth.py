@@ -11,7 +11,7 @@ import pytest
 
 from rebar_data.cli import main
 from rebar_data.config import ConfigError
-from rebar_data.perception.data import load_split
+from rebar_data.perception.evaluation.data import load_split
 from tests.dataset.conftest import TINY, write_config
 
 

@@ -266,7 +266,7 @@ def test_a_missing_model_writes_nothing_not_even_the_parent_of_out(tmp_path, roo
 
 
 def test_a_suite_pins_what_runs_the_shipped_detector(tmp_path, root, capsys):
-    from rebar_data.perception import infer
+    from rebar_data.perception.inference import detector as infer
     from rebar_data.servo.camera import CameraModel
     from rebar_data.servo.detectors import load_shipped_detector
 

@@ -1,0 +1,242 @@
+"""Reads a dataset in the project's layout (the contract in DESIGN.md) into per-image keypoint records.
+
+Only the tables, images and depth images are read: ``tables/samples.parquet`` for the images of a split and
+``tables/keypoints.parquet`` for the crossings, with ``meta/info.json`` for the OKS sigma when it
+records one. Visible crossings (visibility 2) are what the detector learns and is scored on; occluded
+ones (visibility 1) are kept apart so training can leave them out of the loss.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import TypeVar
+
+import cv2
+import numpy as np
+import pyarrow.parquet as pq
+from tqdm import tqdm
+
+from rebar_data.config import ConfigError
+from rebar_data.dataset import layout
+from rebar_data.pipeline import DEFAULT_OKS_SIGMA
+
+T = TypeVar("T")
+
+SPLITS = ("train", "val", "test")
+_SAMPLE_COLUMNS = ("image_id", "split", "file_name", "width", "height", "fx", "fy", "cx", "cy")
+_KEYPOINT_COLUMNS = ("image_id", "u", "v", "visibility", "box_size_px")
+# what a crossing's pixel is taken to be: ``sight``, the dataset's own u, v (where the image shows the two
+# bars crossing: the projected centerlines' crossing), or ``crossing``, the projection of the 3D crossing
+# point (the midpoint of the centerlines' closest points, inside the steel), which lies a few pixels away
+# under an oblique view; the second is how labels made from the 3D point alone score a detector
+TRUTHS = ("sight", "crossing")
+_CROSSING_COLUMNS = ("x_crossing", "y_crossing", "z_crossing")
+
+
+@dataclass
+class Sample:
+    """One image and its crossings, in pixels with COCO's corner origin.
+
+    Attributes:
+        image_id: The dataset's id of the image.
+        path: The image file.
+        width: Image width in pixels.
+        height: Image height in pixels.
+        visible: (N, 2) u, v of visible crossings.
+        box_size_px: (N,) detection-box side of each visible crossing (its OKS scale).
+        occluded: (M, 2) u, v of crossings inside the image but hidden.
+        occluded_box_size_px: (M,) their box sides.
+        camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin.
+        depth_path: The registered depth image (uint16 millimetres), None when the dataset has none.
+        crossings: (N, 2) projected 3D crossing point of each visible crossing (the centerlines'
+            midpoint, row for row with ``visible``; NaN where the dataset does not record it), None
+            when the dataset's tables lack the 3D points.
+        dataset: The dataset folder the image belongs to.
+        instance_path: The image's instance map (uint16 id + ``INSTANCE_OFFSET``), None when the
+            dataset has none.
+    """
+
+    image_id: str
+    path: Path
+    width: int
+    height: int
+    visible: np.ndarray
+    box_size_px: np.ndarray
+    occluded: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    occluded_box_size_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    camera: tuple[float, float, float, float] | None = None
+    depth_path: Path | None = None
+    crossings: np.ndarray | None = None
+    dataset: Path | None = None
+    instance_path: Path | None = None
+
+
+def read_image(path: str | Path) -> np.ndarray:
+    """An image file as RGB uint8 (H, W, 3)."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise ConfigError(f"{path}: cannot be read as an image; accepted: a PNG or JPEG file")
+    return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+
+
+def read_uint16(path: str | Path, what: str) -> np.ndarray:
+    """A 16-bit PNG (a depth image, an instance map) as it is stored; ``what`` names what was expected."""
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise ConfigError(f"{path}: cannot be read; accepted: {what}")
+    return image
+
+
+def read_distractors(sample: Sample) -> np.ndarray | None:
+    """(H, W) bool: where the sample's instance map shows a distractor (the lower mat, spacers, loose tie
+    wire, formwork: one id, ``DISTRACTOR_ID``); None when the dataset has no instance map."""
+    if sample.instance_path is None:
+        return None
+    from rebar_data.dataset.worker import INSTANCE_OFFSET  # the dataset builder's: imported when needed
+    from rebar_data.scene.surroundings import DISTRACTOR_ID
+
+    return read_uint16(sample.instance_path, "a 16-bit instance PNG") == DISTRACTOR_ID + INSTANCE_OFFSET
+
+
+def per_file(samples: list[Sample], read: Callable[[Sample], T], *, progress: str | None = None) -> list[T]:
+    """``read`` of each sample, called once per file: a sample listed more than once (a repeated
+    supplement) shares the first one's result. ``progress`` names a progress bar over the files."""
+    first: dict[str, Sample] = {}
+    for s in samples:
+        first.setdefault(str(s.path), s)
+    files = tqdm(first.items(), desc=progress, unit="img", disable=progress is None, leave=False)
+    done = {key: read(s) for key, s in files}
+    return [done[str(s.path)] for s in samples]
+
+
+def per_file_lazily(samples: list[Sample], read: Callable[[Sample], T]) -> Callable[[int], T]:
+    """``read`` of sample ``i``, called when first asked for and once per file (a sample listed more than
+    once shares the first one's result): :func:`per_file` for a reader that may never need some."""
+    done: dict[str, T] = {}
+
+    def of(i: int) -> T:
+        key = str(samples[i].path)
+        if key not in done:
+            done[key] = read(samples[i])
+        return done[key]
+
+    return of
+
+
+def read_sample_image(sample: Sample) -> np.ndarray:
+    """The sample's RGB image (:func:`read_image` of its path)."""
+    return read_image(sample.path)
+
+
+def read_images(samples: list[Sample], *, progress: str | None = None) -> list[np.ndarray]:
+    """Each sample's image, decoded once per file: a sample listed more than once (a repeated supplement)
+    shares one array. ``progress`` names a progress bar over the files."""
+    return per_file(samples, read_sample_image, progress=progress)
+
+
+def read_info(root: str | Path) -> dict:
+    """The dataset's ``meta/info.json`` (an empty dict when it has none)."""
+    p = Path(root) / "meta/info.json"
+    return json.loads(p.read_text()) if p.exists() else {}
+
+
+def renderer_engine(info: dict) -> str:
+    """The engine that rendered a dataset, from its info.json; datasets before schema 2.1 name none and
+    were Open3D's."""
+    return (info.get("renderer") or {}).get("engine", "open3d")
+
+
+def stated_oks_sigma(root: str | Path) -> float:
+    """The OKS sigma the dataset states in its info.json (the project's default when it states none)."""
+    return float(read_info(root).get("oks_sigma", DEFAULT_OKS_SIGMA))
+
+
+def check_dataset(root: str | Path) -> Path:
+    """Return ``root`` as a Path if it holds the two tables the detector reads, else raise ConfigError."""
+    root = Path(root)
+    if not root.is_dir():
+        raise ConfigError(
+            f"{root}: no such dataset folder; accepted: a folder written by `rebar dataset build` "
+            "(ROOT/<name>/v<version>/)"
+        )
+    for t in ("tables/samples.parquet", "tables/keypoints.parquet"):
+        if not (root / t).exists():
+            raise ConfigError(
+                f"{root}: has no {t}; accepted: a dataset folder written by `rebar dataset build` "
+                "(ROOT/<name>/v<version>/)"
+            )
+    return root
+
+
+def load_split(root: str | Path, split: str, *, truth: str = "sight") -> list[Sample]:
+    """Every image of ``split`` with its visible and occluded crossings, in the samples table's order;
+    ``truth`` says which pixel stands for a crossing (see ``TRUTHS``)."""
+    root = check_dataset(root)
+    if split not in SPLITS:
+        raise ConfigError(f"split = {split!r} is not accepted; accepted: one of {', '.join(SPLITS)}")
+    if truth not in TRUTHS:
+        raise ConfigError(f"truth = {truth!r} is not accepted; accepted: one of {', '.join(TRUTHS)}")
+    samples = pq.read_table(root / "tables/samples.parquet").to_pydict()
+    _require(samples, _SAMPLE_COLUMNS, root / "tables/samples.parquet")
+    kp = pq.read_table(root / "tables/keypoints.parquet").to_pydict()
+    _require(kp, _KEYPOINT_COLUMNS, root / "tables/keypoints.parquet")
+    ids = np.asarray(kp["image_id"]).astype(str)
+    sight = np.c_[np.asarray(kp["u"], float), np.asarray(kp["v"], float)]
+    has_points = all(c in kp for c in _CROSSING_COLUMNS) and "world_from_camera" in samples
+    points = _projected_crossings(root, samples, kp, ids) if has_points or truth == "crossing" else None
+    uv = points if truth == "crossing" else sight
+    vis = np.asarray(kp["visibility"], int)
+    box = np.asarray(kp["box_size_px"], float)
+    order = np.argsort(ids, kind="stable")
+    sorted_ids = ids[order]
+    out = []
+    for i, s in enumerate(samples["split"]):
+        if s != split:
+            continue
+        iid = samples["image_id"][i]
+        lo, hi = np.searchsorted(sorted_ids, iid, "left"), np.searchsorted(sorted_ids, iid, "right")
+        rows = order[lo:hi]
+        v = vis[rows]
+        depth = root / layout.depth_path(split, iid)
+        instances = root / layout.instance_path(split, iid)
+        out.append(
+            Sample(
+                image_id=iid,
+                path=root / samples["file_name"][i],
+                width=int(samples["width"][i]),
+                height=int(samples["height"][i]),
+                visible=uv[rows][v == 2],
+                box_size_px=box[rows][v == 2],
+                occluded=uv[rows][v == 1],
+                occluded_box_size_px=box[rows][v == 1],
+                camera=tuple(float(samples[k][i]) for k in ("fx", "fy", "cx", "cy")),
+                depth_path=depth if depth.exists() else None,
+                crossings=points[rows][v == 2] if points is not None else None,
+                dataset=root,
+                instance_path=instances if instances.exists() else None,
+            )
+        )
+    return out
+
+
+def _projected_crossings(root: Path, samples: dict, kp: dict, ids: np.ndarray) -> np.ndarray:
+    """(N, 2) pixel of each keypoint row's 3D crossing point, projected with its image's camera."""
+    _require(samples, ("world_from_camera",), root / "tables/samples.parquet")
+    _require(kp, _CROSSING_COLUMNS, root / "tables/keypoints.parquet")
+    row = {iid: i for i, iid in enumerate(samples["image_id"])}
+    index = np.array([row[i] for i in ids], int)
+    camera_from_world = np.linalg.inv(np.asarray(samples["world_from_camera"], float).reshape(-1, 4, 4))
+    k = {c: np.asarray(samples[c], float)[index] for c in ("fx", "fy", "cx", "cy")}
+    xyz = np.c_[[np.asarray(kp[c], float) for c in _CROSSING_COLUMNS]].T
+    cam = np.einsum("nij,nj->ni", camera_from_world[index, :3, :3], xyz) + camera_from_world[index, :3, 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.c_[k["fx"] * cam[:, 0] / cam[:, 2] + k["cx"], k["fy"] * cam[:, 1] / cam[:, 2] + k["cy"]]
+
+
+def _require(table: dict, columns: tuple[str, ...], path: Path) -> None:
+    missing = [c for c in columns if c not in table]
+    if missing:
+        raise ConfigError(f"{path}: lacks column {missing[0]}; accepted: a table with {', '.join(columns)}")

@@ -1,0 +1,284 @@
+"""The detector's regression gate: the shipped model scored on a fixed held-out set, against its own reference.
+
+**The set** is ``pipelines/detector-gate.yaml``: paper-tunnel's mesh and scene randomization with a seed no
+training or other held-out pipeline uses (``tests/test_pipelines.py`` checks that no two pipelines share a
+seed), so none of its scenes was trained on; 120 scenes of one random view each at paper-tunnel's pixel
+scale (525 px focal length) on 320x320 frames, every image in the test split. It is built by the project's
+own renderer from its seed, so the suite builds it (:func:`build_gate_set`, about 35 s on one worker)
+rather than shipping its 33 MB of images and maps.
+
+**The figures** are the metrics module's AP@0.5 (OKS, the dataset's sigma), PCK@2px and recall at precision
+0.99 (:func:`~rebar_data.perception.evaluation.metrics.summary`), in two modes: ``rgb`` (the colour image alone: the
+second stage and the line check) and ``rgbd`` (with the registered depth image: the second stage and the
+depth check, the robot's input). The detector runs in ONNX Runtime in float32 with its default (mirrored)
+reading, as the model card scores it, so the figures do not depend on the CPU's bfloat16 support.
+
+**The margins.** The reference figures are one draw of a finite set: a model exactly as good would score a
+little differently on another set drawn the same way. That sampling noise is what the gate allows, and no
+more. Its standard error is estimated by a bootstrap over the set's scenes (images of one scene share its
+lights, material and surroundings, so they are not independent; resampling whole scenes keeps that):
+``BOOTSTRAP_REPLICATES`` resamples of the scenes with replacement, each scored with the same metric
+functions, and SE is the standard deviation of the resampled figure. A figure passes when it is at least
+``reference - K_SE * SE``. With ``K_SE = 3`` a model as good as the reference fails a figure by chance with
+probability about 0.13% (one-sided, normal approximation to the bootstrap distribution), any of the six
+at most 0.8%; a drop larger than the margin is a regression. The set is the same pixels from build to build
+(its digest is in ``gate.json``) and an unchanged detector gives the reference figures exactly, so the margin
+is spent only on changes to the detector, its runtime or the renderer. :func:`write_reference` measures the figures, their SEs and margins and writes them
+to ``gate.json`` beside the model; shipping a model (:func:`rebar_data.perception.evaluation.card.ship`) calls it, and
+``python -m rebar_data.perception.evaluation.gate`` runs it for the model already shipped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+import pyarrow.parquet as pq
+
+from rebar_data.config import PAPER_PIPELINE
+from rebar_data.perception.evaluation.data import Sample, load_split, read_info, stated_oks_sigma
+from rebar_data.perception.evaluation.evaluate import predict, truth_of
+from rebar_data.perception.evaluation.metrics import keypoint_ap, pixel_metrics, summary
+from rebar_data.perception.inference.detector import MODELS_DIR, SHIPPED_MODEL, Detector
+
+GATE_PIPELINE = PAPER_PIPELINE.with_name("detector-gate.yaml")
+GATE_NAME = "gate.json"
+GATE_FILE = MODELS_DIR / GATE_NAME
+FIGURES = ("oks_ap50", "pck2", "recall_at_p99")
+MODES = {"rgb": False, "rgbd": True}  # mode -> whether the detector reads the depth image
+MODE_NAMES = {"rgb": "RGB only", "rgbd": "with depth"}
+RUNTIME = "onnxruntime"
+K_SE = 3.0
+BOOTSTRAP_REPLICATES = 1000
+BOOTSTRAP_SEED = 0
+SET_FOLDERS = ("images/", "depth/", "labels/")  # the files whose hashes make the set's digest
+
+
+def build_gate_set(out_root: str | Path, *, workers: int = 1) -> Path:
+    """Build ``pipelines/detector-gate.yaml`` under ``out_root`` (or find it built) and return its folder."""
+    from rebar_data.dataset.build import build_dataset
+    from rebar_data.dataset.layout import dataset_dir
+    from rebar_data.pipeline import load_pipeline
+
+    cfg = load_pipeline(GATE_PIPELINE)
+    final = dataset_dir(Path(out_root), cfg.name, cfg.version)
+    if (final / "meta/manifest.parquet").exists():
+        return final
+    return build_dataset(GATE_PIPELINE, out_root, workers=workers)
+
+
+def load_gate_set(root: str | Path) -> tuple[list[Sample], list[str]]:
+    """The set's images (its test split) and each one's scene id, in the samples table's order."""
+    samples = load_split(root, "test")
+    table = pq.read_table(Path(root) / "tables/samples.parquet", columns=["image_id", "scene_id"])
+    scene_of = dict(zip(table["image_id"].to_pylist(), table["scene_id"].to_pylist(), strict=True))
+    return samples, [scene_of[s.image_id] for s in samples]
+
+
+def set_digest(root: str | Path) -> str:
+    """SHA-256 over the manifest's hashes of the set's images, depth images and labels: equal digests, the
+    same pixels and labels."""
+    table = pq.read_table(Path(root) / "meta/manifest.parquet", columns=["path", "sha256"])
+    rows = sorted(
+        f"{p} {h}\n"
+        for p, h in zip(table["path"].to_pylist(), table["sha256"].to_pylist(), strict=True)
+        if p.startswith(SET_FOLDERS)
+    )
+    return hashlib.sha256("".join(rows).encode()).hexdigest()
+
+
+def load_detector(model: str | Path | None = None) -> Detector:
+    """The detector as the gate scores it: ``model`` (None: the shipped one) in ``RUNTIME``."""
+    return Detector.load(model, runtime=RUNTIME)
+
+
+def gate_predictions(detector: Detector, samples: Sequence[Sample]) -> dict[str, list[np.ndarray]]:
+    """Mode -> the detector's detections on every sample, as the metrics read them."""
+    return {mode: predict(detector, samples, depth=depth) for mode, depth in MODES.items()}
+
+
+def figures_of(
+    samples: Sequence[Sample], predictions: Sequence[np.ndarray], *, sigma: float
+) -> dict[str, float]:
+    """The gate's figures (``FIGURES``) of predictions against the samples' visible crossings."""
+    m = summary([truth_of(s) for s in samples], predictions, sigma=sigma)
+    return {f: m[f] for f in FIGURES}
+
+
+def measure(detector: Detector, root: str | Path) -> dict[str, dict[str, float]]:
+    """Mode -> the gate's figures of ``detector`` on the built set at ``root``."""
+    samples, _ = load_gate_set(root)
+    sigma = stated_oks_sigma(root)
+    preds = gate_predictions(detector, samples)
+    return {mode: figures_of(samples, p, sigma=sigma) for mode, p in preds.items()}
+
+
+def bootstrap_se(
+    samples: Sequence[Sample],
+    predictions: Sequence[np.ndarray],
+    groups: Sequence[str],
+    *,
+    sigma: float,
+    replicates: int = BOOTSTRAP_REPLICATES,
+    seed: int = BOOTSTRAP_SEED,
+) -> dict[str, float]:
+    """Standard error of each of ``FIGURES``: the standard deviation of the figure over ``replicates`` sets
+    drawn from ``groups`` (one label per sample, e.g. its scene) with replacement, whole groups at a time.
+
+    Each drawn set is scored with :func:`~rebar_data.perception.evaluation.metrics.keypoint_ap` (at OKS 0.5 alone, which
+    gives the same AP@0.5 as all ten thresholds) and :func:`~rebar_data.perception.evaluation.metrics.pixel_metrics`.
+    """
+    truths = [truth_of(s) for s in samples]
+    names = sorted(set(groups))
+    members = [np.flatnonzero(np.asarray(groups) == g) for g in names]
+    rng = np.random.default_rng(seed)
+    drawn = {f: np.empty(replicates) for f in FIGURES}
+    for r in range(replicates):
+        pick = np.concatenate([members[i] for i in rng.integers(0, len(names), len(names))])
+        t = [truths[i] for i in pick]
+        p = [predictions[i] for i in pick]
+        px = pixel_metrics(t, p)
+        drawn["oks_ap50"][r] = keypoint_ap(t, p, sigma=sigma, thresholds=np.array([0.5])).ap50
+        drawn["pck2"][r] = px.pck[2.0]
+        drawn["recall_at_p99"][r] = px.recall_at_p99
+    return {f: float(np.std(v, ddof=1)) for f, v in drawn.items()}
+
+
+def reference(
+    detector: Detector,
+    root: str | Path,
+    *,
+    replicates: int = BOOTSTRAP_REPLICATES,
+    seed: int = BOOTSTRAP_SEED,
+) -> dict:
+    """What ``gate.json`` holds for ``detector`` on the built set at ``root``: per mode the figures, their
+    bootstrap SEs, the margins (``K_SE`` SEs), the floors (figure - margin) and every headline figure
+    (:func:`~rebar_data.perception.evaluation.metrics.summary`), and where they come from."""
+    from rebar_data.dataset.writers.manifest import sha256_file
+
+    samples, scenes = load_gate_set(root)
+    sigma = stated_oks_sigma(root)
+    info = read_info(root)
+    modes = {}
+    for mode, preds in gate_predictions(detector, samples).items():
+        m = summary([truth_of(s) for s in samples], preds, sigma=sigma)
+        fig = {f: m[f] for f in FIGURES}
+        se = bootstrap_se(samples, preds, scenes, sigma=sigma, replicates=replicates, seed=seed)
+        margin = {f: K_SE * se[f] for f in FIGURES}
+        modes[mode] = {
+            "depth": MODES[mode],
+            "figures": fig,
+            "se": se,
+            "margin": margin,
+            "floor": {f: fig[f] - margin[f] for f in FIGURES},
+            "summary": m,
+        }
+    return {
+        "model": {
+            "file": detector.path.name if detector.path else None,
+            "sha256": sha256_file(detector.path) if detector.path else None,
+        },
+        "runtime": detector.backend,
+        "reading": detector.reading,
+        "set": {
+            "pipeline": f"pipelines/{GATE_PIPELINE.name}",
+            "name": info.get("name"),
+            "version": info.get("version"),
+            "seed": info.get("seed"),
+            "images": len(samples),
+            "scenes": len(set(scenes)),
+            "visible_crossings": int(sum(len(s.visible) for s in samples)),
+            "oks_sigma": sigma,
+            "digest": set_digest(root),
+        },
+        "margin_rule": {
+            "k_se": K_SE,
+            "se": "bootstrap over the set's scenes (whole scenes drawn with replacement)",
+            "replicates": replicates,
+            "seed": seed,
+        },
+        "modes": modes,
+    }
+
+
+def write_reference(
+    model: str | Path | None = None,
+    *,
+    out: str | Path | None = None,
+    data_root: str | Path | None = None,
+    replicates: int = BOOTSTRAP_REPLICATES,
+) -> Path:
+    """Measure ``model`` (None: the shipped one) on the gate set and write :func:`reference` to ``out``
+    (default: ``gate.json`` beside the model).
+
+    Args:
+        model: A model file.
+        out: The JSON file to write.
+        data_root: Where the gate set is (or is built, when missing); None builds it in a temporary folder.
+        replicates: Bootstrap replicates per mode.
+
+    Returns:
+        The file written.
+    """
+    detector = load_detector(model)
+    out = Path(out) if out is not None else detector.path.with_name(GATE_NAME)
+    with tempfile.TemporaryDirectory(prefix="rebar-gate-") as tmp:
+        root = build_gate_set(data_root if data_root is not None else tmp)
+        ref = reference(detector, root, replicates=replicates)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    tmp_out = out.with_name(out.name + ".tmp")
+    tmp_out.write_text(json.dumps(ref, indent=1, sort_keys=True) + "\n")
+    tmp_out.replace(out)
+    return out
+
+
+def read_reference(path: str | Path = GATE_FILE) -> dict:
+    """The reference a :func:`write_reference` call wrote."""
+    return json.loads(Path(path).read_text())
+
+
+def card_rows(path: str | Path = GATE_FILE) -> dict[str, dict]:
+    """The model card's rows for the gate set, one per mode: row name -> every headline figure."""
+    ref = read_reference(path)
+    label = f"{ref['set']['name']} v{ref['set']['version']} (the regression gate's set)"
+    return {f"{label}, {MODE_NAMES[mode]}": entry["summary"] for mode, entry in ref["modes"].items()}
+
+
+def failures(measured: dict[str, dict[str, float]], ref: dict) -> list[str]:
+    """One line for each figure of each of the reference's modes under its floor (none: the gate passes)."""
+    out = []
+    for mode, entry in ref["modes"].items():
+        for f in FIGURES:
+            got, floor = measured[mode][f], entry["floor"][f]
+            if not got >= floor:
+                out.append(
+                    f"{mode} {f} {got:.4f} < {floor:.4f} (reference {entry['figures'][f]:.4f} - margin "
+                    f"{entry['margin'][f]:.4f}, {ref['margin_rule']['k_se']:g} bootstrap SEs)"
+                )
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(
+        prog="python -m rebar_data.perception.evaluation.gate",
+        description="Measure a model on the regression gate's set and write its reference figures (gate.json).",
+    )
+    parser.add_argument("--model", help="model file (default: the shipped model)")
+    parser.add_argument("--out", help="JSON to write (default: gate.json beside the model)")
+    parser.add_argument("--data", help="folder the gate set is built in, or found (default: a temporary one)")
+    args = parser.parse_args(argv)
+    path = write_reference(args.model or SHIPPED_MODEL, out=args.out, data_root=args.data)
+    ref = read_reference(path)
+    for mode, entry in ref["modes"].items():
+        parts = [f"{f} {entry['figures'][f]:.4f} (margin {entry['margin'][f]:.4f})" for f in FIGURES]
+        print(f"{mode}: " + ", ".join(parts))
+    print(path)
+
+
+if __name__ == "__main__":
+    main()

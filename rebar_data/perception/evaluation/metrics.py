@@ -1,0 +1,378 @@
+"""Keypoint metrics that say how well crossings are localised, not only found.
+
+Two families, both over the visible crossings of a split:
+
+- **OKS keypoint AP**, computed exactly as pycocotools' ``COCOeval(iouType="keypoints")`` does (greedy
+  matching by score at each OKS threshold, 101-point interpolated precision), with one keypoint per
+  object, a stated sigma and the crossing's square detection box as the object area. For one keypoint
+  ``OKS = exp(-d^2 / (2 s^2 k^2))`` with ``s^2 = box_size_px^2`` and ``k = 2 sigma``, so OKS falls to 0.5
+  at ``d = 2 sqrt(2 ln 2) sigma s = 2.355 sigma s`` pixels. With ``DEFAULT_OKS_SIGMA = 0.04`` that is
+  2.4 px for the 25 px box typical at 640x640 (four 12 mm bar diameters seen from about 1 m), 1.9 px for
+  a 20 px box and 3.8 px for a 40 px box: AP@0.5 asks for a couple of pixels, AP@0.5:0.95 for under one.
+  (Ultralytics' default of sigma 1.0 for a single custom keypoint accepts errors of more than a box size.)
+- **Pixel errors**, matched the way the project's independent scorer matches: per image, a one-to-one
+  Hungarian assignment with a 5 px gate. PCK@k is the share of visible crossings matched within k px by
+  a prediction of score at least the operating threshold; precision and recall are taken at that
+  threshold; ``recall_at_p99`` is the best recall while precision stays at least 0.99 along the
+  score-sorted predictions.
+
+Crossings that are occluded (visibility 1) are not ground truth here: a prediction on one counts as a
+false positive unless the caller passes them as ``ignore`` regions (COCO's crowd semantics: a
+prediction matched to one is neither right nor wrong).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import linear_sum_assignment
+
+from rebar_data.perception.inference.detector import OPERATING_THRESHOLD
+from rebar_data.pipeline import DEFAULT_OKS_SIGMA  # stated by the dataset in info.json
+
+OKS_THRESHOLDS = np.linspace(0.5, 0.95, 10)
+RECALL_THRESHOLDS = np.linspace(0.0, 1.0, 101)
+GATE_PX = 5.0
+PCK_PX = (1.0, 2.0, 5.0)
+
+
+@dataclass
+class Truth:
+    """The ground truth of one image.
+
+    Attributes:
+        uv: (N, 2) visible crossings, pixels, COCO corner origin.
+        box_size_px: (N,) side of each one's square detection box (the OKS scale).
+        ignore_uv: (M, 2) crossings that neither count as found nor make a prediction on them wrong.
+        ignore_box_size_px: (M,) their box sides.
+    """
+
+    uv: np.ndarray
+    box_size_px: np.ndarray
+    ignore_uv: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    ignore_box_size_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
+
+
+def oks_radius_px(sigma: float, box_size_px: float, oks: float = 0.5) -> float:
+    """Pixel error at which a keypoint with box side ``box_size_px`` scores ``oks``."""
+    return float(np.sqrt(-2.0 * np.log(oks)) * 2.0 * sigma * box_size_px)
+
+
+def oks_matrix(pred_uv: np.ndarray, gt_uv: np.ndarray, box_size_px: np.ndarray, sigma: float) -> np.ndarray:
+    """OKS of every prediction (rows) against every ground-truth keypoint (columns), as COCOeval computes it."""
+    pred_uv = np.asarray(pred_uv, float).reshape(-1, 2)
+    gt_uv = np.asarray(gt_uv, float).reshape(-1, 2)
+    area = np.asarray(box_size_px, float).reshape(-1) ** 2
+    d2 = ((pred_uv[:, None, :] - gt_uv[None, :, :]) ** 2).sum(-1)
+    return np.exp(-d2 / (2.0 * sigma) ** 2 / (area[None, :] + np.spacing(1)) / 2.0)
+
+
+def _match_image(
+    oks: np.ndarray, gt_ignore: np.ndarray, thresholds: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """COCOeval.evaluateImg for one image: predictions already sorted by score, ground truth with the
+    ignored ones last. Returns (matched, ignored) flags of shape (thresholds, predictions)."""
+    n_dt, n_gt = oks.shape
+    n_real = int((~gt_ignore).sum())  # the ignored ones come last
+    matched = np.zeros((len(thresholds), n_dt), bool)
+    ignored = np.zeros((len(thresholds), n_dt), bool)
+    for ti, t in enumerate(thresholds):
+        floor = min(t, 1 - 1e-10)
+        taken = np.zeros(n_real, bool)
+        for d in range(n_dt):
+            # COCOeval walks the ground truth in order and keeps the last one with the highest OKS at or
+            # above the threshold, preferring any real match to an ignored one; ignored ones match many
+            real = np.where(taken, -np.inf, oks[d, :n_real])
+            if n_real and real.max() >= floor:
+                m = n_real - 1 - int(np.argmax(real[::-1]))
+                taken[m] = True
+                matched[ti, d] = True
+                continue
+            crowd = oks[d, n_real:]
+            if len(crowd) and crowd.max() >= floor:
+                matched[ti, d] = True
+                ignored[ti, d] = True
+    return matched, ignored
+
+
+@dataclass
+class APResult:
+    """OKS keypoint AP and the curves behind it.
+
+    Attributes:
+        ap: Mean of the 101-point interpolated precision over OKS 0.50:0.05:0.95.
+        ap50: The same at OKS 0.5.
+        ap75: The same at OKS 0.75.
+        precision: (thresholds, 101) interpolated precision at each recall threshold.
+        recall: (thresholds,) recall reached with every prediction.
+        sigma: The OKS sigma used.
+    """
+
+    ap: float
+    ap50: float
+    ap75: float
+    precision: np.ndarray
+    recall: np.ndarray
+    sigma: float
+
+
+def keypoint_ap(
+    truths: Sequence[Truth],
+    predictions: Sequence[np.ndarray],
+    *,
+    sigma: float = DEFAULT_OKS_SIGMA,
+    max_detections: int | None = None,
+    thresholds: np.ndarray = OKS_THRESHOLDS,
+) -> APResult:
+    """OKS keypoint AP over images, equal to COCOeval's for one keypoint and the same sigma.
+
+    Args:
+        truths: Ground truth per image.
+        predictions: Per image, an (N, 3) array of u, v, score.
+        sigma: OKS sigma of the crossing keypoint.
+        max_detections: Keep only the best-scoring predictions per image (COCOeval's maxDets); None keeps
+            all (COCO's keypoint default of 20 would cap recall on frames with many crossings).
+        thresholds: OKS thresholds.
+
+    Returns:
+        The AP figures and the precision curves behind them.
+    """
+    if len(truths) != len(predictions):
+        raise ValueError(f"{len(truths)} truths but {len(predictions)} prediction arrays")
+    scores_all, matched_all, ignored_all = [], [], []
+    n_gt = 0
+    for truth, pred in zip(truths, predictions, strict=True):
+        pred = np.asarray(pred, float).reshape(-1, 3)
+        order = np.argsort(-pred[:, 2], kind="mergesort")
+        if max_detections is not None:
+            order = order[:max_detections]
+        pred = pred[order]
+        gt_uv = np.r_[
+            np.asarray(truth.uv, float).reshape(-1, 2), np.asarray(truth.ignore_uv, float).reshape(-1, 2)
+        ]
+        gt_box = np.r_[
+            np.asarray(truth.box_size_px, float).reshape(-1), np.asarray(truth.ignore_box_size_px, float)
+        ]
+        gt_ignore = np.r_[np.zeros(len(truth.uv), bool), np.ones(len(truth.ignore_uv), bool)]
+        n_gt += len(truth.uv)
+        if len(pred) == 0:
+            continue
+        oks = oks_matrix(pred[:, :2], gt_uv, gt_box, sigma)
+        matched, ignored = _match_image(oks, gt_ignore, thresholds)
+        scores_all.append(pred[:, 2])
+        matched_all.append(matched)
+        ignored_all.append(ignored)
+    precision = np.zeros((len(thresholds), len(RECALL_THRESHOLDS)))
+    recall = np.zeros(len(thresholds))
+    if n_gt == 0:
+        nan = float("nan")
+        return APResult(nan, nan, nan, np.full_like(precision, np.nan), np.full_like(recall, np.nan), sigma)
+    if scores_all:
+        scores = np.concatenate(scores_all)
+        order = np.argsort(-scores, kind="mergesort")
+        matched = np.concatenate(matched_all, axis=1)[:, order]
+        ignored = np.concatenate(ignored_all, axis=1)[:, order]
+        tp = np.cumsum(matched & ~ignored, axis=1).astype(float)
+        fp = np.cumsum(~matched & ~ignored, axis=1).astype(float)
+        for ti in range(len(thresholds)):
+            rc = tp[ti] / n_gt
+            pr = tp[ti] / (tp[ti] + fp[ti] + np.spacing(1))
+            recall[ti] = rc[-1] if len(rc) else 0.0
+            pr = np.maximum.accumulate(pr[::-1])[::-1]  # precision made monotonic, as COCOeval does
+            idx = np.searchsorted(rc, RECALL_THRESHOLDS, side="left")
+            ok = idx < len(pr)
+            precision[ti, ok] = pr[idx[ok]]
+    per_t = precision.mean(axis=1)
+    at = {round(float(t), 2): float(per_t[i]) for i, t in enumerate(thresholds)}
+    return APResult(
+        ap=float(per_t.mean()),
+        ap50=at.get(0.5, float("nan")),
+        ap75=at.get(0.75, float("nan")),
+        precision=precision,
+        recall=recall,
+        sigma=sigma,
+    )
+
+
+@dataclass
+class PixelResult:
+    """Pixel-error metrics at a 5 px Hungarian gate.
+
+    Attributes:
+        n_gt: Visible crossings.
+        pck: PCK at each of ``PCK_PX`` (share of visible crossings within k px by a prediction of score
+            at least the operating threshold).
+        mean_px: Mean error of those matches.
+        median_px: Median error of those matches.
+        precision: Matched predictions over predictions, at the operating threshold.
+        recall: Matched crossings over crossings, at the operating threshold.
+        recall_at_p99: Best recall along the score-sorted predictions while precision >= 0.99.
+        threshold: The operating threshold.
+        curve_precision: Precision along the score-sorted predictions.
+        curve_recall: Recall along them.
+        curve_score: Their scores.
+        errors_px: Error of every match at the operating threshold.
+    """
+
+    n_gt: int
+    pck: dict[float, float]
+    mean_px: float
+    median_px: float
+    precision: float
+    recall: float
+    recall_at_p99: float
+    threshold: float
+    curve_precision: np.ndarray
+    curve_recall: np.ndarray
+    curve_score: np.ndarray
+    errors_px: np.ndarray
+
+
+def score_curve(
+    scores: np.ndarray, hits: np.ndarray, n_gt: int
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Detections sorted by score, best first (stable): their scores, hits, and the precision and recall
+    after each of them, given ``n_gt`` crossings."""
+    order = np.argsort(-scores, kind="mergesort")
+    s, h = scores[order], hits[order]
+    tps = np.cumsum(h)
+    return s, h, tps / np.arange(1, len(s) + 1), tps / max(n_gt, 1)
+
+
+def recall_at_precision(precision: np.ndarray, recall: np.ndarray, at_least: float = 0.99) -> float:
+    """The best recall along a :func:`score_curve` while precision stays at least ``at_least``; 0 if never."""
+    ok = precision >= at_least
+    return float(recall[ok].max()) if ok.any() else 0.0
+
+
+def match(gt: np.ndarray, pred: np.ndarray, gate_px: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One-to-one matches within the gate: (pred index, gt index, distance)."""
+    if len(gt) == 0 or len(pred) == 0:
+        return np.zeros(0, int), np.zeros(0, int), np.zeros(0)
+    d = np.hypot(gt[:, None, 0] - pred[None, :, 0], gt[:, None, 1] - pred[None, :, 1])
+    r, c = linear_sum_assignment(np.where(d < gate_px, d, 1e6))
+    ok = d[r, c] < gate_px
+    return c[ok], r[ok], d[r, c][ok]
+
+
+def pixel_metrics(
+    truths: Sequence[Truth],
+    predictions: Sequence[np.ndarray],
+    *,
+    threshold: float = OPERATING_THRESHOLD,
+    gate_px: float = GATE_PX,
+) -> PixelResult:
+    """PCK, pixel errors, precision and recall with Hungarian matching inside a pixel gate.
+
+    Matching uses every prediction whatever its score, as the project's scorer does; a prediction
+    matched to an ``ignore`` crossing is dropped from the counts.
+
+    Args:
+        truths: Ground truth per image.
+        predictions: Per image, an (N, 3) array of u, v, score.
+        threshold: The operating threshold on the score.
+        gate_px: The largest distance of a match.
+
+    Returns:
+        The figures, the precision-recall curve along the scores, and the errors.
+    """
+    n_gt = 0
+    scores, hits, errors = [], [], []
+    for truth, pred in zip(truths, predictions, strict=True):
+        pred = np.asarray(pred, float).reshape(-1, 3)
+        gt = np.asarray(truth.uv, float).reshape(-1, 2)
+        n_gt += len(gt)
+        ign = np.asarray(truth.ignore_uv, float).reshape(-1, 2)
+        both = np.r_[gt, ign]
+        p_idx, g_idx, dist = match(both, pred[:, :2], gate_px)
+        hit = np.zeros(len(pred), bool)
+        drop = np.zeros(len(pred), bool)
+        real = g_idx < len(gt)
+        hit[p_idx[real]] = True
+        drop[p_idx[~real]] = True
+        keep = pred[p_idx[real], 2] >= threshold
+        errors.append(dist[real][keep])
+        scores.append(pred[~drop, 2])
+        hits.append(hit[~drop])
+    s = np.concatenate(scores) if scores else np.zeros(0)
+    h = np.concatenate(hits) if hits else np.zeros(0, bool)
+    e = np.concatenate(errors) if errors else np.zeros(0)
+    s, h, prec, rec = score_curve(s, h, n_gt)
+    above = s >= threshold
+    n_above = int(above.sum())
+    tp_above = int(h[above].sum())
+    return PixelResult(
+        n_gt=n_gt,
+        pck={k: float((e <= k).sum() / max(n_gt, 1)) for k in PCK_PX},
+        mean_px=float(e.mean()) if len(e) else float("nan"),
+        median_px=float(np.median(e)) if len(e) else float("nan"),
+        precision=tp_above / n_above if n_above else float("nan"),
+        recall=tp_above / max(n_gt, 1),
+        recall_at_p99=recall_at_precision(prec, rec),
+        threshold=threshold,
+        curve_precision=prec,
+        curve_recall=rec,
+        curve_score=s,
+        errors_px=e,
+    )
+
+
+def ap_ceiling(recall: float) -> float:
+    """The most a 101-point interpolated AP can be with every prediction's ``recall`` (the recall reached
+    with all of them): COCOeval counts precision 0 at each recall threshold above the highest reached, so
+    even with no false detection ranked above a crossing the AP is the share of the thresholds reached.
+    At recall 0.988, 99 of the 101 thresholds are reached: AP at most 0.980, however few the false
+    detections; AP 0.99 needs recall 0.99 with a precision of 0.9999 up to it, or every crossing found."""
+    if not np.isfinite(recall):  # no crossings to find
+        return float("nan")
+    reached = np.count_nonzero(recall >= RECALL_THRESHOLDS)  # as COCOeval compares
+    return float(reached) / len(RECALL_THRESHOLDS)
+
+
+def summary(
+    truths: Sequence[Truth],
+    predictions: Sequence[np.ndarray],
+    *,
+    sigma: float = DEFAULT_OKS_SIGMA,
+    threshold: float = OPERATING_THRESHOLD,
+) -> dict[str, float]:
+    """Every headline figure in one flat dict (what the per-epoch table and the reports hold)."""
+    ap = keypoint_ap(truths, predictions, sigma=sigma)
+    px = pixel_metrics(truths, predictions, threshold=threshold)
+    at50 = int(np.argmin(np.abs(OKS_THRESHOLDS - 0.5)))
+    return {
+        "oks_ap50": ap.ap50,
+        "oks_ap": ap.ap,
+        "oks_ap75": ap.ap75,
+        # with every prediction, the crossings found at OKS 0.5; and the most AP@0.5 can be at that recall
+        "oks_recall50": float(ap.recall[at50]),
+        "oks_ap50_ceiling": ap_ceiling(ap.recall[at50]),
+        "pck1": px.pck[1.0],
+        "pck2": px.pck[2.0],
+        "pck5": px.pck[5.0],
+        "mean_px": px.mean_px,
+        "median_px": px.median_px,
+        "precision": px.precision,
+        "recall": px.recall,
+        "recall_at_p99": px.recall_at_p99,
+        "n_gt": float(px.n_gt),
+        "oks_sigma": sigma,
+        "threshold": threshold,
+    }
+
+
+def format_summary(m: dict[str, float]) -> str:
+    """One line with the headline figures (a summary written before AP@0.5's ceiling was: without it)."""
+    ceiling = (
+        f"; recall at OKS 0.5 {m['oks_recall50']:.4f}, so AP@0.5 at most {m['oks_ap50_ceiling']:.4f}"
+        if "oks_ap50_ceiling" in m
+        else ""
+    )
+    return (
+        f"{int(m['n_gt'])} visible crossings: OKS AP@0.5 {m['oks_ap50']:.4f}, AP@0.5:0.95 {m['oks_ap']:.4f} "
+        f"(sigma {m['oks_sigma']:g}{ceiling}), PCK@1/2/5px {m['pck1']:.3f}/{m['pck2']:.3f}/{m['pck5']:.3f}, "
+        f"error mean {m['mean_px']:.2f} median {m['median_px']:.2f} px, P/R@{m['threshold']:g} "
+        f"{m['precision']:.3f}/{m['recall']:.3f}, recall@P0.99 {m['recall_at_p99']:.3f}"
+    )

@@ -1,0 +1,110 @@
+"""What is done to a frame before the stages read it: resized to the focal length the detector trained at
+(:func:`focal_scale`), and on request what lies far behind the bars in front taken out of it
+(:func:`flatten_behind`, given a registered depth image)."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+
+# a frame whose focal length is within this share of the trained one is read as it comes
+TOLERANCE = 0.15
+
+
+def focal_scale(trained_focal_px: float | None, camera: tuple[float, float, float, float]) -> float:
+    """The factor a frame taken with ``camera`` (fx, fy, cx, cy) is resized by so that its focal length is
+    ``trained_focal_px``; 1 when that is unknown (a model file written before it was stored) or the two
+    lie within :data:`TOLERANCE`."""
+    if not trained_focal_px:
+        return 1.0
+    focal = 0.5 * (float(camera[0]) + float(camera[1]))
+    if focal <= 0:
+        return 1.0
+    scale = float(trained_focal_px) / focal
+    return 1.0 if abs(scale - 1.0) <= TOLERANCE else scale
+
+
+def resampled_size(height: int, width: int, scale: float) -> tuple[int, int]:
+    """(height, width) of a frame resized by ``scale``, at least one pixel each way."""
+    return max(1, round(height * scale)), max(1, round(width * scale))
+
+
+def resample(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False) -> np.ndarray:
+    """``image`` resized to ``size`` (height, width): area averaging when it shrinks, bilinear when it
+    grows, the nearest pixel with ``nearest`` (a depth image, whose values must not blend across an
+    edge). Corner-origin coordinates scale by exactly the ratio of the sizes."""
+    h, w = image.shape[:2]
+    smooth = cv2.INTER_AREA if size[0] * size[1] < h * w else cv2.INTER_LINEAR
+    return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_NEAREST if nearest else smooth)
+
+
+def scaled_camera(
+    camera: tuple[float, float, float, float], sx: float, sy: float
+) -> tuple[float, float, float, float]:
+    """The intrinsics of a frame resized by ``sx`` across and ``sy`` down (COCO corner origin: the principal
+    point scales with the pixels)."""
+    fx, fy, cx, cy = camera
+    return fx * sx, fy * sy, cx * sx, cy * sy
+
+
+GAP_M = 0.08  # farther than the nearest surface around by this much: behind (a lower mat lies 80-250 mm)
+WINDOW_PX = 60  # the opening's square, full-resolution pixels (15 cells of 4 px)
+CELL_PX = 4  # the resolution the nearest surface and the fill are worked out at
+BLUR_CELLS = 4.0  # the fill's Gaussian sigma, in cells (16 px)
+
+
+def front_depth(depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) float32 metres: the depth of the nearest surface around each pixel of ``depth_m`` (metres, 0 =
+    no measurement): the depth image's morphological opening (a minimum, then a maximum, over
+    :data:`WINDOW_PX` squares) at a quarter of the resolution, so the bars in front fill each window and a
+    tilted mat keeps its own depth; inf where a window holds no measurement."""
+    d = np.asarray(depth_m, np.float32)
+    h, w = d.shape
+    hc, wc = -(-h // CELL_PX), -(-w // CELL_PX)
+    padded = np.full((hc * CELL_PX, wc * CELL_PX), np.inf, np.float32)
+    np.copyto(padded[:h, :w], d, where=d > 0)
+    # each cell's nearest measurement (a minimum over the cell's square, read at its corner; numpy's
+    # reduction over the cells' axes gives the same 27 times as slowly)
+    cells = cv2.erode(padded, np.ones((CELL_PX, CELL_PX), np.uint8), anchor=(0, 0))[::CELL_PX, ::CELL_PX]
+    k = np.ones((WINDOW_PX // CELL_PX,) * 2, np.uint8)
+    opened = cv2.dilate(
+        cv2.erode(cells, k, borderType=cv2.BORDER_REPLICATE), k, borderType=cv2.BORDER_REPLICATE
+    )
+    finite = np.isfinite(opened)
+    # cells with no measurement in reach take no part in the upsampling (inf would spread)
+    filled = np.where(finite, opened, 0.0).astype(np.float32)
+    up = cv2.resize(filled, (wc * CELL_PX, hc * CELL_PX), interpolation=cv2.INTER_LINEAR)[:h, :w]
+    if not finite.all():
+        reach = cv2.resize(
+            finite.astype(np.uint8), (wc * CELL_PX, hc * CELL_PX), interpolation=cv2.INTER_NEAREST
+        )
+        up = np.where(reach[:h, :w] > 0, up, np.inf).astype(np.float32)
+    return up
+
+
+def behind_mask(depth_m: np.ndarray, *, gap_m: float = GAP_M) -> np.ndarray:
+    """(H, W) bool: the measured pixels of ``depth_m`` lying more than ``gap_m`` behind :func:`front_depth`."""
+    d = np.asarray(depth_m, np.float32)
+    return (d > 0) & (d > front_depth(d) + np.float32(gap_m))
+
+
+def flatten_behind(image: np.ndarray, depth_m: np.ndarray, *, gap_m: float = GAP_M) -> np.ndarray:
+    """``image`` (H, W, 3) uint8 with the pixels :func:`behind_mask` names replaced by the blurred colour of
+    those pixels around them (a normalised Gaussian at a quarter of the resolution); the others as they
+    are. ``depth_m`` is registered to it, in metres (0 = no measurement). A new array; ``image`` is left."""
+    behind = behind_mask(depth_m, gap_m=gap_m)
+    out = image.copy()
+    if not behind.any():
+        return out
+    h, w = behind.shape
+    small = (max(1, w // CELL_PX), max(1, h // CELL_PX))
+    mask = behind.view(np.uint8)
+    masked = cv2.bitwise_and(image, image, mask=mask).astype(np.float32)
+    weight = cv2.GaussianBlur(
+        cv2.resize(mask.astype(np.float32), small, interpolation=cv2.INTER_AREA), (0, 0), BLUR_CELLS
+    )
+    colour = cv2.GaussianBlur(cv2.resize(masked, small, interpolation=cv2.INTER_AREA), (0, 0), BLUR_CELLS)
+    fill = colour / np.maximum(weight, 1e-3)[..., None]
+    fill = cv2.resize(np.clip(fill + 0.5, 0, 255).astype(np.uint8), (w, h), interpolation=cv2.INTER_LINEAR)
+    cv2.copyTo(fill, mask, out)
+    return out

@@ -1,0 +1,415 @@
+"""A detector's model files and what runs them.
+
+``<stem>.onnx`` is the first stage; its metadata (under :data:`META_KEY`, JSON) names the later stages, each
+in ``<stem>.<stage>.onnx`` beside it with the SHA-256 it was written with. The files run in ONNX Runtime in
+float32, or in OpenVINO in bfloat16 where the CPU has it (``runtime``: "onnxruntime", "openvino", or "auto",
+the default: OpenVINO where it is installed and the CPU has bfloat16); the int8 copy of the second stage
+always runs in ONNX Runtime.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass
+from functools import cache
+from pathlib import Path
+from typing import Any, Literal, get_args
+
+import numpy as np
+
+from rebar_data.errors import ConfigError
+from rebar_data.perception.inference.checks import DepthCheck
+from rebar_data.perception.inference.refine import CrossingPoint, Refiner
+
+Runtime = Literal["auto", "onnxruntime", "openvino"]
+RUNTIMES: tuple[str, ...] = get_args(Runtime)
+# input shapes an OpenVINO session compiles for (the first stage is compiled per image size: with its height
+# and width left free it ran 5.0 ms against 3.8 ms compiled for 640x480); sizes past these are served by one
+# compile with them left free, so a folder of many sizes is not compiled again image by image
+SHAPES_KEPT = 4
+# a batch of patches is padded to a multiple of this many: each batch size OpenVINO has not seen before costs
+# it a new plan (200 calls of 20-200 patches: 0.075 ms a patch as they came, 0.060 padded to 8, 0.068 to 16)
+BATCH_STEP = 8
+
+
+def onnx_session(path: Path, threads: int, runtime: str = "onnxruntime"):
+    """A CPU session for one of the project's model files, set up for low latency: an ONNX Runtime
+    ``InferenceSession``, or for ``runtime`` "openvino" an :class:`OpenVinoSession` that answers the same
+    calls (``get_inputs``, ``get_outputs``, ``get_modelmeta``, ``run``). "auto" is resolved here. A file
+    OpenVINO does not read (an int8 one, in ONNX Runtime's quantized operators) runs in ONNX Runtime."""
+    if resolve_runtime(runtime) == "openvino":
+        try:
+            return OpenVinoSession(path, threads)
+        except ConfigError:
+            pass  # ONNX Runtime reads it, or says why it cannot
+    import onnxruntime as ort
+
+    so = ort.SessionOptions()
+    so.intra_op_num_threads = threads
+    so.inter_op_num_threads = 1
+    so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
+    so.log_severity_level = 3
+    # threads sleep rather than spin between runs: on a 2-core machine shared with the simulator,
+    # spinning doubled the latency under load and cost nothing to drop when idle
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    try:
+        return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+    except Exception as e:
+        raise ConfigError(f"{path}: cannot be loaded as an ONNX model ({type(e).__name__})") from None
+
+
+def resolve_runtime(runtime: str) -> str:
+    """ "onnxruntime" or "openvino": what ``runtime`` means on this machine."""
+    if runtime not in RUNTIMES:
+        raise ConfigError(f"runtime {runtime!r} is not accepted; accepted: {', '.join(RUNTIMES)}")
+    if runtime == "auto":
+        return "openvino" if openvino_bf16() else "onnxruntime"
+    if runtime == "openvino" and _openvino_core() is None:
+        raise ConfigError(
+            "runtime 'openvino' needs the openvino package; accepted: pip install openvino, "
+            "or runtime 'onnxruntime'"
+        )
+    return runtime
+
+
+def openvino_bf16() -> bool:
+    """Whether OpenVINO is installed and runs bfloat16 on this CPU."""
+    core = _openvino_core()
+    return core is not None and "BF16" in core.get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+
+
+def runtime_description(runtime: str) -> str:
+    """How ``runtime`` runs here, in words (for the bench and `rebar detect`)."""
+    if resolve_runtime(runtime) == "onnxruntime":
+        return "ONNX Runtime, float32"
+    return f"OpenVINO, {'bfloat16' if openvino_bf16() else 'float32'}"
+
+
+@cache
+def _openvino_core() -> Any:
+    try:
+        import openvino
+
+        return openvino.Core()
+    except (ImportError, OSError, RuntimeError):  # not installed, or its libraries do not load here
+        return None
+
+
+@dataclass(frozen=True)
+class _Arg:
+    """An input or output as ONNX Runtime's ``NodeArg`` names it: free dimensions are strings."""
+
+    name: str
+    shape: list[int | str]
+
+
+@dataclass(frozen=True)
+class _Meta:
+    custom_metadata_map: dict[str, str]
+
+
+class OpenVinoSession:
+    """An ONNX file compiled by OpenVINO for the CPU (bfloat16 where the CPU has it), answering the calls
+    the project makes of an ONNX Runtime session. A file whose inputs have free dimensions past the first
+    (the first stage's image) is compiled for each of the first :data:`SHAPES_KEPT` input shapes it is
+    given (the batch of two the detector's mirrored reading gives is a shape of its own), and once more with
+    them and the batch free for any other; one free only in the first (a batch of patches) is compiled once
+    and given batches padded to a multiple of :data:`BATCH_STEP`; one with none free is compiled once."""
+
+    def __init__(self, path: Path, threads: int):
+        import onnx
+
+        core = _openvino_core()
+        try:
+            self._model = core.read_model(str(path))
+            proto = onnx.load(str(path), load_external_data=False)
+        except Exception as e:
+            raise ConfigError(f"{path}: cannot be loaded as an ONNX model ({type(e).__name__})") from None
+        self._meta = _Meta({p.key: p.value for p in proto.metadata_props})
+        self._inputs = [_arg(v) for v in proto.graph.input]
+        self._outputs = [_arg(v) for v in proto.graph.output]
+        self._config = {
+            "INFERENCE_NUM_THREADS": threads,
+            "PERFORMANCE_HINT": "LATENCY",
+            "NUM_STREAMS": 1,
+            "INFERENCE_PRECISION_HINT": "bf16" if openvino_bf16() else "f32",
+        }
+        self._per_shape = any(isinstance(d, str) for a in self._inputs for d in a.shape[1:])
+        self._padded = not self._per_shape and all(
+            a.shape and isinstance(a.shape[0], str) for a in self._inputs
+        )
+        self._compiled: dict[tuple, Any] = {}
+        # an infer request serves one call at a time; ONNX Runtime's sessions may be called from threads
+        self._lock = threading.Lock()
+        if not self._per_shape:
+            self._compiled[()] = self._compile(self._model)
+
+    def _compile(self, model: Any) -> tuple[Any, Any]:
+        compiled = _openvino_core().compile_model(model, "CPU", self._config)
+        return compiled, compiled.create_infer_request()
+
+    def get_inputs(self) -> list[_Arg]:
+        return self._inputs
+
+    def get_outputs(self) -> list[_Arg]:
+        return self._outputs
+
+    def get_modelmeta(self) -> _Meta:
+        return self._meta
+
+    def run(self, output_names: None, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
+        """Every output for ``feed`` (``output_names`` must be None: all of them, in the file's order)."""
+        with self._lock:
+            return self._run(feed)
+
+    def _run(self, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
+        key = tuple((k, v.shape) for k, v in feed.items()) if self._per_shape else ()
+        if key not in self._compiled:
+            if len(self._compiled) >= SHAPES_KEPT:
+                key = ()  # one compile with the free dimensions left free serves every other shape
+            if key not in self._compiled:
+                model = self._model.clone()
+                if key:
+                    model.reshape({k: list(v.shape) for k, v in feed.items()})
+                else:  # any shape, any batch: the detector reads a frame and its mirror image in one call
+                    model.reshape({i.any_name: _batch_free(i.get_partial_shape()) for i in model.inputs})
+                self._compiled[key] = self._compile(model)
+        compiled, request = self._compiled[key]
+        n = pad = 0
+        if self._padded:
+            n = len(next(iter(feed.values())))
+            pad = -n % BATCH_STEP
+        if pad:
+            feed = {k: np.concatenate([v, np.zeros((pad, *v.shape[1:]), v.dtype)]) for k, v in feed.items()}
+        out = request.infer(feed, share_inputs=True)  # read in place: no copy of the image or patches
+        return [np.array(out[o][:n] if pad else out[o]) for o in compiled.outputs]
+
+
+def _batch_free(shape: Any) -> Any:
+    """An OpenVINO input shape with its first dimension (the batch) left free."""
+    import openvino
+
+    return openvino.PartialShape([openvino.Dimension(), *list(shape)[1:]])
+
+
+def _arg(value: Any) -> _Arg:
+    dims = value.type.tensor_type.shape.dim
+    return _Arg(value.name, [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in dims])
+
+
+FORMAT = "rebar-keypoint"
+FORMAT_VERSION = 1
+META_KEY = "rebar_keypoint"
+
+
+def sha256_file(path: Path) -> str:
+    """The hex SHA-256 of a file's bytes."""
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()
+
+
+def depth_check_path(model: Path) -> Path:
+    """Where a model file's third stage lives: beside it, ``<stem>.depth.onnx`` (or ``.depth.pt``)."""
+    return model.with_name(f"{model.stem}.depth{model.suffix}")
+
+
+def load_depth_check(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> DepthCheck | None:
+    """The third stage a model file names in its meta (None when it names none)."""
+    found = stage_file(model, meta, "depth_check", depth_check_path)
+    if found is None:
+        return None
+    path, entry = found
+    return read_depth_check(
+        path, threads=threads, scale_m=float(entry["scale_m"]), clip=float(entry["clip"]), runtime=runtime
+    )
+
+
+def stage_file(
+    model: Path,
+    meta: dict[str, Any],
+    key: str,
+    beside: Callable[[Path], Path],
+    *,
+    sha_key: str = "sha256",
+) -> tuple[Path, dict[str, Any]] | None:
+    """The later stage that ``model``'s meta names under ``key``: its file (``beside(model)``) and its meta
+    entry; None when the meta names none. ConfigError unless the file is beside the model, and is the
+    file it was exported with (the entry's ``sha_key``)."""
+    entry = meta.get(key)
+    if not entry:
+        return None
+    path = beside(model)
+    if not path.exists():
+        raise ConfigError(
+            f"{model}: its stage {path.name} is missing beside it; accepted: the files together, "
+            f"as `rebar train` writes them ({model.name} and {path.name})"
+        )
+    if path.suffix == ".onnx" and entry.get(sha_key) and sha256_file(path) != entry[sha_key]:
+        raise ConfigError(
+            f"{path}: is not the stage {model.name} was exported with (its SHA-256 differs); "
+            "accepted: the files from the same `rebar train` run"
+        )
+    return path, entry
+
+
+def crossing_point_path(model: Path) -> Path:
+    """Where a model file's crossing-point stage lives: beside it, ``<stem>.crossing.onnx`` (or ``.pt``)."""
+    return model.with_name(f"{model.stem}.crossing{model.suffix}")
+
+
+def load_crossing_point(
+    model: Path, meta: dict[str, Any], threads: int, runtime: str
+) -> CrossingPoint | None:
+    """The crossing-point stage a model file names in its meta (None when it names none)."""
+    found = stage_file(model, meta, "crossing_point", crossing_point_path)
+    if found is None:
+        return None
+    return read_crossing_point(found[0], threads=threads, runtime=runtime)
+
+
+def refiner_path(model: Path) -> Path:
+    """Where a model file's second stage lives: beside it, ``<stem>.refine.onnx`` (or ``.refine.pt``)."""
+    return model.with_name(f"{model.stem}.refine{model.suffix}")
+
+
+def int8_passes_path(model: Path) -> Path:
+    """Where the int8 copy of a model file's second stage that its passes after the first read lives
+    (``RefineConfig.quantize = "later"``): beside it, ``<stem>.refine.int8.onnx``."""
+    return model.with_name(f"{model.stem}.refine.int8.onnx")
+
+
+def stage_files(model: Path) -> list[Path]:
+    """Where a model file's later stages live beside it, whichever it has: what shipping or adapting the
+    model copies with it."""
+    return [f(model) for f in (refiner_path, int8_passes_path, depth_check_path, crossing_point_path)]
+
+
+def load_refiner(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> Refiner | None:
+    """The refiner a model file names in its meta (None when it names none)."""
+    found = stage_file(model, meta, "refiner", refiner_path)
+    if found is None:
+        return None
+    path, entry = found
+    int8 = None  # the int8 copy its later passes read (quantize: later)
+    if entry.get("quantize") == "later":
+        int8, _ = stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
+    return read_refiner(
+        path,
+        threads=threads,
+        runtime=runtime,
+        int8_path=int8,
+        **refiner_passes(entry),
+    )
+
+
+def refiner_passes(entry: dict[str, Any]) -> dict[str, Any]:
+    """How the second stage's passes run, as its meta entry says (keys written later default to how older
+    files ran)."""
+    views = int(entry.get("views", 1))
+    return {
+        "iterations": int(entry.get("iterations", 1)),
+        "views": views,
+        "first_pass_views": int(entry.get("first_pass_views", views)),  # every pass alike
+        "step": float(entry.get("step", 1.0)),  # each pass all the way
+        "shrink_above_px": entry.get("shrink_above_px"),  # None: every pass at full resolution
+    }
+
+
+def read_refiner(
+    path: Path,
+    *,
+    threads: int,
+    iterations: int = 1,
+    views: int = 1,
+    step: float = 1.0,
+    shrink_above_px: tuple[float, float] | None = None,
+    first_pass_views: int | None = None,
+    int8_path: Path | None = None,
+    runtime: str = "onnxruntime",
+) -> Refiner:
+    """The second stage in an ONNX file. ``int8_path``: the int8 copy the passes after the first read (None:
+    they read ``path``); it must take and give what
+    ``path`` does. ``runtime`` runs ``path`` (:mod:`~rebar_data.perception.inference.model_file`); the int8 copy always
+    runs in ONNX Runtime."""
+    sess = onnx_session(path, threads, runtime)
+    name = sess.get_inputs()[0].name
+    size = sess.get_inputs()[0].shape[1]
+    if not isinstance(size, int):
+        raise ConfigError(f"{path}: is not a refiner file (its patch size is not fixed)")
+
+    def run(x: np.ndarray) -> np.ndarray:
+        return sess.run(None, {name: x})[0]
+
+    int8_run = None
+    if int8_path is not None:
+        int8 = onnx_session(int8_path, threads)
+        signature = (sess.get_inputs()[0].shape, sess.get_outputs()[0].shape)
+        if (int8.get_inputs()[0].shape, int8.get_outputs()[0].shape) != signature:
+            raise ConfigError(
+                f"{int8_path}: takes or gives other shapes than {path.name}; accepted: the int8 copy "
+                f"written from it by `rebar train` (quantize: later)"
+            )
+        int8_name = int8.get_inputs()[0].name
+
+        def int8_run(x: np.ndarray) -> np.ndarray:
+            return int8.run(None, {int8_name: x})[0]
+
+    # 2: offsets; 3: offsets and the verification logit; 4: and the log box side
+    columns = sess.get_outputs()[0].shape[-1]
+    if sess.get_inputs()[0].shape[-1] != 4:  # RGB and the mask of the pixels on the image
+        raise ConfigError(
+            f"{path}: does not take RGB and the border mask; accepted: the refiner file written with its "
+            "model file by `rebar train`"
+        )
+    return Refiner(
+        run,
+        patch_px=size,
+        iterations=iterations,
+        verifies=columns >= 3,
+        views=views,
+        step=step,
+        sizes=columns == 4,
+        shrink_above_px=shrink_above_px,
+        first_pass_views=first_pass_views,
+        int8_run=int8_run,
+    )
+
+
+def read_crossing_point(path: Path, *, threads: int, runtime: str = "onnxruntime") -> CrossingPoint:
+    sess = onnx_session(path, threads, runtime)
+    inputs = sess.get_inputs()
+    size = inputs[0].shape[1]
+    if len(inputs) != 2 or not isinstance(size, int):
+        raise ConfigError(f"{path}: is not a crossing-point file (it takes no patches and rays)")
+    names = [i.name for i in inputs]
+
+    def run(x: np.ndarray, rays: np.ndarray) -> np.ndarray:
+        return sess.run(None, {names[0]: x, names[1]: rays})[0]
+
+    return CrossingPoint(run, patch_px=size)
+
+
+def read_depth_check(
+    path: Path,
+    *,
+    threads: int,
+    scale_m: float,
+    clip: float,
+    runtime: str = "onnxruntime",
+) -> DepthCheck:
+    sess = onnx_session(path, threads, runtime)
+    name = sess.get_inputs()[0].name
+    size = sess.get_inputs()[0].shape[-1]
+    if not isinstance(size, int):
+        raise ConfigError(f"{path}: is not a depth-check file (its patch size is not fixed)")
+
+    def run(x: np.ndarray) -> np.ndarray:
+        return sess.run(None, {name: x})[0]
+
+    return DepthCheck(run, patch_px=size, scale_m=scale_m, clip=clip)

@@ -1,0 +1,326 @@
+"""Model files: PyTorch checkpoints (weights + architecture + provenance) and ONNX exports for inference.
+
+A ``.pt`` file is a dict with ``format``, ``model_config``, ``state_dict`` and ``meta``; training's own
+checkpoints add the optimiser and progress so a run can resume. An ``.onnx`` file takes uint8 RGB
+(1, H, W, 3) and returns the network's (1, 3, H/4, W/4) output; the same ``meta`` is stored in its
+metadata under ``rebar_keypoint`` as JSON, so the one file says what it is, how it was trained and how
+well it scored.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import warnings
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+from torch import nn
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.inference.detector import STRIDE
+from rebar_data.perception.inference.model_file import FORMAT, FORMAT_VERSION, META_KEY
+from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig, UInt8Input
+from rebar_data.perception.networks.stages import (
+    CrossingNet,
+    DepthNet,
+    PatchNet,
+)
+
+
+def write_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
+    """Write a ``.pt`` checkpoint atomically (a temporary file renamed into place)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".tmp")
+    torch.save(payload, tmp)
+    tmp.replace(path)
+
+
+def read_checkpoint(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
+    """A ``.pt`` checkpoint's payload; ConfigError when the file cannot be read or is not a ``fmt`` file."""
+    path = Path(path)
+    try:
+        payload = torch.load(path, map_location="cpu", weights_only=False)
+    except Exception as e:  # a truncated or foreign file: say which
+        raise ConfigError(f"{path}: cannot be read as a {what} checkpoint ({type(e).__name__})") from None
+    if not isinstance(payload, dict) or payload.get("format") != fmt:
+        raise ConfigError(f"{path}: is not a {fmt} checkpoint; accepted: a .pt file written by `rebar train`")
+    return payload
+
+
+def save_checkpoint(path: str | Path, net: KeypointNet, meta: dict[str, Any], **extra: Any) -> None:
+    """Write the first stage's weights, architecture and ``meta`` (plus any training state in ``extra``)."""
+    write_checkpoint(
+        path,
+        {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "model_config": net.cfg.model_dump(mode="json"),
+            "state_dict": net.state_dict(),
+            "meta": meta,
+            **extra,
+        },
+    )
+
+
+def load_checkpoint(path: str | Path) -> tuple[KeypointNet, dict[str, Any], dict[str, Any]]:
+    """Rebuild the network of a ``.pt`` file; returns (network in eval mode, meta, the whole payload)."""
+    payload = read_checkpoint(path, fmt=FORMAT, what="detector")
+    if payload.get("format_version", 0) > FORMAT_VERSION:
+        raise ConfigError(
+            f"{path}: format_version {payload['format_version']} is newer than this code reads ({FORMAT_VERSION})"
+        )
+    net = KeypointNet(ModelConfig.model_validate(payload["model_config"]))
+    net.load_state_dict(payload["state_dict"])
+    net.eval()
+    return net, payload.get("meta", {}), payload
+
+
+def export_onnx(
+    net: nn.Module,
+    path: str | Path,
+    meta: dict[str, Any] | None = None,
+    *,
+    example_hw: tuple[int, int] = (480, 640),
+) -> Path:
+    """Write any of the detector's networks as the ONNX file the run time reads (atomically).
+
+    - :class:`KeypointNet` (the first stage): uint8 RGB (1, H, W, 3) and, with ray channels, the output
+      cells' rays (1, 2, H/4, W/4) -> (1, 3, H/4, W/4), image size dynamic; ``meta`` (with the format and
+      the model config) goes into the file's metadata under :data:`META_KEY`.
+    - :class:`PatchNet` (the second stage): uint8 patches (N, P, P, C) -> (N, 2 to 4) offsets, verification
+      logit and log box side.
+    - :class:`DepthNet` (the depth check): float32 (N, 2, P, P) encoded patches -> (N,) logits.
+    - :class:`CrossingNet` (the crossing-point stage): uint8 (N, P, P, 3) patches and float32 (N, 2) rays
+      -> (N, 2) offsets.
+
+    The later stages' batch axis is dynamic; their files carry no metadata (the first stage's names them).
+    """
+    import onnx
+
+    path = Path(path)
+    net = net.eval()
+    if isinstance(net, KeypointNet):
+        inputs: tuple[torch.Tensor, ...] = (torch.zeros((1, *example_hw, 3), dtype=torch.uint8),)
+        names = ["image"]
+        axes = {"image": {1: "height", 2: "width"}, "output": {2: "cells_y", 3: "cells_x"}}
+        if net.cfg.ray_channels:
+            inputs += (
+                torch.zeros((1, 2, example_hw[0] // STRIDE, example_hw[1] // STRIDE), dtype=torch.float32),
+            )
+            names.append("rays")
+            axes["rays"] = {2: "cells_y", 3: "cells_x"}
+        module, output = UInt8Input(net), "output"
+    else:
+        size = net.patch_px
+        if isinstance(net, PatchNet):
+            module, names, output = UInt8Input(net), ["patches"], "offset"
+            inputs = (torch.zeros((4, size, size, net.channels), dtype=torch.uint8),)
+        elif isinstance(net, DepthNet):
+            module, names, output = net, ["depth"], "logit"
+            inputs = (torch.zeros((4, 2, size, size), dtype=torch.float32),)
+        elif isinstance(net, CrossingNet):
+            module, names, output = UInt8Input(net), ["patches", "rays"], "offset"
+            inputs = (
+                torch.zeros((4, size, size, 3), dtype=torch.uint8),
+                torch.zeros((4, 2), dtype=torch.float32),
+            )
+        else:
+            raise TypeError(f"{type(net).__name__} is not one of the detector's networks")
+        axes = {**{n: {0: "n"} for n in names}, output: {0: "n"}}
+    tmp = path.with_name(path.name + ".tmp")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        torch.onnx.export(
+            module.eval(),
+            inputs,
+            str(tmp),
+            input_names=names,
+            output_names=[output],
+            dynamic_axes=axes,
+            opset_version=17,
+            dynamo=False,
+        )
+    if isinstance(net, KeypointNet):
+        model = onnx.load(str(tmp))
+        full = {
+            "format": FORMAT,
+            "format_version": FORMAT_VERSION,
+            "model_config": net.cfg.model_dump(mode="json"),
+            **(meta or {}),
+        }
+        entry = model.metadata_props.add()
+        entry.key, entry.value = META_KEY, json.dumps(full, sort_keys=True)
+        onnx.save(model, str(tmp))
+    tmp.replace(path)
+    return path
+
+
+def update_onnx_meta(path: str | Path, changes: dict[str, Any]) -> Path:
+    """Rewrite the ``meta`` of an ONNX file from :func:`export_onnx` with ``changes`` merged in (atomically;
+    the network is untouched)."""
+    import onnx
+
+    path = Path(path)
+    model = onnx.load(str(path))
+    entry = _meta_entry(model, path)
+    entry.value = json.dumps({**json.loads(entry.value), **changes}, sort_keys=True)
+    tmp = path.with_name(path.name + ".tmp")
+    onnx.save(model, str(tmp))
+    tmp.replace(path)
+    return path
+
+
+def _meta_entry(model, path: Path):
+    """The metadata entry of a loaded ONNX ``model`` (read from ``path``) that holds the detector's meta."""
+    for entry in model.metadata_props:
+        if entry.key == META_KEY:
+            return entry
+    raise ConfigError(
+        f"{path}: carries no detector metadata; accepted: a model file written by `rebar train`"
+    )
+
+
+def onnx_meta(path: str | Path) -> dict[str, Any]:
+    """The ``meta`` stored in an ONNX file by :func:`export_onnx` (empty if it has none)."""
+    import onnxruntime as ort
+
+    sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+    raw = sess.get_modelmeta().custom_metadata_map.get(META_KEY)
+    return json.loads(raw) if raw else {}
+
+
+def check_model_file(model: str | Path) -> Path:
+    """``model`` as a Path, once it is an ONNX file written by ``rebar train`` (a stage is to be added to
+    it); a clear ``ConfigError`` otherwise."""
+    model = Path(model)
+    if model.suffix != ".onnx" or not model.exists():
+        raise ConfigError(
+            f"{model}: no such ONNX model; accepted: a detector's .onnx file, such as best.onnx"
+        )
+    if not onnx_meta(model):
+        raise ConfigError(
+            f"{model}: carries no detector metadata; accepted: a model file written by `rebar train`"
+        )
+    return model
+
+
+def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
+    """The network of an ONNX file from :func:`export_onnx` turned back into PyTorch, and its ``meta``:
+    what lets training go on from a shipped first stage (a run folder's ``best.pt``, the adapt epochs)
+    when its checkpoint is gone.
+
+    The export folds each batch norm into the convolution before it, so the weights come back folded:
+    each such convolution holds the folded kernel and its batch norm the folded bias, with unit scale
+    and the statistics that make it the identity in eval mode (mean 0, variance 1 - eps). The outputs
+    equal the file's within float rounding; batch norms trained again in train mode start from other
+    statistics, so go on with them frozen, as the adapt epochs do.
+
+    Raises:
+        ConfigError: the file is not a detector's ONNX file, or its layers do not match its model config.
+    """
+    import onnx
+    from onnx import numpy_helper
+
+    path = Path(path)
+    try:
+        model = onnx.load(str(path))
+    except Exception as e:
+        raise ConfigError(f"{path}: cannot be read as an ONNX file ({type(e).__name__})") from None
+    full = json.loads(_meta_entry(model, path).value)
+    net = KeypointNet(ModelConfig.model_validate(full["model_config"])).eval()
+    weights = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in model.graph.initializer}
+    nodes = {op: [n for n in model.graph.node if n.op_type == op] for op in ("Conv", "Gemm")}
+    convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
+    linears = [m for m in net.modules() if isinstance(m, torch.nn.Linear)]
+    norm_after = {  # each convolution's batch norm, where one follows it
+        id(a): b
+        for seq in net.modules()
+        if isinstance(seq, torch.nn.Sequential)
+        for a, b in zip(list(seq.children()), list(seq.children())[1:], strict=False)
+        if isinstance(a, torch.nn.Conv2d) and isinstance(b, torch.nn.BatchNorm2d)
+    }
+    if len(nodes["Conv"]) != len(convs) or len(nodes["Gemm"]) != len(linears):
+        raise ConfigError(
+            f"{path}: holds {len(nodes['Conv'])} convolutions and {len(nodes['Gemm'])} linear layers where its "
+            f"model config has {len(convs)} and {len(linears)}; accepted: a file exported by `rebar train`"
+        )
+    with torch.no_grad():
+        # the export traces the layers in the order the modules were made (the context's linear layers
+        # aside, matched on their own)
+        for node, conv in zip(nodes["Conv"], convs, strict=True):
+            w = weights[node.input[1]]
+            b = weights[node.input[2]] if len(node.input) > 2 else torch.zeros(w.shape[0])
+            if w.shape != conv.weight.shape:
+                raise ConfigError(
+                    f"{path}: a convolution of shape {tuple(w.shape)} where its model config has "
+                    f"{tuple(conv.weight.shape)}; accepted: a file exported by `rebar train`"
+                )
+            conv.weight.copy_(w)
+            norm = norm_after.get(id(conv))
+            if norm is None:
+                conv.bias.copy_(b)
+            else:
+                norm.weight.fill_(1.0)
+                norm.bias.copy_(b)
+                norm.running_mean.zero_()
+                norm.running_var.fill_(1.0 - norm.eps)
+        for node, lin in zip(nodes["Gemm"], linears, strict=True):
+            lin.weight.copy_(weights[node.input[1]])
+            lin.bias.copy_(weights[node.input[2]])
+    meta = {k: v for k, v in full.items() if k not in ("format", "format_version", "model_config")}
+    return net, meta
+
+
+def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray, *, input_name: str = "patches") -> Path:
+    """The float file ``src`` (the refiner, or another patch network) as int8 at ``dst``: ONNX Runtime's
+    static quantization, int8 weights per output channel and uint8 activations, their ranges the min and
+    max seen on ``calibration`` (the network's input ``input_name``, such as uint8 patches N x P x P x 3)."""
+    from onnxruntime.quantization import CalibrationDataReader
+
+    class Batches(CalibrationDataReader):
+        def __init__(self) -> None:
+            self._it = iter(np.array_split(calibration, max(1, len(calibration) // 64)))
+
+        def get_next(self) -> dict[str, np.ndarray] | None:
+            b = next(self._it, None)
+            return None if b is None else {input_name: np.ascontiguousarray(b)}
+
+    root_logger = logging.getLogger()
+    level = root_logger.level
+    # ONNX Runtime warns on the root logger, with the whole tensor type, that the uint8 input is not
+    # quantized (it is already 8-bit): kept quiet
+    root_logger.setLevel(logging.ERROR)
+    try:
+        _quantize(src, dst, Batches())
+    finally:
+        root_logger.setLevel(level)
+    return dst
+
+
+def _quantize(src: Path, dst: Path, batches) -> None:
+    import tempfile
+
+    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
+    from onnxruntime.quantization.shape_inference import quant_pre_process
+
+    # the temporary folder sits beside dst, so the finished file is renamed into place atomically
+    with tempfile.TemporaryDirectory(prefix=".rebar-quant-", dir=dst.parent) as tmp:
+        pre = Path(tmp) / "pre.onnx"
+        # symbolic shape inference cannot resolve the batch axis and would leave a file in the working
+        # folder; ONNX's own shape inference, which still runs, is enough for a plain convolution network
+        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+        out = Path(tmp) / "int8.onnx"
+        quantize_static(
+            str(pre),
+            str(out),
+            batches,
+            quant_format=QuantFormat.QOperator,
+            per_channel=True,
+            activation_type=QuantType.QUInt8,
+            weight_type=QuantType.QInt8,
+            calibrate_method=CalibrationMethod.MinMax,
+        )
+        out.replace(dst)

@@ -1,0 +1,109 @@
+"""The later stages' networks: the second stage (:class:`PatchNet`), the depth check (:class:`DepthNet`) and
+the crossing-point stage (:class:`CrossingNet`)."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from rebar_data.perception.networks.keypoint_net import conv_bn_relu
+
+
+def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
+    return nn.Sequential(
+        nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True)
+    )
+
+
+class PatchNet(nn.Module):
+    """(N, 4, P, P) patches, values 0-255 (RGB and a fourth channel that marks the pixels on the image)
+    -> (N, 2) offset (x, y) of the crossing from the patch centre,
+    in the patch's pixels, and with ``verify`` a third column: the logit that the patch shows a crossing
+    near its centre at all; with ``size`` a fourth: the log of the crossing's box side (four bar diameters)
+    over the patch's side, as the patch shows it.
+
+    Plain 3x3 convolutions, the first at full resolution (folding 2x2 pixels into channels first was
+    cheaper but measurably less accurate), three halvings to P / 8 with ``blocks`` more convolutions after
+    each, then two fully connected layers: a regression over the whole patch, which sees both bars'
+    edges on every side of the crossing. A frame's detections run as one batch.
+    """
+
+    def __init__(
+        self,
+        patch_px: int,
+        widths: tuple[int, int, int, int],
+        hidden: int,
+        blocks: tuple[int, int, int] = (1, 1, 1),
+        *,
+        verify: bool = False,
+        size: bool = False,
+    ):
+        super().__init__()
+        a, b, c, d = widths
+        self.patch_px = patch_px
+        self.verify = verify
+        self.size = size
+        layers = [_conv(self.channels, a)]
+        for cin, cout, n in ((a, b, blocks[0]), (b, c, blocks[1]), (c, d, blocks[2])):
+            layers += [_conv(cin, cout, 2), *[_conv(cout, cout) for _ in range(n)]]
+        self.features = nn.Sequential(*layers)
+        cells = -(-patch_px // 8)
+        self.head = nn.Sequential(
+            nn.Flatten(),
+            nn.Linear(d * cells * cells, hidden),
+            nn.ReLU(inplace=True),
+            nn.Linear(hidden, 2 + int(verify) + int(size)),
+        )
+
+    channels = 4  # RGB and the mask of the pixels on the image
+
+    def forward(self, patches: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(patches * (1.0 / 64.0) - 2.0))
+
+
+class DepthNet(nn.Module):
+    """(N, 2, P, P) encoded depth patches (:func:`~rebar_data.perception.inference.checks.encode`) -> (N,) logit
+    that the patch shows a crossing: a 3x3 convolution at full resolution, three halvings to P / 8, two
+    fully connected layers."""
+
+    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
+        super().__init__()
+        a, b, c, d = widths
+        self.patch_px = patch_px
+        self.features = nn.Sequential(
+            conv_bn_relu(2, a),
+            conv_bn_relu(a, b, stride=2),
+            conv_bn_relu(b, c, stride=2),
+            conv_bn_relu(c, d, stride=2),
+        )
+        cells = -(-patch_px // 8)
+        self.head = nn.Sequential(
+            nn.Flatten(), nn.Linear(d * cells * cells, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1)
+        )
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.head(self.features(x))[:, 0]
+
+
+class CrossingNet(nn.Module):
+    """(N, 3, P, P) patches, values 0-255, and (N, 2) viewing rays -> (N, 2) offset (x, y) in pixels from
+    the patch centre's sight point to the projected 3D crossing point.
+
+    Plain 3x3 convolutions (as the second stage's), the first at full resolution, three halvings to P / 8,
+    then two fully connected layers over the features and the ray."""
+
+    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
+        super().__init__()
+        a, b, c, d = widths
+        self.patch_px = patch_px
+        self.features = nn.Sequential(
+            _conv(3, a), _conv(a, b, 2), _conv(b, b), _conv(b, c, 2), _conv(c, c), _conv(c, d, 2)
+        )
+        cells = -(-patch_px // 8)
+        self.head = nn.Sequential(
+            nn.Linear(d * cells * cells + 2, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2)
+        )
+
+    def forward(self, patches: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
+        f = self.features(patches * (1.0 / 64.0) - 2.0).flatten(1)
+        return self.head(torch.cat([f, rays], dim=1))

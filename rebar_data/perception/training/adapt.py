@@ -1,0 +1,201 @@
+"""The first stage's adapt epochs: after its best epoch, a few more at a low learning rate on its training
+images and another renderer's frames (the run's second-stage supplements, each listed
+``AdaptConfig.supplement_repeats`` times), its batch norms frozen. What they train is the first stage the
+run ships and the later stages train beside; ``best.pt`` keeps the best epoch they started from, so they
+train again from it when their settings, their data or that epoch change.
+
+In the run folder: ``adapt_last.pt`` (after every epoch: weights, weight average, optimiser, random state,
+history and what they trained on, so an interrupted run resumes where it stopped) and ``adapted.pt`` (the
+weight average after the last epoch, in ``best.pt``'s format).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.evaluation.data import Sample
+from rebar_data.perception.networks.files import (
+    load_checkpoint,
+    read_checkpoint,
+    save_checkpoint,
+    write_checkpoint,
+)
+from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
+from rebar_data.perception.training.epochs import WeightAverage, batch_stream, train_epoch
+
+ADAPT_LAST = "adapt_last.pt"
+ADAPTED = "adapted.pt"
+FORMAT = "rebar-adapt"
+# the adapt epochs' batches come from generators of their own (seed + this, epoch), not the first epochs'
+SEED_OFFSET = 7919
+
+
+def adapt_first_stage(
+    out: Path,
+    cfg: TrainConfig,
+    samples: list[Sample],
+    extra: list[Sample],
+    *,
+    base_epoch: int,
+    data: list[str],
+    log=None,
+    progress: bool = False,
+) -> tuple[Path, list[dict[str, Any]]]:
+    """Train the adapt epochs from ``out/best.pt`` (the first stage's best epoch, ``base_epoch``) on
+    ``samples`` and ``extra`` (repeated), or take them from the run folder when they trained on the same
+    settings, data (``data``: what they are named by) and best epoch. Returns the first stage to ship
+    (``adapted.pt``; ``best.pt`` itself when there are no adapt epochs or no ``extra``) and the adapt
+    epochs' history."""
+    a = cfg.adapt
+    if a.epochs == 0 or not extra:
+        for stale in (out / ADAPT_LAST, out / ADAPTED):
+            stale.unlink(missing_ok=True)
+        return out / "best.pt", []
+    want = {"adapt": adapt_settings(a), "base_epoch": base_epoch, "data": list(data)}
+    net, meta, _ = load_checkpoint(out / "best.pt")
+    net = net.to(memory_format=torch.channels_last)
+    avg = WeightAverage(net)
+    opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=cfg.weight_decay)
+    state: dict[str, Any] = {"epoch": 0, "step": 0, "history": []}
+    path = out / ADAPT_LAST
+    saved = _read(path)
+    if saved is not None and saved["want"] == want:
+        net.load_state_dict(saved["state_dict"])
+        avg.net.load_state_dict(saved["average_state_dict"])
+        avg.updates = saved["average_updates"]
+        opt.load_state_dict(saved["optimizer"])
+        torch.set_rng_state(saved["torch_rng"])
+        state = saved["state"]
+        if state["epoch"] >= a.epochs and (out / ADAPTED).exists():
+            return out / ADAPTED, state["history"]
+    (out / ADAPTED).unlink(missing_ok=True)
+    mix = samples + extra * a.supplement_repeats
+    # the same epoch machinery as the first epochs: a cosine decay from ``a.lr`` over the adapt epochs, no
+    # mosaic, generators of their own
+    run = cfg.model_copy(
+        update={
+            "epochs": a.epochs,
+            "lr": a.lr,
+            "warmup_epochs": a.warmup_epochs,
+            "seed": cfg.seed + SEED_OFFSET,
+            "augment": cfg.augment.model_copy(update={"mosaic_epochs": 0}),
+        }
+    )
+    steps = max(1, math.ceil(len(mix) * cfg.crops_per_image / cfg.batch_size))
+    if log:
+        log(
+            f"adapt epochs: {a.epochs} from the first stage's epoch {base_epoch}, {len(samples)} images and "
+            f"{len(extra)} x {a.supplement_repeats} of {', '.join(data)}"
+        )
+    batches = batch_stream(
+        mix,
+        run,
+        first=state["epoch"] + 1,
+        last=a.epochs,
+        steps=steps,
+        lower_mat_weight=a.lower_mat_weight,
+        focal_px=meta.get("focal_px"),  # another camera's frames drawn at the model's, as detect reads them
+    )
+    for epoch in range(state["epoch"] + 1, a.epochs + 1):
+        row = train_epoch(
+            net, avg, opt, batches, run, state, epoch=epoch, steps=steps, progress=progress, frozen_norm=True
+        )
+        if log:
+            log(f"adapt epoch {epoch}/{a.epochs}: loss {row['train_loss']:.4f}")
+        state["history"].append({**row, "seconds": row["train_seconds"]})
+        state["epoch"] = epoch
+        write_checkpoint(
+            path,
+            {
+                "format": FORMAT,
+                "want": want,
+                "state_dict": net.state_dict(),
+                "average_state_dict": avg.net.state_dict(),
+                "average_updates": avg.updates,
+                "optimizer": opt.state_dict(),
+                "torch_rng": torch.get_rng_state(),
+                "state": state,
+            },
+        )
+    batches = None  # stops the loader process
+    save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
+    return out / ADAPTED, state["history"]
+
+
+def adapt_settings(a: AdaptConfig) -> dict[str, Any]:
+    """What the adapt epochs train by: their settings, without a lower-mat weight of 1 (they train as they did
+    before it existed, so a checkpoint from then still counts)."""
+    return a.model_dump(mode="json", exclude={"lower_mat_weight"} if a.lower_mat_weight == 1.0 else set())
+
+
+def _read(path: Path) -> dict[str, Any] | None:
+    """The adapt checkpoint's payload, or None (to train afresh) when there is none or it cannot be read."""
+    if not path.exists():
+        return None
+    try:
+        return read_checkpoint(path, fmt=FORMAT, what="adapt")
+    except ConfigError:
+        return None
+
+
+def adapt_model(
+    model: Path,
+    samples: list[Sample],
+    extra: list[Sample],
+    out: Path,
+    cfg: TrainConfig | None = None,
+    *,
+    data: list[str],
+    log=None,
+    progress: bool = False,
+) -> Path:
+    """The adapt epochs from a model file rather than a run: ``model``'s first stage (its ONNX file turned
+    back into a network, :func:`~rebar_data.perception.networks.files.network_from_onnx`) trains ``cfg.adapt``'s
+    epochs on ``samples`` and ``extra`` (listed ``supplement_repeats`` times) in ``out``, and
+    ``out/rebar_keypoint.onnx`` is written with it and a copy of the model's later stages beside it. What
+    lets a shipped detector learn a few dozen labelled frames of another camera or renderer; an
+    interrupted call resumes in ``out``. The later stages and the score biases stay the model's (they
+    place the operating point, not the ranking that AP and recall at precision 0.99 score). ``cfg`` None
+    trains with the settings the model trained with (its ``train_config``, the adapt epochs' among them).
+
+    Raises:
+        ConfigError: the model is not an ONNX file from `rebar train`, or there are no ``extra`` frames.
+    """
+    import shutil
+
+    from rebar_data.config import ConfigError
+    from rebar_data.perception.inference.model_file import stage_files
+    from rebar_data.perception.networks.files import export_onnx, network_from_onnx
+
+    if model.suffix != ".onnx":
+        raise ConfigError(
+            f"{model}: is not an ONNX file; accepted: a model's .onnx file (the shipped one by default)"
+        )
+    if not extra:
+        raise ConfigError(
+            "no frames to adapt to; accepted: one or more datasets of the other camera's frames"
+        )
+    net, meta = network_from_onnx(model)
+    if cfg is None:
+        cfg = resolve_config(meta.get("train_config"), {}, source=f"{model}'s train settings")
+    if cfg.adapt.epochs == 0:
+        raise ConfigError("adapt.epochs = 0 trains nothing; accepted: 1 or more adapt epochs")
+    out.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(out / "best.pt", net, meta)
+    first, _ = adapt_first_stage(
+        out, cfg, samples, extra, base_epoch=int(meta.get("epoch", 0)), data=data, log=log, progress=progress
+    )
+    adapted, adapted_meta, _ = load_checkpoint(first)
+    target = out / "rebar_keypoint.onnx"
+    for a, b in zip(stage_files(model), stage_files(target), strict=True):
+        if a.exists():
+            shutil.copy2(a, b)
+    # the first stage last: a file there means the whole model is there
+    return export_onnx(
+        adapted, target, {**meta, "adapt": adapted_meta.get("adapt", {}), "adapted_from": str(model)}
+    )

@@ -1,0 +1,283 @@
+"""Training crops with augmentation that moves keypoints exactly with the pixels.
+
+Geometry is one affine map per crop, ``crop_from_image`` (2x3, continuous pixel coordinates with COCO's
+corner origin), built from a random centre, scale, rotation and flips; pixels are resampled with the same
+map converted to OpenCV's pixel-index convention, so a keypoint and the pixels around it stay together
+to well under a tenth of a pixel. Mosaic fills the four quadrants of a crop from four images. Photometric
+changes (brightness, contrast, saturation, hue, white balance, gamma, blur, noise) touch pixels only.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from rebar_data.perception.inference.detector import STRIDE
+from rebar_data.perception.training.config import AugmentConfig
+
+SEAM_PX = 3.0  # crossings this close to a mosaic seam are cut in two: neither positive nor negative
+
+
+@dataclass
+class Crop:
+    """One training crop.
+
+    Attributes:
+        image: (S, S, 3) uint8 RGB.
+        positives: (N, 2) visible crossings in crop pixels.
+        ignore: (M, 2) points to leave out of the loss (occluded crossings, crossings cut by a seam).
+        rays: (2, S / 4, S / 4) viewing ray ((u - cx) / fx, (v - cy) / fy) of each output cell's centre
+            in the virtual camera that films the crop (see :func:`crop_rays`).
+        hard: (K, 2) places that look like crossings and are none (the lower mat's), in crop pixels.
+    """
+
+    image: np.ndarray
+    positives: np.ndarray
+    ignore: np.ndarray
+    rays: np.ndarray
+    hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+
+
+@dataclass
+class Source:
+    """One image to crop from: pixels, crossings to learn, points to ignore, intrinsics (fx, fy, cx, cy) and
+    places that look like crossings and are none."""
+
+    image: np.ndarray
+    positives: np.ndarray
+    ignore: np.ndarray
+    camera: tuple[float, float, float, float]
+    hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    distractors: np.ndarray | None = None  # (H, W) bool: the distractors' pixels, when known
+    # every crop's scale is multiplied by it: a frame from another focal length drawn at the model's
+    # (rebar_data.perception.inference.image, as the detector reads such a frame)
+    gain: float = 1.0
+
+
+def draw_gain(rng: np.random.Generator, cfg: AugmentConfig, distractors: np.ndarray | None) -> float | None:
+    """The factor :func:`distractor_gain` scales the distractors' pixels by this time (log-uniform in
+    ``cfg.distractor_gain``), or None for a ``1 - cfg.distractor_gain_probability`` share of calls. Draws
+    nothing when the share is 0 or the pixels are unknown, so runs without it get the random draws they
+    got before it existed."""
+    if distractors is None or not cfg.scales_distractors:
+        return None
+    if rng.uniform() >= cfg.distractor_gain_probability:
+        return None
+    lo, hi = np.log(cfg.distractor_gain)
+    return float(np.exp(rng.uniform(lo, hi)))
+
+
+def scaled_where(image: np.ndarray, where: np.ndarray, gain: float | None) -> np.ndarray:
+    """``image`` (H, W, C >= 3) with its colour at the ``where`` pixels times ``gain`` (a new array), or
+    ``image`` itself when ``gain`` is None."""
+    if gain is None:
+        return image
+    out = image.copy()
+    rgb = out[..., :3]
+    rgb[where] = np.clip(rgb[where] * np.float32(gain), 0, 255).astype(np.uint8)
+    return out
+
+
+def distractor_gain(
+    image: np.ndarray, distractors: np.ndarray | None, rng: np.random.Generator, cfg: AugmentConfig
+) -> np.ndarray:
+    """``image`` with the ``distractors`` pixels (H, W bool) scaled by :func:`draw_gain`'s factor."""
+    return scaled_where(image, distractors, draw_gain(rng, cfg, distractors))
+
+
+def index_matrix(crop_from_image: np.ndarray) -> np.ndarray:
+    """The same affine map for OpenCV, whose pixel (i, j) is the point (i + 0.5, j + 0.5) in COCO's origin."""
+    m = np.asarray(crop_from_image, float).copy()
+    m[:, 2] += m[:, :2] @ [0.5, 0.5] - 0.5
+    return m
+
+
+def apply_affine(points: np.ndarray, crop_from_image: np.ndarray) -> np.ndarray:
+    """Map (N, 2) points with a 2x3 affine map."""
+    p = np.asarray(points, float).reshape(-1, 2)
+    return p @ crop_from_image[:, :2].T + crop_from_image[:, 2]
+
+
+def warp(image: np.ndarray, crop_from_image: np.ndarray, size: int, *, fill: float | None) -> np.ndarray:
+    """Resample ``image`` into a ``size`` x ``size`` crop (bilinear). Outside the image: the constant
+    ``fill``, or with None the image mirrored at its border (so no edge looks like a bar)."""
+    return cv2.warpAffine(
+        image,
+        index_matrix(crop_from_image),
+        (size, size),
+        flags=cv2.INTER_LINEAR,
+        borderMode=cv2.BORDER_REFLECT if fill is None else cv2.BORDER_CONSTANT,
+        borderValue=(0, 0, 0) if fill is None else (fill, fill, fill),
+    )
+
+
+def crop_rays(
+    crop_from_image: np.ndarray, size: int, camera: tuple[float, float, float, float], *, stride: int = STRIDE
+) -> np.ndarray:
+    """(2, S / stride, S / stride) viewing rays of the crop's output-cell centres, as the virtual camera that
+    films the crop sees them.
+
+    A similarity crop (scale s, rotation, flips) of a pinhole image is the image of a pinhole camera with
+    focal length s f, turned (or mirrored) about its optical axis, with the principal point where the map
+    puts the source's. Its rays are the source rays of the same points turned and flipped with the pixels,
+    so what the rays say about the perspective at a cell holds in the crop as it does in a real frame.
+    """
+    fx, fy, cx, cy = camera
+    lin, t = crop_from_image[:, :2], crop_from_image[:, 2]
+    inv = np.linalg.inv(lin)
+    c = stride * (np.arange(size // stride, dtype=np.float64) + 0.5)
+    qx, qy = np.meshgrid(c - t[0], c - t[1], indexing="xy")
+    px = inv[0, 0] * qx + inv[0, 1] * qy
+    py = inv[1, 0] * qx + inv[1, 1] * qy
+    rx, ry = (px - cx) / fx, (py - cy) / fy  # rays in the source camera
+    turn = lin / np.sqrt(abs(np.linalg.det(lin)))  # rotation and flips of the crop, scale removed
+    return np.stack([turn[0, 0] * rx + turn[0, 1] * ry, turn[1, 0] * rx + turn[1, 1] * ry]).astype(np.float32)
+
+
+def random_affine(
+    rng: np.random.Generator,
+    *,
+    centre: np.ndarray,
+    target: np.ndarray,
+    cfg: AugmentConfig,
+    gain: float = 1.0,
+) -> np.ndarray:
+    """A random similarity (scale, rotation, flips) taking ``centre`` in the image to ``target`` in the crop;
+    its random scale multiplied by ``gain`` (the same draws whatever the gain)."""
+    lo, hi = cfg.scale
+    s = gain * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+    a = np.radians(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg))
+    fx = -1.0 if rng.uniform() < cfg.flip_lr else 1.0
+    fy = -1.0 if rng.uniform() < cfg.flip_ud else 1.0
+    lin = s * np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]) @ np.diag([fx, fy])
+    return np.c_[lin, np.asarray(target, float) - lin @ np.asarray(centre, float)]
+
+
+def _inside(
+    points: np.ndarray, x0: float, y0: float, x1: float, y1: float, margin: float = 0.0
+) -> np.ndarray:
+    return (
+        (points[:, 0] >= x0 + margin)
+        & (points[:, 0] < x1 - margin)
+        & (points[:, 1] >= y0 + margin)
+        & (points[:, 1] < y1 - margin)
+    )
+
+
+def single_crop(src: Source, rng: np.random.Generator, *, size: int, cfg: AugmentConfig) -> Crop:
+    """A crop around a random point of one image, with random scale, rotation and flips."""
+    h, w = src.image.shape[:2]
+    centre = np.array([rng.uniform(0, w), rng.uniform(0, h)])
+    target = np.array([size / 2, size / 2])
+    crop_from_image = random_affine(rng, centre=centre, target=target, cfg=cfg, gain=src.gain)
+    fill = float(rng.uniform(0, 255))
+    out = warp(distractor_gain(src.image, src.distractors, rng, cfg), crop_from_image, size, fill=fill)
+    pos = apply_affine(src.positives, crop_from_image)
+    ign = apply_affine(src.ignore, crop_from_image)
+    keep = _inside(pos, 0, 0, size, size)
+    rays = crop_rays(crop_from_image, size, src.camera)
+    hard = apply_affine(src.hard, crop_from_image)
+    return Crop(
+        out,
+        pos[keep],
+        ign[_inside(ign, -8, -8, size + 8, size + 8)],
+        rays,
+        hard[_inside(hard, 0, 0, size, size)],
+    )
+
+
+def mosaic_crop(
+    pick: Callable[[], Source], rng: np.random.Generator, *, size: int, cfg: AugmentConfig
+) -> Crop:
+    """Four images in the four quadrants of one crop, split at a random point.
+
+    Args:
+        pick: Returns a random source image each call.
+        rng: The generator.
+        size: Crop side in pixels.
+        cfg: Augmentation settings.
+    """
+    xc, yc = rng.uniform(0.25, 0.75, 2) * size
+    canvas = np.empty((size, size, 3), np.uint8)
+    rays = np.empty((2, size // STRIDE, size // STRIDE), np.float32)
+    cell = STRIDE * (np.arange(size // STRIDE) + 0.5)
+    pos_all, ign_all, hard_all = [], [], []
+    fill = float(rng.uniform(0, 255))
+    for x0, y0, x1, y1 in ((0, 0, xc, yc), (xc, 0, size, yc), (0, yc, xc, size), (xc, yc, size, size)):
+        src = pick()
+        h, w = src.image.shape[:2]
+        centre = np.array([rng.uniform(0, w), rng.uniform(0, h)])
+        crop_from_image = random_affine(
+            rng, centre=centre, target=np.array([(x0 + x1) / 2, (y0 + y1) / 2]), cfg=cfg, gain=src.gain
+        )
+        full = warp(distractor_gain(src.image, src.distractors, rng, cfg), crop_from_image, size, fill=fill)
+        i0, i1, j0, j1 = round(y0), round(y1), round(x0), round(x1)
+        canvas[i0:i1, j0:j1] = full[i0:i1, j0:j1]
+        rows = (cell >= i0) & (cell < i1)  # output cells whose centre lies in the pasted region
+        cols = (cell >= j0) & (cell < j1)
+        rays[:, rows[:, None] & cols[None, :]] = crop_rays(crop_from_image, size, src.camera)[
+            :, rows[:, None] & cols[None, :]
+        ]
+        x0, y0, x1, y1 = j0, i0, j1, i1  # the region actually pasted
+        pos = apply_affine(src.positives, crop_from_image)
+        inside = _inside(pos, x0, y0, x1, y1)
+        clear = _inside(pos, x0, y0, x1, y1, margin=SEAM_PX) | ~_inside(pos, 0, 0, size, size, margin=SEAM_PX)
+        pos_all.append(pos[inside & clear])
+        ign_all.append(pos[inside & ~clear])
+        ign = apply_affine(src.ignore, crop_from_image)
+        ign_all.append(ign[_inside(ign, x0 - 8, y0 - 8, x1 + 8, y1 + 8)])
+        hard = apply_affine(src.hard, crop_from_image)
+        hard_all.append(hard[_inside(hard, x0, y0, x1, y1)])
+    return Crop(
+        canvas,
+        np.concatenate(pos_all).reshape(-1, 2),
+        np.concatenate(ign_all).reshape(-1, 2),
+        rays,
+        np.concatenate(hard_all).reshape(-1, 2),
+    )
+
+
+def photometric(image: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:
+    """Random brightness, contrast, saturation, hue, white balance, gamma, blur and noise (pixels only)."""
+    return photometric_batch(image[None], rng, cfg)[0]
+
+
+def photometric_batch(images: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:
+    """:func:`photometric` for (N, H, W, 3) uint8 images at once, each with its own random changes.
+
+    Each change is drawn for all N images before the next one, so one image (N = 1) gets the draws, and
+    the pixels, it would get alone; the per-image arithmetic keeps the single image's number types.
+    """
+    n = len(images)
+    img = images.astype(np.float32)
+    if cfg.hue_deg > 0 or cfg.saturation > 0 or cfg.hue_full_probability > 0:
+        hsv = cv2.cvtColor(images.reshape(-1, *images.shape[2:]), cv2.COLOR_RGB2HSV_FULL)
+        hsv = hsv.reshape(images.shape).astype(np.float32)
+        hue = (rng.uniform(-cfg.hue_deg, cfg.hue_deg, n) * 256 / 360).astype(np.float32)
+        if cfg.hue_full_probability > 0:
+            turned = rng.uniform(size=n) < cfg.hue_full_probability
+            hue = np.where(turned, rng.uniform(0, 256, n), hue).astype(np.float32)
+        hsv[..., 0] = (hsv[..., 0] + hue[:, None, None]) % 256
+        hsv[..., 1] *= (1 + rng.uniform(-cfg.saturation, cfg.saturation, n)).astype(np.float32)[:, None, None]
+        rgb = np.clip(hsv, 0, 255).astype(np.uint8).reshape(-1, *images.shape[2:])
+        img = cv2.cvtColor(rgb, cv2.COLOR_HSV2RGB_FULL).reshape(images.shape).astype(np.float32)
+    if cfg.white_balance > 0:
+        gains = 1 + rng.uniform(-cfg.white_balance, cfg.white_balance, (n, 3))
+        img *= gains.astype(np.float32)[:, None, None, :]
+    mean = np.array([x.mean() for x in img], np.float32)[:, None, None, None]  # as each image alone
+    contrast = (1 + rng.uniform(-cfg.contrast, cfg.contrast, n)).astype(np.float32)[:, None, None, None]
+    img = (img - mean) * contrast + mean
+    img *= (1 + rng.uniform(-cfg.brightness, cfg.brightness, n)).astype(np.float32)[:, None, None, None]
+    gamma = np.exp(rng.uniform(-cfg.gamma, cfg.gamma, n))[:, None, None, None]
+    img = 255.0 * (np.clip(img, 0, 255) / 255.0) ** gamma  # float64 from here, as for one image
+    blurred = np.flatnonzero(rng.uniform(size=n) < cfg.blur_probability)
+    for i, sigma in zip(blurred, rng.uniform(*cfg.blur_sigma_px, len(blurred)), strict=True):
+        img[i] = cv2.GaussianBlur(img[i], (0, 0), max(1e-3, sigma))
+    noisy = np.flatnonzero(rng.uniform(size=n) < cfg.noise_probability)
+    if len(noisy):
+        std = rng.uniform(*cfg.noise_std, len(noisy))[:, None, None, None]
+        img[noisy] += (rng.standard_normal((len(noisy), *img.shape[1:])) * std).astype(np.float32)
+    return np.clip(img + 0.5, 0, 255).astype(np.uint8)

@@ -1,0 +1,249 @@
+"""Training and model files of the detector's crossing-point stage (:mod:`rebar_data.perception.inference.refine`).
+
+It trains on its own, from the labels alone: for each visible crossing of the training images, the
+patch around its sight point (the label's u, v) and the offset to its projected 3D crossing point
+(:attr:`~rebar_data.perception.evaluation.data.Sample.crossings`). The patches are cut once, wider than the network's
+(``context_px``); each batch then draws its scale, quarter turns, flips and colour changes (seeded by
+(seed, epoch) alone, so a resumed run gets the batches it would have got).
+"""
+
+from __future__ import annotations
+
+import copy
+import sys
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+import torch.nn.functional as F
+from tqdm import tqdm
+
+from rebar_data.config import ConfigError
+from rebar_data.perception.evaluation.data import Sample, read_image
+from rebar_data.perception.inference.refine import patch_rays, patches
+from rebar_data.perception.networks.files import export_onnx, read_checkpoint
+from rebar_data.perception.networks.stages import CrossingNet
+from rebar_data.perception.training.augment import photometric_batch
+from rebar_data.perception.training.checkpoints import fit_weights, resume_stage, save_stage
+from rebar_data.perception.training.config import AugmentConfig, CrossingPointConfig
+from rebar_data.perception.training.schedule import warmup_cosine
+
+FORMAT = "rebar-keypoint-crossing-point"
+FORMAT_VERSION = 1
+CHECKPOINT = "crossing_last.pt"
+EXPORT_ONLY = {"threads"}  # settings that leave training alone
+
+
+def build(cfg: CrossingPointConfig) -> CrossingNet:
+    """The network these settings describe."""
+    return CrossingNet(cfg.patch_px, cfg.widths, cfg.hidden)
+
+
+def save(path: Path, net: CrossingNet, cfg: CrossingPointConfig, **extra: Any) -> None:
+    save_stage(
+        path,
+        fmt=FORMAT,
+        version=FORMAT_VERSION,
+        config_key="crossing_point_config",
+        cfg=cfg,
+        net=net,
+        **extra,
+    )
+
+
+def load(path: str | Path) -> tuple[CrossingNet, CrossingPointConfig, dict[str, Any]]:
+    """Rebuild the network from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
+    payload = read_checkpoint(path, fmt=FORMAT, what="crossing-point")
+    cfg = CrossingPointConfig.model_validate(payload["crossing_point_config"])
+    return fit_weights(build(cfg), payload, path), cfg, payload
+
+
+class PatchSet:
+    """Every training patch, cut once: ``context`` (M, C, C, 3) uint8 around each visible crossing's sight
+    point (moved by a Gaussian error), ``offset`` (M, 2) from the patch centre to the projected 3D
+    crossing point and ``rays`` (M, 2) of the patch centres."""
+
+    def __init__(self, samples: list[Sample], cfg: CrossingPointConfig, *, seed: int, progress: bool = False):
+        rng = np.random.default_rng(np.random.SeedSequence([seed, 5147]))
+        context, offset, rays = [], [], []
+        for s in tqdm(
+            samples, desc="crossing-point patches", disable=not progress, leave=False, file=sys.stderr
+        ):
+            if s.crossings is None or s.camera is None:
+                raise ConfigError(
+                    f"{s.path}: its dataset records no 3D crossing points (x_crossing, y_crossing, "
+                    "z_crossing and world_from_camera); accepted: a dataset built by this version of "
+                    "`rebar dataset build`, or crossing_point: {enabled: false}"
+                )
+            ok = np.flatnonzero(np.isfinite(s.crossings).all(axis=1) & np.isfinite(s.visible).all(axis=1))
+            if not len(ok):
+                continue
+            if len(ok) > cfg.max_per_image:
+                ok = np.sort(rng.choice(ok, cfg.max_per_image, replace=False))
+            centre = s.visible[ok] + rng.normal(0.0, cfg.jitter_px, (len(ok), 2))
+            cut, corners = patches(read_image(s.path), centre, cfg.context_px)
+            context.append(cut)
+            # the offset is the label's own, from the sight point: at inference it is added to the refined
+            # detection, so where the patch centre lies (the detection's error, the rounding to a pixel
+            # corner) is not this stage's to correct
+            offset.append(s.crossings[ok] - s.visible[ok])  # in the patch's pixels
+            rays.append(patch_rays(corners, s.camera))
+        if not context:
+            raise ConfigError(
+                "the training images have no visible crossings with a 3D crossing point; accepted: a "
+                "dataset with labelled crossings"
+            )
+        self.context = np.concatenate(context)
+        self.offset = np.concatenate(offset).astype(np.float32)
+        self.rays = np.concatenate(rays)
+
+    def __len__(self) -> int:
+        return len(self.context)
+
+
+def batches(data: PatchSet, cfg: CrossingPointConfig, aug: AugmentConfig, *, seed: int, epoch: int):
+    """One epoch's batches: (B, 3, P, P) float patches, (B, 2) rays, (B, 2) offsets."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 5153, epoch]))
+    order = rng.permutation(len(data))
+    p, c = cfg.patch_px, cfg.context_px
+    for lo in range(0, len(order), cfg.batch_size):
+        rows = order[lo : lo + cfg.batch_size]
+        n = len(rows)
+        scale = np.exp(rng.uniform(np.log(cfg.scale[0]), np.log(cfg.scale[1]), n))
+        window = np.clip(2 * np.round(p / scale / 2), 2, c).astype(int)  # even: centred on the corner
+        out = np.empty((n, p, p, 3), np.uint8)
+        for j, (r, w) in enumerate(zip(rows, window, strict=True)):
+            lo_px = c // 2 - w // 2
+            crop = data.context[r, lo_px : lo_px + w, lo_px : lo_px + w]
+            out[j] = (
+                crop
+                if w == p
+                else cv2.resize(crop, (p, p), interpolation=cv2.INTER_AREA if w > p else cv2.INTER_LINEAR)
+            )
+        offset = data.offset[rows] * (p / window)[:, None].astype(np.float32)
+        rays = data.rays[rows].copy()
+        turns = rng.integers(0, 4, n)
+        flips = rng.uniform(size=n) < 0.5
+        out[flips] = out[flips][:, :, ::-1]  # mirrored left to right: x -> -x
+        offset[flips, 0] *= -1
+        rays[flips, 0] *= -1
+        for t in range(1, 4):  # np.rot90 by t quarter turns: (x, y) -> (y, -x), t times
+            pick = turns == t
+            out[pick] = np.rot90(out[pick], t, axes=(1, 2))
+            for _ in range(t):
+                offset[pick] = np.c_[offset[pick, 1], -offset[pick, 0]]
+                rays[pick] = np.c_[rays[pick, 1], -rays[pick, 0]]
+        out = photometric_batch(out, rng, aug)
+        x = torch.from_numpy(out).permute(0, 3, 1, 2).float()
+        yield x, torch.from_numpy(rays), torch.from_numpy(offset)
+
+
+def train_crossing_point(
+    samples: list[Sample],
+    out: Path,
+    cfg: CrossingPointConfig,
+    aug: AugmentConfig,
+    *,
+    seed: int,
+    progress: bool = False,
+) -> tuple[CrossingNet, list[dict[str, float]]]:
+    """Train the crossing-point stage on the visible crossings of ``samples``; resumable per epoch.
+
+    ``out/crossing_last.pt`` holds the weights, optimiser and the epochs done after every epoch; a
+    finished one with the same settings is returned as it is.
+
+    Returns:
+        The trained network (eval mode) and one row per epoch (L1 loss in pixels, seconds).
+    """
+    last = out / CHECKPOINT
+    torch.manual_seed(seed)
+    net = build(cfg)
+    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
+    payload = resume_stage(last, net, opt, load=load, settings=_settings, want=_settings(cfg))
+    history: list[dict[str, float]] = payload["history"] if payload else []
+    if len(history) >= cfg.epochs:
+        return net.eval(), history
+    threads_before = torch.get_num_threads()
+    torch.set_num_threads(cfg.threads)
+    try:
+        data = PatchSet(samples, cfg, seed=seed, progress=progress)
+        steps = -(-len(data) // cfg.batch_size)
+        total = cfg.epochs * steps
+        for epoch in range(len(history) + 1, cfg.epochs + 1):
+            net.train()
+            t0, loss_sum = time.perf_counter(), 0.0
+            bar = tqdm(
+                batches(data, cfg, aug, seed=seed, epoch=epoch),
+                total=steps,
+                desc=f"crossing point {epoch}/{cfg.epochs}",
+                unit="batch",
+                disable=not progress,
+                leave=False,
+                file=sys.stderr,
+            )
+            for b, (x, rays, y) in enumerate(bar):
+                for g in opt.param_groups:
+                    g["lr"] = warmup_cosine(
+                        (epoch - 1) * steps + b, peak=cfg.lr, warm=max(1, round(0.03 * total)), total=total
+                    )
+                loss = F.l1_loss(net(x, rays), y)
+                opt.zero_grad(set_to_none=True)
+                loss.backward()
+                opt.step()
+                loss_sum += loss.item()
+                bar.set_postfix(loss=f"{loss.item():.3f}")
+            row = {"epoch": epoch, "loss_px": loss_sum / steps, "seconds": time.perf_counter() - t0}
+            history.append(row)
+            if progress:
+                tqdm.write(
+                    f"crossing point epoch {epoch}/{cfg.epochs}: L1 {row['loss_px']:.3f} px "
+                    f"({len(data)} patches, {row['seconds']:.0f} s)",
+                    file=sys.stderr,
+                )
+            save(last, net, cfg, optimizer=opt.state_dict(), history=history)
+    finally:
+        torch.set_num_threads(threads_before)
+    return copy.deepcopy(net).eval(), history
+
+
+def _settings(cfg: CrossingPointConfig) -> dict[str, Any]:
+    return cfg.model_dump(mode="json", exclude=EXPORT_ONLY)
+
+
+def attach(
+    model: str | Path,
+    samples: list[Sample],
+    out: Path,
+    cfg: CrossingPointConfig,
+    aug: AugmentConfig,
+    *,
+    seed: int,
+    progress: bool = False,
+) -> Path:
+    """Train the crossing-point stage (resumable in ``out``) and put it beside ``model``, an ONNX detector
+    trained before the stage existed: ``<stem>.crossing.onnx``, named in the model file's metadata with
+    its SHA-256. ``rebar train`` trains the stage with the others; this adds it to a model alone, with
+    the same settings and seed, so it is the stage that model's training run would have given.
+
+    Returns:
+        The stage's ONNX file.
+    """
+    from rebar_data.dataset.writers.manifest import sha256_file
+    from rebar_data.perception.inference.model_file import crossing_point_path
+    from rebar_data.perception.networks.files import check_model_file, update_onnx_meta
+
+    model = check_model_file(model)
+    out.mkdir(parents=True, exist_ok=True)
+    net, history = train_crossing_point(samples, out, cfg, aug, seed=seed, progress=progress)
+    save(out / "best.crossing.pt", net, cfg, history=history)
+    stage = export_onnx(net, out / "best.crossing.onnx")
+    dst = crossing_point_path(model)
+    tmp = dst.with_name(dst.name + ".tmp")
+    tmp.write_bytes(stage.read_bytes())
+    tmp.replace(dst)  # the stage lands first, so the model never names a missing file
+    entry = {"patch_px": cfg.patch_px, "sha256": sha256_file(dst)}
+    update_onnx_meta(model, {"crossing_point": entry})
+    return dst

@@ -1,0 +1,287 @@
+"""The first stage's training epochs: the augmented batches (the same ones in a loader process and after a
+resume), the learning-rate schedule, the step loop and the weights' moving average. The run
+(:mod:`~rebar_data.perception.training.train`) and its adapt epochs (:mod:`~rebar_data.perception.training.adapt`) share
+them.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import sys
+import time
+from collections.abc import Iterator
+from typing import Any
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from rebar_data.perception.evaluation.data import Sample, per_file, read_distractors, read_image, read_images
+from rebar_data.perception.evaluation.lower_mat import lower_mat_of
+from rebar_data.perception.inference.detector import STRIDE
+from rebar_data.perception.inference.image import focal_scale
+from rebar_data.perception.networks.keypoint_net import KeypointNet
+from rebar_data.perception.training.augment import Source, mosaic_crop, photometric, single_crop
+from rebar_data.perception.training.config import TrainConfig
+from rebar_data.perception.training.loss import detection_loss
+from rebar_data.perception.training.schedule import warmup_cosine
+from rebar_data.perception.training.targets import encode
+
+
+class WeightAverage:
+    """Exponential moving average of a network's weights; the ramp lets it follow the fast early epochs."""
+
+    def __init__(self, net: torch.nn.Module, *, decay: float = 0.998, ramp_steps: float = 300.0):
+        self.net = copy.deepcopy(net).eval()
+        for p in self.net.parameters():
+            p.requires_grad_(False)
+        self.decay, self.ramp_steps, self.updates = decay, ramp_steps, 0
+
+    @torch.no_grad()
+    def update(self, net: torch.nn.Module) -> None:
+        self.updates += 1
+        d = self.decay * (1 - math.exp(-self.updates / self.ramp_steps))
+        src = net.state_dict()
+        for k, v in self.net.state_dict().items():
+            if v.dtype.is_floating_point:
+                v.mul_(d).add_(src[k].detach(), alpha=1 - d)
+            else:
+                v.copy_(src[k])
+
+
+class TrainingImages:
+    """The training split's images (decoded once when caching) and their crossings; with ``distractors``,
+    where each image's instance map shows the distractors (for ``AugmentConfig.distractor_gain``)."""
+
+    def __init__(
+        self,
+        samples: list[Sample],
+        *,
+        cache: bool,
+        occluded: str,
+        progress: bool,
+        lower_mat: bool = False,
+        distractors: bool = False,
+        focal_px: float | None = None,
+    ):
+        self.samples = samples
+        # each image's crops drawn at this focal length (None: as it comes), as the detector reads it
+        self.gains = [1.0 if s.camera is None else focal_scale(focal_px, s.camera) for s in samples]
+        self.ignore_occluded = occluded == "ignore"
+        # with ``lower_mat``, the crossings each image's lower mat shows (hard negatives), placed once
+        self.hard = lower_mat_of(samples) if lower_mat else None
+        # decoded once per file: a supplement listed many times (the adapt epochs') shares its arrays
+        load = "load images" if progress else None
+        self.images = read_images(samples, progress=load) if cache else None
+        self.distractors = distractors
+        self.masks = per_file(samples, read_distractors) if distractors and cache else None
+
+    def pick(self, rng: np.random.Generator) -> Source:
+        k = int(rng.integers(len(self.samples)))
+        s = self.samples[k]
+        image = self.images[k] if self.images is not None else read_image(s.path)
+        hard = self.hard[k] if self.hard is not None else np.zeros((0, 2))
+        mask = None
+        if self.distractors:
+            mask = self.masks[k] if self.masks is not None else read_distractors(s)
+        ignore = s.occluded if self.ignore_occluded else np.zeros((0, 2))
+        return Source(image, s.visible, ignore, s.camera, hard, mask, self.gains[k])
+
+
+def make_batch(
+    data: TrainingImages,
+    rng: np.random.Generator,
+    cfg: TrainConfig,
+    *,
+    mosaic: bool,
+    lower_mat_weight: float = 1.0,
+) -> tuple[torch.Tensor, ...]:
+    """One augmented batch: images (B, 3, S, S), rays (B, 2, S, S) and the targets heat, heat weight,
+    offset, offset weight; the cells at the lower mat's crossings (``data``'s hard negatives) weigh
+    ``lower_mat_weight`` in the heatmap loss."""
+    size, aug = cfg.crop_px, cfg.augment
+    cells = size // STRIDE
+    imgs, rays, heats, hws, offs, ows = [], [], [], [], [], []
+    for _ in range(cfg.batch_size):
+        if mosaic and rng.uniform() < aug.mosaic_probability:
+            crop = mosaic_crop(lambda: data.pick(rng), rng, size=size, cfg=aug)
+        else:
+            crop = single_crop(data.pick(rng), rng, size=size, cfg=aug)
+        heat, hw, off, ow = encode(
+            crop.positives,
+            crop.ignore,
+            cells,
+            cells,
+            sigma_cells=cfg.heatmap_sigma_cells,
+            hard=crop.hard,
+            hard_weight=lower_mat_weight,
+        )
+        imgs.append(photometric(crop.image, rng, aug))
+        rays.append(crop.rays)
+        heats.append(heat)
+        hws.append(hw)
+        offs.append(off)
+        ows.append(ow)
+    x = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).float()
+    return (x, *(torch.from_numpy(np.stack(a)) for a in (rays, heats, hws, offs, ows)))
+
+
+class BatchStream(torch.utils.data.IterableDataset):
+    """Every batch of epochs ``first`` to ``last``, each epoch's drawn from a generator seeded by (seed,
+    epoch) alone: the same batches whether they are made here or in a loader process, and after a resume.
+
+    It holds only the samples' labels and paths; the images are read (and cached) where it runs, so a
+    loader process keeps the one copy.
+    """
+
+    def __init__(
+        self,
+        samples: list[Sample],
+        cfg: TrainConfig,
+        *,
+        first: int,
+        last: int,
+        steps: int,
+        lower_mat_weight: float = 1.0,
+        focal_px: float | None = None,
+    ):
+        super().__init__()
+        self.samples, self.cfg, self.first, self.last, self.steps = samples, cfg, first, last, steps
+        self.lower_mat_weight = lower_mat_weight
+        self.focal_px = focal_px
+
+    def __iter__(self):
+        data = TrainingImages(
+            self.samples,
+            cache=self.cfg.cache_images,
+            occluded=self.cfg.occluded,
+            progress=False,
+            lower_mat=self.lower_mat_weight != 1.0,
+            distractors=self.cfg.augment.scales_distractors,
+            focal_px=self.focal_px,
+        )
+        for epoch in range(self.first, self.last + 1):
+            rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, epoch]))
+            mosaic = epoch <= self.cfg.augment.mosaic_epochs
+            for _ in range(self.steps):
+                yield make_batch(data, rng, self.cfg, mosaic=mosaic, lower_mat_weight=self.lower_mat_weight)
+
+
+def _loader_worker_init(_: int) -> None:
+    import cv2
+
+    torch.set_num_threads(1)
+    cv2.setNumThreads(1)
+
+
+def batch_stream(
+    samples: list[Sample],
+    cfg: TrainConfig,
+    *,
+    first: int,
+    last: int,
+    steps: int,
+    lower_mat_weight: float = 1.0,
+    focal_px: float | None = None,
+):
+    """An iterator over the batches of epochs ``first`` to ``last`` (the lower mat's crossings weighing
+    ``lower_mat_weight``: :func:`make_batch`), each image's crops drawn at the focal length ``focal_px``
+    (the model's; None: as it comes). With ``loader_workers`` = 1 they are made in a second
+    process (started fresh, not forked: OpenCV's and OpenMP's thread pools do not survive a fork) while
+    the network trains on the previous ones."""
+    stream = BatchStream(
+        samples,
+        cfg,
+        first=first,
+        last=last,
+        steps=steps,
+        lower_mat_weight=lower_mat_weight,
+        focal_px=focal_px,
+    )
+    if cfg.loader_workers == 0:
+        return iter(stream)
+    return iter(
+        torch.utils.data.DataLoader(
+            stream,
+            batch_size=None,
+            num_workers=1,
+            prefetch_factor=4,
+            worker_init_fn=_loader_worker_init,
+            multiprocessing_context="spawn",
+        )
+    )
+
+
+def learning_rate(step: int, *, steps_per_epoch: int, cfg: TrainConfig) -> float:
+    """Linear warm-up, then cosine decay to 2% of the peak at the last epoch."""
+    return warmup_cosine(
+        step, peak=cfg.lr, warm=cfg.warmup_epochs * steps_per_epoch, total=cfg.epochs * steps_per_epoch
+    )
+
+
+def freeze_norm(net: torch.nn.Module) -> None:
+    """Put ``net``'s batch norms in eval mode: they normalise by their running statistics and keep them."""
+    for m in net.modules():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.eval()
+
+
+def train_epoch(
+    net: KeypointNet,
+    avg: WeightAverage,
+    opt: torch.optim.Optimizer,
+    batches: Iterator[tuple[torch.Tensor, ...]],
+    cfg: TrainConfig,
+    state: dict[str, Any],
+    *,
+    epoch: int,
+    steps: int,
+    progress: bool,
+    frozen_norm: bool = False,
+) -> dict[str, Any]:
+    """One epoch of ``steps`` batches; ``state["step"]`` counts the steps (the learning rate's clock).
+    ``frozen_norm`` keeps the batch norms' statistics as they are (and normalising by them, as at
+    inference): for epochs that go on from trained weights with other data."""
+    mosaic = epoch <= cfg.augment.mosaic_epochs
+    net.train()
+    if frozen_norm:
+        freeze_norm(net)
+    t0 = time.perf_counter()
+    sums = np.zeros(3)
+    bar = tqdm(
+        range(steps),
+        desc=f"epoch {epoch}/{cfg.epochs}",
+        unit="batch",
+        disable=not progress,
+        leave=False,
+        file=sys.stderr,
+    )
+    lr = cfg.lr
+    for _ in bar:
+        lr = learning_rate(state["step"], steps_per_epoch=steps, cfg=cfg)
+        for g in opt.param_groups:
+            g["lr"] = lr
+        x, rays, heat, hw, off, ow = next(batches)
+        x = x.contiguous(memory_format=torch.channels_last)
+        total, h, o = detection_loss(net(x, rays), heat, hw, off, ow, offset_weight_factor=cfg.offset_weight)
+        opt.zero_grad(set_to_none=True)
+        total.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 10.0)
+        opt.step()
+        avg.update(net)
+        state["step"] += 1
+        sums += [total.item(), h.item(), o.item()]
+        bar.set_postfix(loss=f"{total.item():.3f}", mosaic=mosaic)
+    seconds = time.perf_counter() - t0
+    return {
+        "epoch": epoch,
+        "lr": lr,
+        "mosaic": int(mosaic),
+        "steps": steps,
+        "train_loss": sums[0] / steps,
+        "train_heat_loss": sums[1] / steps,
+        "train_offset_loss": sums[2] / steps,
+        "train_seconds": seconds,
+        "crops_per_second": steps * cfg.batch_size / seconds,
+    }
