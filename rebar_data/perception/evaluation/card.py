@@ -208,7 +208,8 @@ def _reading_lines(detector: Detector) -> list[str]:
     )
     return [
         f"- Reading: the figures on this card read each image {how}; `Detector.load` reads mirrored by",
-        '  default, `reading="single"` once (`rebar_data/perception/reading.py`, the README\'s detector section).',
+        '  default, `reading="single"` once (`rebar_data/perception/inference/detector.py`; the figures of both in',
+        "  docs/detector/experiments.md).",
     ]
 
 
@@ -520,7 +521,7 @@ def write_card(
         "- Reproduce: `make train` (builds the default dataset, its supplements and the planar-slab set when",
         "  missing, trains, and ships this file and card); the settings below are `TrainConfig`'s defaults.",
         "- What was tried for the data and settings, adopted or not, with its figures: the docstrings of",
-        "  `TrainConfig` and its stages' settings (`rebar_data/perception/config.py`) and the supplements' pipeline files.",
+        "  `TrainConfig` and its stages' settings (`rebar_data/perception/training/config.py`) and the supplements' pipeline files.",
         "",
         "## Metrics",
         f"OKS sigma {sigma:g}; object area = the crossing's square box (side `box_size_px`, four projected bar",
