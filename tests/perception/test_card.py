@@ -12,13 +12,16 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     assert model.name == "rebar_keypoint.onnx" and model.stat().st_size < 5 * 2**20
     assert (tmp_path / "rebar_keypoint.refine.onnx").is_file()  # the second stage travels with it
     card = (tmp_path / CARD_NAME).read_text()
-    assert "OKS sigma 0.04" in card and "| drawn test |" in card and "make train" in card
-    assert "| drawn test, first stage alone |" in card and "rebar_keypoint.refine.onnx" in card
+    assert "OKS sigma 0.04" in card and "| drawn test | with depth |" in card and "make train" in card
+    assert "| drawn test | first stage alone |" in card and "`rebar_keypoint.refine.onnx`" in card
     # where the test split's errors lie: the frames' inside (the drawn set has no lower-mat column)
-    assert "| drawn test, crossings >= 8 px inside the frame |" in card and "lower mat |" not in card
+    assert (
+        "| drawn test | with depth; crossings >= 8 px inside the frame |" in card
+        and "lower mat |" not in card
+    )
     # the test split again with its depth images and what lies behind flattened, and what that row means
-    assert "| drawn test, what lies behind flattened (`--flatten-behind`) |" in card
-    assert "- `what lies behind flattened (`--flatten-behind`)`: given the depth image" in card
+    assert "| drawn test | with depth; what lies behind flattened (`--flatten-behind`) |" in card
+    assert "- `what lies behind flattened (`--flatten-behind`)`: every pixel more than" in card
     # the second stage's verification is described where the model and its training are
     assert "sigmoid(first-stage logit + 1 log p; 0.5 log p beside the depth check)" in card
     assert "farther than 6 px from every" in card
@@ -30,6 +33,61 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     assert det.meta["dataset"]["name"] == "drawn" and det.refiner is not None
     # training stores the focal length its frames had, and the card says frames of another are resampled
     assert det.focal_px and f"trained on frames of focal length {det.focal_px:g} px" in card
+
+
+def test_the_card_has_the_hubs_form_and_its_figures(trained_run, tmp_path):
+    """The card is a Hugging Face model card: a YAML header the Hub reads (license, library, task, the
+    model index with each held-out set's figures), the sections in the template's order and one evaluation
+    table; its PNGs (training curves, a PR figure per held-out set, a frame with its detections) lie in
+    ``card/`` beside it, small, decodable, and linked from the card."""
+    import cv2
+    import numpy as np
+    import yaml
+
+    from rebar_data.perception.evaluation.card import FIGURES_DIR
+    from rebar_data.perception.evaluation.plots import MAX_FIGURE_BYTES
+
+    (tmp_path / FIGURES_DIR).mkdir()
+    (tmp_path / FIGURES_DIR / "pr-stale.png").write_bytes(b"stale")  # a figure of an earlier card goes
+    ship(trained_run.out_dir, models_dir=tmp_path, gate=False)
+    card = (tmp_path / CARD_NAME).read_text()
+    assert card.startswith("---\n")
+    meta = yaml.safe_load(card.split("---\n")[1])
+    assert meta["pipeline_tag"] == "keypoint-detection" and meta["library_name"] == "onnx"
+    assert meta["license"] == "other" and meta["datasets"] == ["drawn"]
+    results = meta["model-index"][0]["results"]
+    sets = {r["dataset"]["name"]: r for r in results}
+    # the held-out test split in both input modes; no val, no part of a set, no first stage alone
+    assert set(sets) == {"drawn test, with depth", "drawn test, without depth (the RGB stages alone)"}
+    ap = {m["type"]: m["value"] for m in sets["drawn test, with depth"]["metrics"]}
+    assert set(ap) - {"median_px"} == {"oks_ap50", "oks_ap", "pck2", "recall_at_p99"}  # median: NaN, no match
+    assert "| drawn test | with depth | " in card and f"| {ap['oks_ap50']:.4f} |" in card
+    assert sets["drawn test, with depth"]["dataset"]["split"] == "test"
+    headings = [line for line in card.splitlines() if line.startswith("## ")]
+    assert headings == [
+        "## Model details",
+        "## Intended use and limits",
+        "## Training data",
+        "## Evaluation",
+        "## How to use",
+        "## Latency",
+    ]
+    assert card.count("| held-out set | input |") == 1  # one evaluation table
+    assert "(../../../docs/detector/design.md)" in card and "(../../../docs/detector/experiments.md)" in card
+    assert "from rebar_data.perception import Detector" in card and "rebar detect" in card
+    pngs = sorted((tmp_path / FIGURES_DIR).glob("*.png"))
+    assert [p.name for p in pngs] == ["frame.png", "pr-drawn-test.png", "training.png"]
+    for p in pngs:
+        assert p.stat().st_size <= MAX_FIGURE_BYTES
+        img = cv2.imread(str(p))
+        assert img is not None and min(img.shape[:2]) >= 100 and img.std() > 5  # drawn, not blank
+        assert f"]({FIGURES_DIR}/{p.name})" in card
+    # the frame is the test image with the most visible crossings, with its detections counted in the caption
+    assert "drawn test, image `" in card and "visible crossings (green circles" in card
+    # every row of the table has all thirteen columns
+    table = [line for line in card.splitlines() if line.startswith("| drawn ")]
+    assert table and all(line.count("|") == 14 for line in table)
+    assert np.isfinite([m["value"] for r in results for m in r["metrics"]]).all()
 
 
 def test_ship_refuses_an_unfinished_run(tmp_path):

@@ -10,13 +10,14 @@ import torch
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_info
+from rebar_data.perception.evaluation.plots import read_history
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.keypoint_net import KeypointNet
 from rebar_data.perception.training.config import TrainConfig
 from rebar_data.perception.training.epochs import TrainingImages, make_batch
 from rebar_data.perception.training.loss import detection_loss
-from rebar_data.perception.training.train import read_history, train
+from rebar_data.perception.training.train import train
 
 from .conftest import TINY_TRAIN
 

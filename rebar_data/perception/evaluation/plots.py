@@ -3,6 +3,7 @@ curves, and a grid of test images with predictions over ground truth."""
 
 from __future__ import annotations
 
+import csv
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -12,9 +13,11 @@ import matplotlib
 matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
+from matplotlib.ticker import MaxNLocator  # noqa: E402
 
 from rebar_data.perception.evaluation.data import Sample, read_image  # noqa: E402
 from rebar_data.perception.evaluation.metrics import RECALL_THRESHOLDS, APResult, PixelResult  # noqa: E402
+from rebar_data.perception.inference.detector import OPERATING_THRESHOLD  # noqa: E402
 
 TRUTH_RGB = (40, 220, 40)
 OCCLUDED_RGB = (60, 140, 255)
@@ -156,3 +159,160 @@ def plot_prediction_grid(
     fig.savefig(path, dpi=90)
     plt.close(fig)
     return Path(path)
+
+
+# The model card's figures: small PNGs that ship beside it (``models/card/``).
+MAX_FIGURE_BYTES = 100 * 1024
+CARD_DPI = 100
+
+
+def read_history(path: str | Path) -> list[dict[str, float]]:
+    """The rows of a run's metrics.csv (one per first-stage epoch) as numbers; an empty cell is NaN."""
+    with Path(path).open() as f:
+        return [
+            {k: float(v) if v not in ("", None) else float("nan") for k, v in row.items()}
+            for row in csv.DictReader(f)
+        ]
+
+
+def _save_small(fig, path: str | Path) -> Path:
+    """Save a card figure and close it; a figure over ``MAX_FIGURE_BYTES`` is a bug in its layout."""
+    path = Path(path)
+    fig.savefig(path, dpi=CARD_DPI)
+    plt.close(fig)
+    if path.stat().st_size > MAX_FIGURE_BYTES:
+        raise RuntimeError(f"{path}: {path.stat().st_size} bytes, over the card's {MAX_FIGURE_BYTES}")
+    return path
+
+
+def plot_training(
+    history: Sequence[dict],
+    path: str | Path,
+    *,
+    stages: dict[str, Sequence[dict]] | None = None,
+    adapt: Sequence[dict] = (),
+    best_epoch: int | None = None,
+) -> Path:
+    """The card's training curves: the first stage's loss per epoch (its adapt epochs after it), its
+    validation figures per epoch, and each later stage's loss per epoch (``stages``: name -> its rows, each
+    with ``epoch`` and ``loss`` or ``loss_px``)."""
+    fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.2))
+    ep = _col(history, "epoch")
+    ax = axes[0]
+    for key, label in (
+        ("train_loss", "total"),
+        ("train_heat_loss", "heatmap"),
+        ("train_offset_loss", "offset"),
+    ):
+        ax.plot(ep, _col(history, key), label=label)
+    if adapt:
+        last = ep.max() if len(ep) else 0
+        ax.plot(
+            last + _col(adapt, "epoch"), _col(adapt, "train_loss"), "k.-", lw=1, label="adapt epochs (total)"
+        )
+    ax.set_yscale("log")
+    ax.set_title("first stage: training loss", fontsize=9)
+    ax = axes[1]
+    for key, label in (
+        ("val_oks_ap50", "AP@0.5"),
+        ("val_pck2", "PCK@2px"),
+        ("val_recall_at_p99", "recall@P0.99"),
+    ):
+        col = _col(history, key)
+        ok = np.isfinite(col)
+        ax.plot(ep[ok], col[ok], marker=".", label=label)
+    ax.set_ylim(0, 1.01)
+    ax.set_title("first stage: validation (val subset)", fontsize=9)
+    if best_epoch is not None:
+        for ax in axes[:2]:
+            ax.axvline(best_epoch, color="grey", ls="--", lw=0.8, label=f"best epoch {best_epoch}")
+    ax = axes[2]
+    for name, rows in (stages or {}).items():
+        if not rows:
+            continue
+        key = "loss" if "loss" in rows[0] else "loss_px"
+        ax.plot(_col(rows, "epoch"), _col(rows, key), marker=".", label=f"{name} ({key})")
+    ax.set_yscale("log")
+    ax.set_title("later stages: training loss", fontsize=9)
+    for ax in axes:
+        ax.xaxis.set_major_locator(MaxNLocator(integer=True))
+        ax.set_xlabel("epoch", fontsize=8)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+        if ax.get_legend_handles_labels()[0]:
+            ax.legend(fontsize=7)
+    fig.tight_layout()
+    return _save_small(fig, path)
+
+
+def plot_pr_modes(curves: dict[str, tuple[APResult, PixelResult]], path: str | Path, *, title: str) -> Path:
+    """One held-out set's precision-recall curves at OKS 0.5 (COCO interpolation), one per input mode
+    (name -> its AP and pixel results), each with its operating point and the precision 0.99 line."""
+    fig, ax = plt.subplots(figsize=(4.6, 3.6))
+    for k, (mode, (ap, px)) in enumerate(curves.items()):
+        colour = f"C{k}"
+        ax.plot(
+            RECALL_THRESHOLDS,
+            ap.precision[0],
+            color=colour,
+            label=f"{mode}: AP@0.5 {ap.ap50:.3f}, R@P0.99 {px.recall_at_p99:.3f}",
+        )
+        if px.n_gt:
+            ax.plot([px.recall], [px.precision], "o", color=colour, ms=4)
+    ax.axhline(0.99, color="grey", ls=":", lw=0.8)
+    ax.set_xlabel("recall", fontsize=8)
+    ax.set_ylabel("precision", fontsize=8)
+    ax.set_xlim(0, 1.01)
+    ax.set_ylim(0, 1.01)
+    ax.tick_params(labelsize=7)
+    ax.grid(alpha=0.3)
+    ax.set_title(title, fontsize=9)
+    ax.legend(loc="lower left", fontsize=7, title=f"dots: score {OPERATING_THRESHOLD:g}", title_fontsize=7)
+    fig.tight_layout()
+    return _save_small(fig, path)
+
+
+def write_frame(
+    rgb: np.ndarray,
+    predictions: np.ndarray,
+    path: str | Path,
+    *,
+    truth: np.ndarray | None = None,
+    occluded: np.ndarray | None = None,
+    threshold: float = OPERATING_THRESHOLD,
+    max_bytes: int = MAX_FIGURE_BYTES,
+) -> tuple[Path, float]:
+    """One frame with its detections drawn (:func:`draw_overlay`), as a PNG of at most ``max_bytes``: at
+    full size when it fits, else shrunk by steps of 0.85 until it does.
+
+    Returns:
+        The file written and the scale it was drawn at.
+    """
+    path = Path(path)
+    preds = np.asarray(predictions, float).reshape(-1, 3)
+    scale = 1.0
+    while True:
+        h, w = rgb.shape[:2]
+        size = (max(1, round(w * scale)), max(1, round(h * scale)))
+        small = rgb if scale == 1.0 else cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+        sx, sy = size[0] / w, size[1] / h
+
+        def at(uv: np.ndarray | None, sx: float = sx, sy: float = sy) -> np.ndarray | None:
+            return None if uv is None else np.asarray(uv, float).reshape(-1, 2) * (sx, sy)
+
+        img = draw_overlay(
+            small,
+            np.c_[at(preds[:, :2]), preds[:, 2]],
+            truth=at(truth),
+            occluded=at(occluded),
+            threshold=threshold,
+            scale=1,
+        )
+        ok, buf = cv2.imencode(".png", cv2.cvtColor(img, cv2.COLOR_RGB2BGR), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+        if ok and (len(buf) <= max_bytes or min(size) <= 32):
+            break
+        scale *= 0.85
+    if len(buf) > max_bytes:
+        raise RuntimeError(f"{path}: {len(buf)} bytes at 32 px, over {max_bytes}")
+    path.write_bytes(buf.tobytes())
+    return path, scale

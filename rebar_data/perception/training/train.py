@@ -541,15 +541,6 @@ def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
     tmp.replace(path)
 
 
-def read_history(path: str | Path) -> list[dict[str, float]]:
-    """The rows of a run's metrics.csv as numbers."""
-    with Path(path).open() as f:
-        return [
-            {k: float(v) if v not in ("", None) else float("nan") for k, v in row.items()}
-            for row in csv.DictReader(f)
-        ]
-
-
 def _finish(
     out: Path,
     cfg: TrainConfig,
