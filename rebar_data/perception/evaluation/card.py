@@ -292,7 +292,10 @@ def _second_stage_cell(refine: dict, detector: Detector, *, with_depth: str) -> 
             f"{detector.verify_power:g} log p{with_depth}), so it only lowers scores"
         )
     if refine.get("border", "mirror") == "mask":
-        parts.append("beyond the image border its patch is blank with a channel marking the image")
+        parts.append(
+            "beyond the image border its patch is blank, with a channel marking the image, so it places a crossing"
+            " centred just outside the frame, and such a detection is dropped"
+        )
     if refine.get("context_scale", 0):
         parts.append(
             f"also reads the {refine['context_scale']} times wider square, shrunk to {refine['patch_px']} px"
@@ -311,7 +314,8 @@ def _second_stage_cell(refine: dict, detector: Detector, *, with_depth: str) -> 
         if refine.get("shrink_above_px"):
             lo, hi = refine["shrink_above_px"]
             parts.append(
-                f"later passes read crossings seen larger than {lo:g} px shrunk to 0.75, larger than {hi:g} px to 0.5"
+                "its first pass also gives each crossing's box side (four bar diameters): later passes read crossings"
+                f" seen larger than {lo:g} px from the image shrunk to 0.75, larger than {hi:g} px to 0.5"
             )
     parts.append("`detector.refiner = None`: the first stage alone")
     return "; ".join(parts)
@@ -760,7 +764,8 @@ def _evaluation_lines(
         f"diameters), so OKS 0.5 is reached at {oks_radius_px(sigma, 25):.1f} px for a 25 px box and "
         f"{oks_radius_px(sigma, 40):.1f} px for a 40 px box (the paper-tunnel median). AP is COCOeval's (101 recall",
         "thresholds; each above the recall reached with every detection counts precision 0, so where more than one",
-        "crossing in a hundred is never found within OKS 0.5, AP@0.5 stays under 0.99). PCK, errors, P and R:",
+        "crossing in a hundred is never found within OKS 0.5, AP@0.5 stays under 0.99: at recall 0.988, at most",
+        "0.980; `rebar detect` prints that recall and the ceiling, `metrics.ap_ceiling`). PCK, errors, P and R:",
         "Hungarian matching per image with a 5 px gate, detections of score >= 0.5; R@P0.99: the best recall along",
         "the score-sorted detections while precision >= 0.99. Visible crossings only (visibility 2).",
         "",
