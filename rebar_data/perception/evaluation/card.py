@@ -321,6 +321,49 @@ def _second_stage_cell(refine: dict, detector: Detector, *, with_depth: str) -> 
     return "; ".join(parts)
 
 
+def _int8_passes_lines(model: Path, detector: Detector) -> list[str]:
+    """The stage table's row for the int8 copy of the second stage that its later passes read, if it has one."""
+    if detector.refiner is None or not detector.refiner.has_int8_passes:
+        return []
+    path = int8_passes_path(model)
+    calibrated = detector.meta.get("refiner", {}).get("int8_calibrated_on", {})
+    data = ", ".join(f"`{d}`" for d in calibrated.get("data", [])) or "the training images"
+    return [
+        f"| second stage, int8 copy | `{path.name}` | {_kib(path)} | (the same) | the passes after the first | "
+        f"ONNX Runtime static quantization, calibrated on {calibrated.get('patches', '?')} patches around the "
+        f"crossings of {data}; the first pass, whose verification every score counts, stays in float |"
+    ]
+
+
+def _crossing_point_lines(model: Path, detector: Detector, res: dict) -> list[str]:
+    """The stage table's row for the crossing-point stage, if the model has one."""
+    if detector.crossing_point is None:
+        return []
+    path = crossing_point_path(model)
+    return [
+        f"| crossing point | `{path.name}` | {_kib(path)} | {_params(res.get('crossing_point_parameters'))} | "
+        f"the {detector.crossing_point.patch_px} px patch around each detection and its viewing ray | the offset "
+        "to where the 3D crossing point (the centerlines' midpoint, inside the steel) projects; only when asked "
+        '(`detect(rgb, point="crossing")`, `rebar detect --point crossing`); trained on the labels alone |'
+    ]
+
+
+def _line_check_lines(detector: Detector) -> list[str]:
+    """The stage table's row for the line check, if the model has one."""
+    if detector.line_check is None:
+        return []
+    e = detector.meta.get("line_check", {})
+    fitted = ", ".join(f"`{d}`" for d in e.get("fitted_on", [])) or "its fitting images"
+    return [
+        "| line check | (weights in the model's metadata) | - | "
+        f"{len(detector.line_check.weights) + 1} | without depth: the first-stage scores along each "
+        f"detection's two bars (candidates scoring {detector.line_check.floor:g} or more, followed from the "
+        "image's edges) | a logistic regression scores again each detection the first stage scores "
+        f"{detector.line_check.checked_from:g} or more. Fitted on {e.get('candidates', '?')} candidates of "
+        f"{fitted}. `detector.line_check = None`: the RGB stages' scores alone |"
+    ]
+
+
 def _stage_rows(model: Path, detector: Detector, res: dict, tc: dict, *, with_depth: str) -> list[str]:
     """The card's table of model files and stages: file, size, parameters, what it reads, what it does."""
     rows = [
@@ -337,16 +380,7 @@ def _stage_rows(model: Path, detector: Detector, res: dict, tc: dict, *, with_de
             f"a {refine.get('patch_px', '?')} px full-resolution patch around each detection | "
             f"{_second_stage_cell(refine, detector, with_depth=with_depth)} |"
         )
-        if detector.refiner.has_int8_passes:
-            path = int8_passes_path(model)
-            calibrated = detector.meta.get("refiner", {}).get("int8_calibrated_on", {})
-            data = ", ".join(f"`{d}`" for d in calibrated.get("data", [])) or "the training images"
-            rows.append(
-                f"| second stage, int8 copy | `{path.name}` | {_kib(path)} | (the same) | the passes after the "
-                f"first | ONNX Runtime static quantization, calibrated on {calibrated.get('patches', '?')} patches "
-                f"around the crossings of {data}; the first pass, whose verification every score counts, stays in "
-                "float |"
-            )
+        rows += _int8_passes_lines(model, detector)
     if detector.depth_check is not None:
         path = depth_check_path(model)
         dc = tc.get("depth_check") or {}
@@ -357,25 +391,8 @@ def _stage_rows(model: Path, detector: Detector, res: dict, tc: dict, *, with_de
             f"bars there touch; score = sigmoid(logit + {detector.depth_power:g} log q); runs only with a depth "
             "image, and a detection without a measurement at its centre is scored as without depth |"
         )
-    if detector.crossing_point is not None:
-        path = crossing_point_path(model)
-        rows.append(
-            f"| crossing point | `{path.name}` | {_kib(path)} | {_params(res.get('crossing_point_parameters'))} | "
-            f"the {detector.crossing_point.patch_px} px patch around each detection and its viewing ray | the offset "
-            "to where the 3D crossing point (the centerlines' midpoint, inside the steel) projects; only when asked "
-            '(`detect(rgb, point="crossing")`, `rebar detect --point crossing`); trained on the labels alone |'
-        )
-    if detector.line_check is not None:
-        e = detector.meta.get("line_check", {})
-        fitted = ", ".join(f"`{d}`" for d in e.get("fitted_on", [])) or "its fitting images"
-        rows.append(
-            "| line check | (weights in the model's metadata) | - | "
-            f"{len(detector.line_check.weights) + 1} | without depth: the first-stage scores along each "
-            f"detection's two bars (candidates scoring {detector.line_check.floor:g} or more, followed from the "
-            "image's edges) | a logistic regression scores again each detection the first stage scores "
-            f"{detector.line_check.checked_from:g} or more; fitted on {e.get('candidates', '?')} candidates of "
-            f"{fitted}; `detector.line_check = None`: the RGB stages' scores alone |"
-        )
+    rows += _crossing_point_lines(model, detector, res)
+    rows += _line_check_lines(detector)
     return [
         "| stage | file | size | parameters | reads | does, as shipped |",
         "| --- | --- | --- | --- | --- | --- |",
