@@ -171,3 +171,42 @@ def test_the_card_names_every_renderer_that_drew_training_images():
     line = _renderer_line({**own, "refine_supplements": cycles})
     assert "from Open3D, and 84 frames from Blender Cycles" in line and "one renderer" not in line
     assert "720" not in line  # the lower-mat supplement is Open3D's own
+
+
+def test_the_shipped_card_has_the_hubs_form_and_its_figures_ship_with_it():
+    """The card in the package: a YAML header with the model index, the sections in order, and every figure
+    it links present, a decodable PNG under the size limit, and named by the package data."""
+    import re
+    import tomllib
+    from fnmatch import fnmatch
+    from pathlib import Path
+
+    import cv2
+    import yaml
+
+    from rebar_data.perception.evaluation.plots import MAX_FIGURE_BYTES
+    from rebar_data.perception.inference.detector import MODELS_DIR
+
+    card = (MODELS_DIR / CARD_NAME).read_text()
+    meta = yaml.safe_load(card.split("---\n")[1])
+    assert meta["pipeline_tag"] == "keypoint-detection"
+    results = meta["model-index"][0]["results"]
+    assert any(r["dataset"]["name"].startswith("paper-tunnel test") for r in results)
+    assert all(m["value"] <= 1 or m["type"] == "median_px" for r in results for m in r["metrics"])
+    headings = [line for line in card.splitlines() if line.startswith("## ")]
+    assert headings[:5] == [
+        "## Model details",
+        "## Intended use and limits",
+        "## Training data",
+        "## Evaluation",
+        "## How to use",
+    ]
+    links = re.findall(r"\]\((card/[^)]+\.png)\)", card)
+    assert "card/frame.png" in links and any(link.startswith("card/pr-") for link in links)
+    pyproject = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())
+    globs = pyproject["tool"]["setuptools"]["package-data"]["rebar_data.perception"]
+    for link in links:
+        path = MODELS_DIR / link
+        assert path.stat().st_size <= MAX_FIGURE_BYTES and cv2.imread(str(path)) is not None
+        assert any(fnmatch(f"models/{link}", g) for g in globs)
+    assert sorted(p.name for p in (MODELS_DIR / "card").glob("*.png")) == sorted(Path(x).name for x in links)

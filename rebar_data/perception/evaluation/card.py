@@ -186,8 +186,9 @@ class CardFigures:
     pr: dict[str, str] = field(default_factory=dict)
 
 
-def _slug(text: str) -> str:
-    return re.sub(r"[^a-z0-9]+", "-", text.lower()).strip("-")
+def pr_figure_name(set_name: str) -> str:
+    """The file name of a held-out set's PR figure: its name before any parenthesis, as a slug."""
+    return "pr-" + re.sub(r"[^a-z0-9]+", "-", set_name.split(" (")[0].lower()).strip("-") + ".png"
 
 
 def frame_figure(
@@ -225,7 +226,12 @@ def pr_figure(held_out: HeldOut, set_name: str, path: Path) -> Path:
         for mode, preds in held_out.modes.items()
     }
     n = sum(len(t.uv) for t in truths)
-    return plot_pr_modes(curves, path, title=f"{set_name}: {len(held_out.samples)} images, {n} crossings")
+    return plot_pr_modes(
+        curves,
+        path,
+        title=set_name,
+        subtitle=f"{len(held_out.samples)} images, {n} visible crossings, OKS 0.5",
+    )
 
 
 def training_figure(run_dir: Path, path: Path) -> Path | None:
@@ -265,7 +271,7 @@ def write_figures(
         out.training = f"{FIGURES_DIR}/{training.name}"
     for name, h in held_out.items():
         if h.samples and h.modes:
-            path = pr_figure(h, name, folder / f"pr-{_slug(name)}.png")
+            path = pr_figure(h, name, folder / pr_figure_name(name))
             out.pr[name] = f"{FIGURES_DIR}/{path.name}"
     if frame_from in held_out and held_out[frame_from].samples:
         path, out.frame_caption = frame_figure(held_out[frame_from], frame_from, folder)
@@ -432,7 +438,7 @@ def _details_lines(model: Path, detector: Detector, res: dict, tc: dict, *, dc: 
         "## Model details",
         "",
         "- Model type: heatmap keypoint detector for one class, the rebar crossing: "
-        + ", ".join(stages)
+        + "; ".join(stages)
         + ". Trained from scratch on the project's rendered data alone.",
         "- Input: an RGB image of any size (uint8, H x W x 3); optionally its intrinsics (fx, fy, cx, cy in px)"
         + (
@@ -522,7 +528,7 @@ def _use_lines(ds: dict, detector: Detector, *, dc: dict | None, rgb_path: str) 
         "- Any use that needs its detections without a check: a false detection places the tool on no crossing.",
         "",
         "**Known limits.**",
-        _renderer_line(ds),
+        "- Trained and scored on rendered images only (the renderers under Training data).",
         *(
             [
                 "- One mesh (the paper's tunnel segment, 12 mm bars at 100 mm) and one focal length in training; the",
@@ -959,7 +965,12 @@ def write_card(
     test = rows.get(f"{ds.get('name')} test")
     lines = [
         "---",
-        yaml.safe_dump(header(grouped, ds, default_input=default_input), sort_keys=False, width=120).rstrip(),
+        yaml.safe_dump(
+            header(grouped, ds, default_input=default_input),
+            sort_keys=False,
+            width=110,
+            default_flow_style=None,  # lists and maps of plain values on one line each
+        ).rstrip(),
         "---",
         "",
         "# Rebar-crossing keypoint detector",
