@@ -516,15 +516,21 @@ def _use_lines(ds: dict, detector: Detector, *, dc: dict | None, rgb_path: str) 
         "## Intended use and limits",
         "",
         "**Intended use.** Finding rebar crossings, sub-pixel, in the frames of a robot's camera looking at a",
-        "reinforcement mat (the paper's tunnel segments and planar slabs, 12 mm bars), so that a tying tool can",
+        "reinforcement mat (tunnel segments and planar slabs like the training pipelines'), so that a tying tool can",
         "be servoed onto them; on a CPU, in a closed loop (`rebar servo run`). Also: scoring rendered datasets",
         "(`rebar detect DATASET`) and as the baseline a retrained model is compared with.",
         "",
         "**Out of scope.**",
         "- Real photographs as a measured use: no real photograph was seen in training or scored here.",
         "- Other keypoints (bar ends, ties, bar axes) and other objects; lenses that are not pinhole (fisheye).",
-        "- Depth images of bars lying directly on a surface"
-        + (" (the depth check doubts every crossing there: give such images no depth)." if dc else "."),
+        *(
+            [
+                "- Depth images of bars lying directly on a surface: the depth check doubts every crossing there;"
+                " give such images no depth."
+            ]
+            if dc
+            else []
+        ),
         "- Any use that needs its detections without a check: a false detection places the tool on no crossing.",
         "",
         "**Known limits.**",
@@ -646,10 +652,9 @@ def _training_lines(
         )
     lines += [
         "- Reproduce: `make train` (builds the default dataset, its supplements and the planar-slab set when",
-        "  missing, trains, and ships this file, its card and the card's figures); the settings are `TrainConfig`'s"
-        " defaults,",
-        "  listed below; what was tried, adopted or not, with its figures: "
-        f"[experiments.md]({DOCS_FROM_CARD}/experiments.md).",
+        "  missing, trains with `TrainConfig`'s defaults, and ships this file, its card and the card's figures);",
+        "  the settings this run resolved are listed below; what was tried, adopted or not, with its figures:",
+        f"  [experiments.md]({DOCS_FROM_CARD}/experiments.md).",
         "",
         *(
             [f"![Training curves of this run]({figure})", ""]
