@@ -236,6 +236,9 @@ def plot_training(
     ax.set_yscale("log")
     ax.set_title("later stages: training loss", fontsize=9)
     for ax in axes:
+        lo, hi = ax.get_xlim()
+        if hi - lo < 2:  # one or two epochs: a span of whole epochs, so the ticks fall on them
+            ax.set_xlim((lo + hi) / 2 - 1, (lo + hi) / 2 + 1)
         ax.xaxis.set_major_locator(MaxNLocator(integer=True))
         ax.set_xlabel("epoch", fontsize=8)
         ax.tick_params(labelsize=7)
