@@ -112,8 +112,27 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     info.update(name="other", renderer={"engine": "cycles"})
     (other / "meta/info.json").write_text(json.dumps(info))
     det = Detector.load(trained_run.out_dir)
-    rows = evaluation_rows(det, trained_run.out_dir, evaluate_on=[own, other], random_split=False)
+    held_out = {}
+    rows = evaluation_rows(
+        det, trained_run.out_dir, evaluate_on=[own, other], random_split=False, held_out=held_out
+    )
     assert "own v0.0.1 (all splits)" in rows
+    # each held-out set's detections per input mode, for its PR figure: one figure a set
+    assert {k: sorted(h.modes) for k, h in held_out.items()} == {
+        "drawn test": ["RGB only", "with depth"],
+        "own v0.0.1 (all splits)": ["with depth"],
+        "other v0.0.1, cycles renderer": ["RGB only", "with depth"],
+    }
+    assert all(len(p) == len(h.samples) for h in held_out.values() for p in h.modes.values())
+    from rebar_data.perception.evaluation.card import FIGURES_DIR, write_figures
+
+    figures = write_figures(trained_run.out_dir, tmp_path / "models", held_out, frame_from="drawn test")
+    assert sorted(figures.pr.values()) == [
+        f"{FIGURES_DIR}/pr-drawn-test.png",
+        f"{FIGURES_DIR}/pr-other-v0-0-1-cycles-renderer.png",
+        f"{FIGURES_DIR}/pr-own-v0-0-1.png",
+    ]
+    assert all((tmp_path / "models" / link).is_file() for link in figures.pr.values())
     rgb = rows["other v0.0.1, cycles renderer, RGB only"]
     vs_3d = rows["other v0.0.1, cycles renderer, RGB only, vs 3D crossing points"]
     assert rgb["n_gt"] == vs_3d["n_gt"] == rows["own v0.0.1 (all splits)"]["n_gt"] > 0
