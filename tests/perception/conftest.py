@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
 from rebar_data.perception.training.config import AugmentConfig
+from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
 # every colour, blur and noise change off: augmentation is geometry only, so pixels can be compared
 COLOUR_OFF = dict(
