@@ -1,21 +1,9 @@
-"""Where a detector's confident false detections lie: a census that says what holds recall at high precision.
+"""Where a detector's confident false detections lie: those scoring above the score at which recall
+reaches a level (0.97 by default), each put in the first place it lies in: ``top_over_lower`` (where a top
+bar passes in front of a lower bar), ``lower_mat`` (a lower-mat crossing), ``border`` (within ``BORDER_PX``
+of the edge), ``beside_crossing`` (within ``BESIDE_PX`` of a visible crossing) or ``elsewhere``.
 
-Recall at precision 0.99 is decided by the few false detections that score above most true ones. This
-counts those above the score at which recall reaches a given level (0.97 by default: about where the
-cross-renderer goal sits), each put in the first of these places it lies in:
-
-- ``top_over_lower``: within ``near_px`` of a place where a top bar passes in front of a lower bar of the
-  other direction (:func:`~rebar_data.perception.evaluation.lower_mat.lower_mat_places`), and no farther from it
-  than from the lower mat's own crossings;
-- ``lower_mat``: within ``near_px`` of one of the lower mat's own crossings, seen between the top bars;
-- ``border``: within ``BORDER_PX`` of the frame's edge, where a crossing just outside the frame shows its
-  bars;
-- ``beside_crossing``: within ``BESIDE_PX`` of a visible crossing (one the matching gave to another
-  detection, or a second detection of it beyond the gate);
-- ``elsewhere``: the rest.
-
-False means what the metrics mean: left unmatched by the one-to-one matching within the 5 px gate.
-"""
+False means unmatched by the metrics' one-to-one matching within the 5 px gate."""
 
 from __future__ import annotations
 
