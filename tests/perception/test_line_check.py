@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.evaluation.data import load_split, read_sample_image
+from rebar_data.perception.evaluation.data import load_split, read_depth, read_sample_image
 from rebar_data.perception.inference import checks as lc
-from rebar_data.perception.inference.checks import FEATURES, LineCheck, read_depth
+from rebar_data.perception.inference.checks import FEATURES, LineCheck
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks.files import update_onnx_meta
 from rebar_data.perception.training.config import LineCheckConfig

@@ -10,9 +10,15 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from rebar_data.perception.evaluation.data import SPLITS, Sample, load_split, read_image, stated_oks_sigma
+from rebar_data.perception.evaluation.data import (
+    SPLITS,
+    Sample,
+    load_split,
+    read_depth,
+    read_image,
+    stated_oks_sigma,
+)
 from rebar_data.perception.evaluation.metrics import Truth, pixel_metrics, summary
-from rebar_data.perception.inference.checks import read_depth
 from rebar_data.perception.inference.detector import Detector
 
 LOW_THRESHOLD = 0.05  # predictions kept for scoring: enough of the tail for AP and precision-recall curves

@@ -10,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -21,16 +20,6 @@ from rebar_data.perception.inference.refine import patches
 
 CENTRE_PX = 4  # the patch's central square whose median depth is the reference
 MM_PER_M = 1000.0
-
-
-def read_depth(path: str | Path) -> np.ndarray:
-    """A dataset's depth image (uint16 millimetres of camera-frame z, 0 = no measurement) as float32 metres."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
-        raise ConfigError(
-            f"{path}: cannot be read as a depth image; accepted: a one-channel 16-bit PNG of millimetres"
-        )
-    return raw.astype(np.float32) / MM_PER_M
 
 
 def as_depth_m(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:

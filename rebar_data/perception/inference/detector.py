@@ -52,11 +52,11 @@ DUPLICATE_PX = 3.0  # two detections placed nearer than this are one crossing
 Camera = tuple[float, float, float, float]  # fx, fy, cx, cy in pixels
 
 
-def ray_grid(height: int, width: int, camera: Camera, *, stride: int = STRIDE) -> np.ndarray:
-    """(2, H / stride, W / stride) viewing rays ((u - cx) / fx, (v - cy) / fy) of the output cells' centres."""
+def ray_grid(height: int, width: int, camera: Camera) -> np.ndarray:
+    """(2, H / 4, W / 4) viewing rays ((u - cx) / fx, (v - cy) / fy) of the output cells' centres."""
     fx, fy, cx, cy = camera
-    u = (stride * (np.arange(-(-width // stride), dtype=np.float64) + 0.5) - cx) / fx
-    v = (stride * (np.arange(-(-height // stride), dtype=np.float64) + 0.5) - cy) / fy
+    u = (STRIDE * (np.arange(-(-width // STRIDE), dtype=np.float64) + 0.5) - cx) / fx
+    v = (STRIDE * (np.arange(-(-height // STRIDE), dtype=np.float64) + 0.5) - cy) / fy
     return np.stack(np.broadcast_arrays(u[None, :], v[:, None])).astype(np.float32)
 
 
@@ -224,9 +224,9 @@ class Detector:
             self.refiner, self.depth_check, self.line_check = refiner, depth_check, line_check
 
     @contextmanager
-    def flattening(self, on: bool = True) -> Iterator[Detector]:
-        """Within the block, ``flatten_behind`` is ``on``."""
-        before, self.flatten_behind = self.flatten_behind, on
+    def flattening(self) -> Iterator[Detector]:
+        """Within the block, ``flatten_behind`` is on."""
+        before, self.flatten_behind = self.flatten_behind, True
         try:
             yield self
         finally:

@@ -76,16 +76,16 @@ def front_depth(depth_m: np.ndarray) -> np.ndarray:
     return up
 
 
-def behind_mask(depth_m: np.ndarray, *, gap_m: float = GAP_M) -> np.ndarray:
-    """(H, W) bool: the measured pixels of ``depth_m`` lying more than ``gap_m`` behind :func:`front_depth`."""
+def behind_mask(depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the measured pixels of ``depth_m`` lying more than ``GAP_M`` behind :func:`front_depth`."""
     d = np.asarray(depth_m, np.float32)
-    return (d > 0) & (d > front_depth(d) + np.float32(gap_m))
+    return (d > 0) & (d > front_depth(d) + np.float32(GAP_M))
 
 
-def flatten_behind(image: np.ndarray, depth_m: np.ndarray, *, gap_m: float = GAP_M) -> np.ndarray:
+def flatten_behind(image: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
     """A copy of ``image`` (H, W, 3) uint8 whose pixels :func:`behind_mask` names take the blurred colour of
     such pixels around them; ``depth_m`` is registered to it."""
-    behind = behind_mask(depth_m, gap_m=gap_m)
+    behind = behind_mask(depth_m)
     out = image.copy()
     if not behind.any():
         return out
