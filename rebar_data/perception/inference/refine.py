@@ -226,12 +226,6 @@ class Refiner:
         uv[moving] = moved
         return uv, logit
 
-    def box_sizes(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """(N,) each point's crossing's box side in pixels, from the size output."""
-        if not self.sizes:
-            raise ConfigError("this refiner has no size output; accepted: one trained with size: true")
-        return self.patch_px * np.exp(self._read_at(image, uv, self.first_pass_views)[1][:, 3])
-
     def _runner(self, int8: bool) -> Callable[[np.ndarray], np.ndarray]:
         return self._int8_run if int8 and self.use_int8_passes and self._int8_run is not None else self._run
 
