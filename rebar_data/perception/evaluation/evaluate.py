@@ -115,14 +115,12 @@ def load_splits(root: str | Path, splits: Sequence[str] = SPLITS, *, truth: str 
     return [s for split in splits for s in load_split(root, split, truth=truth)]
 
 
-def random_frames(
-    root: str | Path, *, fraction: float = RANDOM_SPLIT_FRACTION, seed: int = 0
-) -> tuple[list[Sample], int]:
-    """A test set as a random frame-level split draws one: ``fraction`` of all the dataset's frames, whatever
+def random_frames(root: str | Path, *, seed: int = 0) -> tuple[list[Sample], int]:
+    """A test set as a random frame-level split draws one: ``RANDOM_SPLIT_FRACTION`` of all the dataset's frames, whatever
     their scene, and how many of them are in the train split (what a random split leaks)."""
     everything = load_splits(root)
     rng = np.random.default_rng(seed)
-    n = max(1, round(fraction * len(everything)))
+    n = max(1, round(RANDOM_SPLIT_FRACTION * len(everything)))
     pick = np.sort(rng.choice(len(everything), size=min(n, len(everything)), replace=False))
     train_ids = {s.image_id for s in load_split(root, "train")}
     drawn = [everything[i] for i in pick]

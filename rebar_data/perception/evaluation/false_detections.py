@@ -30,13 +30,13 @@ def _distance(uv: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.linalg.norm(uv[:, None] - points[None], axis=2).min(axis=1)
 
 
-def _place_of(s: Sample, uv: np.ndarray, placed: dict[str, np.ndarray], near_px: float) -> np.ndarray:
+def _place_of(s: Sample, uv: np.ndarray, placed: dict[str, np.ndarray]) -> np.ndarray:
     """The index in ``PLACES`` of each false detection at ``uv`` (N, 2): the first place it lies in."""
     edge = np.minimum.reduce([uv[:, 0], uv[:, 1], s.width - uv[:, 0], s.height - uv[:, 1]])
     over, own = _distance(uv, placed["top_over_lower"]), _distance(uv, placed["own"])
     where = (
-        (over <= near_px) & (over <= own),  # the nearer of the two kinds
-        own <= near_px,
+        (over <= NEAR_PX) & (over <= own),  # the nearer of the two kinds
+        own <= NEAR_PX,
         edge <= BORDER_PX,
         _distance(uv, np.asarray(s.visible, float).reshape(-1, 2)) <= BESIDE_PX,
         np.ones(len(uv), bool),
@@ -50,7 +50,6 @@ def false_detection_census(
     predictions: Sequence[np.ndarray],
     *,
     recall: float = RECALL,
-    near_px: float = NEAR_PX,
 ) -> dict:
     """The false detections scoring at least the score where recall reaches ``recall``, by place, and
     what recall at precision 0.99 would be without each place's false detections (whatever their score):
@@ -62,7 +61,6 @@ def false_detection_census(
         predictions: Per sample, (N, 3) u, v, score.
         recall: The recall whose score is the cut; when the predictions never reach it, every prediction
             counts and ``reached`` is False.
-        near_px: How near a lower-mat place a false detection must lie to be counted there.
 
     Returns:
         ``recall``, ``reached``, ``score`` (the cut), ``false`` (how many lie above it), ``true`` (the
@@ -80,7 +78,7 @@ def false_detection_census(
         hit = np.zeros(len(p), bool)
         hit[match(np.asarray(s.visible, float).reshape(-1, 2), p[:, :2], GATE_PX)[0]] = True
         at = np.full(len(p), -1)  # -1: a true detection
-        at[~hit] = _place_of(s, p[~hit, :2], placed, near_px)
+        at[~hit] = _place_of(s, p[~hit, :2], placed)
         hits.append(hit)
         scores.append(p[:, 2])
         place.append(at)
