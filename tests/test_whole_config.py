@@ -101,7 +101,7 @@ def test_servo_check_refuses_a_broken_thresholds_file(tmp_path, capsys):
 
 
 def test_train_refuses_broken_settings_before_making_a_run_folder(tmp_path, capsys):
-    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+    from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=96, height=72, focal_px=80.0, trajectories=3, frames=1)
     dataset = write_synthetic_dataset(tmp_path / "data", spec, seed=1)

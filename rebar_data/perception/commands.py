@@ -542,10 +542,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--refine-supplement",
         action="append",
         metavar="DATASET",
-        help="another dataset (another renderer's frames) whose every image trains the first stage's adapt "
-        "epochs (adapt.supplement_repeats times) and the second stage (refine.supplement_repeats times), "
-        "and the first epochs only with other_renderer_repeats (repeatable); without it they may change "
-        "when a run resumes: those stages then train again",
+        help="another renderer's dataset whose every image trains the adapt epochs and the second stage "
+        "(and the first epochs, other_renderer_repeats times; repeatable)",
     )
     t.add_argument(
         "--line-supplement",
@@ -646,37 +644,33 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument(
         "--no-depth",
         action="store_true",
-        help="leave the dataset's depth images out (the RGB stages and the model's line check, as for "
-        "photographs); images "
-        "given as files are always detected without depth",
+        help="leave the dataset's depth images out (the RGB stages and the line check, as for photographs); "
+        "images given as files are always read without depth",
     )
     d.add_argument(
         "--flatten-behind",
         action="store_true",
-        help="with the dataset's depth images, take what lies far behind the bars in front (lower mat, "
-        "ground) out of each colour image before reading it (rebar_data/perception/inference/image.py; off by default)",
+        help="with the dataset's depth images, take what lies far behind the front bars (lower mat, ground) "
+        "out of each colour image before reading it (off by default)",
     )
     d.add_argument(
         "--oks-sigma",
         type=float,
-        help="score OKS AP at this sigma (a number above 0) instead of the one the dataset states "
-        "(info.json); 1.0 is Ultralytics' default for a single keypoint, the sigma behind the paper's "
-        "mAP@0.5 (dataset input)",
+        help="score OKS AP at this sigma (above 0) instead of the dataset's (info.json); 1.0 is Ultralytics' "
+        "default for one keypoint, the paper's mAP@0.5 (dataset input)",
     )
     d.add_argument(
         "--truth",
         default="sight",
         choices=("sight", "crossing"),
-        help="what a crossing's pixel is when scoring (dataset input): sight (default), the labels' u, v where "
-        "the image shows the bars cross; crossing, the projected 3D crossing point (the centerlines' "
-        "midpoint, inside the steel), how labels made from the 3D point alone score a detector",
+        help="what a crossing's pixel is when scoring (dataset input): sight (default), where the image shows "
+        "the bars cross; crossing, where the 3D crossing point (the centerlines' midpoint) projects",
     )
     d.add_argument(
         "--point",
         choices=("sight", "crossing"),
-        help="what each detection's u, v stands for: sight, where the image shows the bars cross (the "
-        "labels' convention); crossing, where the 3D crossing point projects, from the model's "
-        "crossing-point stage; default: as --truth for a dataset, sight for images",
+        help="what each detection's u, v stands for: sight or crossing (from the model's crossing-point "
+        "stage); default: as --truth for a dataset, sight for images",
     )
     d.add_argument("--threads", type=THREADS, default=2, help=f"CPU threads, {THREADS} (default 2)")
     d.add_argument(
@@ -691,8 +685,7 @@ def register(sub: argparse._SubParsersAction) -> None:
         choices=READINGS,
         default="mirrored",
         help="how the stages read each image: mirrored (the default: the first stage reads the image and its "
-        "mirror image and takes their mean, the second stage reads its int8 copy) or single (the first stage "
-        "reads the image once; the reading before there was a choice)",
+        "mirror image and takes their mean, the second stage reads its int8 copy) or single (once, faster)",
     )
     d.add_argument(
         "--camera",

@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 import torch
 
-from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
 from rebar_data.perception.training.config import AugmentConfig
+from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
 # every colour, blur and noise change off: augmentation is geometry only, so pixels can be compared
 COLOUR_OFF = dict(
@@ -33,8 +33,7 @@ def render_one_frame(tmp_path: Path):
     from rebar_data.dataset.plan import make_plan
     from rebar_data.dataset.worker import FrameWorker
     from rebar_data.geometry.build import build_rebar_mesh
-    from rebar_data.perception.evaluation.data import read_image
-    from rebar_data.perception.inference.checks import read_depth
+    from rebar_data.perception.evaluation.data import read_depth, read_image
     from rebar_data.pipeline import PipelineConfig
 
     smoke = yaml.safe_load((Path(__file__).parents[2] / "pipelines/smoke.yaml").read_text())

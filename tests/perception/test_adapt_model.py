@@ -9,11 +9,11 @@ from rebar_data.cli import main
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_sample_image
 from rebar_data.perception.evaluation.evaluate import load_splits
-from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks.files import onnx_meta
 from rebar_data.perception.training.adapt import adapt_model
 from rebar_data.perception.training.config import resolve_config
+from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
 from .conftest import TINY_TRAIN
 

@@ -9,9 +9,9 @@ import pytest
 import torch
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.evaluation.data import load_split, read_image
+from rebar_data.perception.evaluation.data import load_split, read_depth, read_image
 from rebar_data.perception.inference import model_file
-from rebar_data.perception.inference.checks import DepthCheck, as_depth_m, encode, read_depth
+from rebar_data.perception.inference.checks import DepthCheck, as_depth_m, encode
 from rebar_data.perception.inference.detector import Detector, verified_score
 from rebar_data.perception.inference.refine import patches
 from rebar_data.perception.networks import eager

@@ -29,7 +29,7 @@ def _shipped() -> Detector:
 
 def _frame() -> tuple[np.ndarray, np.ndarray, Truth]:
     """The bench's drawn 640x480 frame (focal length 525 px), its depth and its visible crossings."""
-    from rebar_data.perception.evaluation.bench import drawn_frame_labelled
+    from tests.perception.synthetic import drawn_frame_labelled
 
     rgb, records, depth = drawn_frame_labelled()
     vis = [r for r in records if r["visibility"] == 2]
@@ -146,19 +146,3 @@ def test_a_camera_beside_a_dataset_is_refused(drawn_dataset, tmp_path, capsys):
     assert main(["detect", str(drawn_dataset), "--out", str(out), "--camera", "525,525,320,240"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "carry their own intrinsics" in err[0] and not out.exists(), err
-
-
-def test_the_bench_times_a_large_frame_both_ways_and_leaves_the_detector_as_it_was(monkeypatch):
-    from rebar_data.perception.evaluation.bench import drawn_frame, focal_cost
-
-    det = _shipped()
-    read_at: list[tuple[int, int]] = []
-    run = det._run
-    monkeypatch.setattr(det, "_run", lambda image, rays: read_at.append(image.shape[:2]) or run(image, rays))
-    resampled_ms, as_is_ms = focal_cost(det, [drawn_frame()[0]], repeats=2)
-    assert resampled_ms > 0 and as_is_ms > 0
-    assert {(480, 640), (960, 1280)} == set(read_at)  # both ways, on the 1280x960 frame
-    assert det.resample is True
-    det.resample = False
-    focal_cost(det, [drawn_frame()[0]], repeats=2)
-    assert det.resample is False

@@ -133,7 +133,7 @@ def test_the_later_passes_skip_only_detections_that_cannot_reach_the_threshold(m
     sparing them, at the operating point and at a low threshold."""
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
-    from rebar_data.perception.evaluation.bench import drawn_frame
+    from tests.perception.synthetic import drawn_frame
 
     det = Detector.load(threads=1)
     rgb, depth = drawn_frame()  # dense with bars on the ground: many candidates the later stages reject

@@ -58,7 +58,6 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
 
 
 def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, tmp_path):
-    from rebar_data.perception.evaluation.bench import int8_passes_cost
     from rebar_data.perception.evaluation.card import _int8_passes_lines
 
     model = shipped_model_copy(tmp_path)
@@ -79,10 +78,6 @@ def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, t
         np.testing.assert_array_equal(with_int8[:, 2], in_float[:, 2])
         moved.append(np.abs(with_int8[:, :2] - in_float[:, :2]).max(initial=0.0))
     assert max(moved) < 0.5, moved
-    assert (
-        len(int8_passes_cost(det, [read_sample_image(load_split(drawn_dataset, "test")[0])], repeats=2)) == 2
-    )
-    assert det.refiner.use_int8_passes  # the bench leaves the copy switched on
     # the copy is checked as every stage is: missing, or not the file the model names
     keep = out.read_bytes()
     out.write_bytes(keep[:-1] + b"\0")

@@ -5,9 +5,9 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.evaluation.data import load_split, read_sample_image
+from rebar_data.perception.evaluation.data import load_split, read_depth, read_sample_image
 from rebar_data.perception.inference import checks as lc
-from rebar_data.perception.inference.checks import FEATURES, LineCheck, read_depth
+from rebar_data.perception.inference.checks import FEATURES, LineCheck
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks.files import update_onnx_meta
 from rebar_data.perception.training.config import LineCheckConfig
@@ -161,15 +161,3 @@ def test_with_a_line_check_the_detector_returns_the_same_at_any_threshold(checke
         np.testing.assert_array_equal(det.detect(rgb, camera=s.camera, depth=depth), without)
         changed += len(plain) != len(low) or not np.allclose(plain[:, 2], low[:, 2])
     assert changed  # the check changed some scores
-
-
-def test_the_bench_times_the_rgb_path_with_and_without_the_check(checked_model):
-    from rebar_data.perception.evaluation.bench import line_check_cost
-
-    model, _ = checked_model
-    det = Detector.load(model, threads=1)
-    check = det.line_check
-    rgb = np.random.default_rng(5).integers(0, 256, (96, 128, 3), dtype=np.uint8)
-    with_ms, without_ms = line_check_cost(det, [rgb], repeats=3)
-    assert with_ms > 0 and without_ms > 0
-    assert det.line_check is check  # the model keeps its check

@@ -40,7 +40,7 @@ def test_the_mirrored_reading_of_a_mirror_image_is_the_mirrored_reading_turned_b
     """The two readings swap roles for the mirror image: its output is the image's own, cell for cell
     turned left for right, the column offsets pointing the other way (to rounding: the same two network
     calls, added in the other order)."""
-    from rebar_data.perception.evaluation.bench import drawn_frame
+    from tests.perception.synthetic import drawn_frame
 
     det = _shipped()
     rgb, _ = drawn_frame()
@@ -65,7 +65,7 @@ def test_the_mirror_image_lands_on_the_cells_of_the_image_at_any_size(width, hei
     """The image is padded to whole blocks before it is mirrored, so the mirror's cells fall on the image's
     own: the first stage's peaks in the two readings lie where each other's do (a cell off would move every
     one by half a cell, 2 px, one way)."""
-    from rebar_data.perception.evaluation.bench import drawn_frame
+    from tests.perception.synthetic import drawn_frame
 
     det = _shipped()
     rgb = np.ascontiguousarray(drawn_frame()[0][:height, :width])
@@ -112,7 +112,7 @@ def test_the_mirrored_reading_reads_every_second_stage_pass_in_the_int8_copy_and
 
 
 def test_the_shipped_detector_reads_mirrored_by_default_and_finds_the_crossings_either_way():
-    from rebar_data.perception.evaluation.bench import drawn_frame
+    from tests.perception.synthetic import drawn_frame
 
     det = _shipped()
     assert det.reading == "mirrored" and _shipped(reading="single").reading == "single"
@@ -124,16 +124,3 @@ def test_the_shipped_detector_reads_mirrored_by_default_and_finds_the_crossings_
     # the confident crossings are the same ones, placed within a fraction of a pixel of each other
     assert len(dist) >= 0.9 * max(len(single), len(mirrored)) > 30, (len(dist), len(single), len(mirrored))
     assert np.median(dist) < 0.3, np.median(dist)
-
-
-def test_the_bench_times_the_two_readings_in_turn_and_leaves_the_detector_as_it_was():
-    from rebar_data.perception.evaluation.bench import drawn_frame, reading_cost
-
-    det = _shipped()
-    rgb, _ = drawn_frame()
-    mirrored_ms, single_ms = reading_cost(det, [rgb], repeats=2)
-    assert mirrored_ms > 0 and single_ms > 0
-    assert det.reading == "mirrored"
-    det.reading = "single"
-    reading_cost(det, [rgb], repeats=2)
-    assert det.reading == "single"

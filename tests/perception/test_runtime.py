@@ -80,7 +80,7 @@ def test_an_openvino_session_answers_as_onnx_runtime_does(trained_run):
 def test_openvino_reads_a_frame_and_its_mirror_image_in_one_call_with_the_same_numbers():
     """The mirrored reading's two first-stage reads go through OpenVINO as one batch of two; ONNX Runtime,
     whose files take one image, reads them in two calls. The batch gives what the two calls give."""
-    from rebar_data.perception.evaluation.bench import drawn_frame
+    from tests.perception.synthetic import drawn_frame
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
@@ -144,7 +144,7 @@ def test_an_int8_file_runs_in_onnx_runtime_whatever_the_runtime(trained_run):
 
 @needs_openvino
 def test_the_shipped_detector_finds_the_same_crossings_in_either_runtime():
-    from rebar_data.perception.evaluation.bench import drawn_frame
+    from tests.perception.synthetic import drawn_frame
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
@@ -166,13 +166,3 @@ def test_the_shipped_model_loads_in_onnx_runtime_and_in_the_default_runtime():
         pytest.skip("no model shipped yet (make train ships one)")
     assert Detector.load(runtime="onnxruntime").backend == "onnxruntime"
     assert Detector.load().backend == resolve_runtime("auto")
-
-
-@needs_openvino
-def test_the_bench_times_the_two_runtimes_in_turn(trained_run):
-    from rebar_data.perception.evaluation.bench import drawn_frame, runtime_cost
-
-    rgb, _ = drawn_frame()
-    det = Detector.load(trained_run.out_dir / "best.onnx", threads=1, runtime="openvino")
-    openvino_ms, onnxruntime_ms = runtime_cost(det, [rgb], repeats=3)
-    assert openvino_ms > 0 and onnxruntime_ms > 0

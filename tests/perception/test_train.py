@@ -128,7 +128,7 @@ def test_batches_are_the_same_with_or_without_a_loader_process(drawn_dataset):
 
 
 def test_a_supplement_adds_its_images_to_training_and_is_recorded(drawn_dataset, tmp_path):
-    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+    from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     extra = write_synthetic_dataset(tmp_path / "data", spec, seed=5, name="drawn-extra")
@@ -158,9 +158,9 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     again on its images and the supplement's (each repeated), and the card says so; resumed again with the
     same supplement, nothing trains."""
     from rebar_data.perception.evaluation.card import CARD_NAME, ship
-    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
     from rebar_data.perception.networks.files import load_checkpoint
     from rebar_data.perception.training.refine import load as load_refiner
+    from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     extra = write_synthetic_dataset(tmp_path / "data", spec, seed=6, name="drawn-second")
@@ -218,10 +218,10 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     best.pt) on its images and the supplement's; the adapted weights ship in best.onnx and the later stages
     train beside them; resumed again nothing trains, and with no adapt epochs the best epoch ships again."""
     from rebar_data.perception.evaluation.card import CARD_NAME, ship
-    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
     from rebar_data.perception.networks.files import load_checkpoint
     from rebar_data.perception.training.adapt import ADAPT_LAST, ADAPTED
     from rebar_data.perception.training.refine import load as load_refiner
+    from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     extra = write_synthetic_dataset(tmp_path / "data", spec, seed=7, name="drawn-other")
@@ -287,7 +287,7 @@ def test_other_renderer_repeats_put_the_second_stage_supplements_in_the_first_ep
     """With ``other_renderer_repeats`` the second-stage supplements' images join the first epochs that many
     times (their steps count them), the card says so, and a resumed run must keep those supplements."""
     from rebar_data.perception.evaluation.card import CARD_NAME, ship
-    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+    from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     extra = write_synthetic_dataset(tmp_path / "data", spec, seed=8, name="drawn-early")
@@ -324,9 +324,9 @@ def test_interrupted_adapt_epochs_resume_after_their_last_epoch(
 ):
     """Adapt epochs stopped during the second go on from the first's checkpoint to the same weights as
     epochs that were not stopped."""
-    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
     from rebar_data.perception.networks.files import load_checkpoint
     from rebar_data.perception.training import adapt as adapt_train
+    from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=2, frames=2)
     extra = load_split(write_synthetic_dataset(tmp_path / "data", spec, seed=8, name="drawn-x"), "train")

@@ -58,7 +58,7 @@ def test_train_refuses_a_folder_that_is_not_a_run_and_a_run_being_written(
 
 
 def test_stage_commands_refuse_folders_they_did_not_write(drawn_dataset, trained_run, tmp_path, capsys):
-    from rebar_data.perception.evaluation.synthetic import SyntheticSpec, write_synthetic_dataset
+    from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
     frames = write_synthetic_dataset(tmp_path / "data", spec, seed=6, name="drawn-other")

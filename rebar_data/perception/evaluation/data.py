@@ -21,6 +21,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
+from rebar_data.perception.inference.checks import MM_PER_M
 from rebar_data.pipeline import DEFAULT_OKS_SIGMA
 
 T = TypeVar("T")
@@ -129,6 +130,16 @@ def per_file_lazily(samples: list[Sample], read: Callable[[Sample], T]) -> Calla
 def read_sample_image(sample: Sample) -> np.ndarray:
     """The sample's RGB image (:func:`read_image` of its path)."""
     return read_image(sample.path)
+
+
+def read_depth(path: str | Path) -> np.ndarray:
+    """A dataset's depth image (uint16 millimetres of camera-frame z, 0 = no measurement) as float32 metres."""
+    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
+        raise ConfigError(
+            f"{path}: cannot be read as a depth image; accepted: a one-channel 16-bit PNG of millimetres"
+        )
+    return raw.astype(np.float32) / MM_PER_M
 
 
 def read_images(samples: list[Sample], *, progress: str | None = None) -> list[np.ndarray]:

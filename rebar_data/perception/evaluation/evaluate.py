@@ -10,9 +10,15 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from rebar_data.perception.evaluation.data import SPLITS, Sample, load_split, read_image, stated_oks_sigma
+from rebar_data.perception.evaluation.data import (
+    SPLITS,
+    Sample,
+    load_split,
+    read_depth,
+    read_image,
+    stated_oks_sigma,
+)
 from rebar_data.perception.evaluation.metrics import Truth, pixel_metrics, summary
-from rebar_data.perception.inference.checks import read_depth
 from rebar_data.perception.inference.detector import Detector
 
 LOW_THRESHOLD = 0.05  # predictions kept for scoring: enough of the tail for AP and precision-recall curves
@@ -109,22 +115,12 @@ def load_splits(root: str | Path, splits: Sequence[str] = SPLITS, *, truth: str 
     return [s for split in splits for s in load_split(root, split, truth=truth)]
 
 
-def random_frames(
-    root: str | Path, *, fraction: float = RANDOM_SPLIT_FRACTION, seed: int = 0
-) -> tuple[list[Sample], int]:
-    """A test set drawn the way a random frame-level split draws one: ``fraction`` of all the dataset's
-    frames, chosen at random whatever their scene or trajectory.
-
-    A model trained on the dataset's own scene split has seen most of these frames (or frames a few
-    centimetres of camera motion away from them), which is what a random split leaks; scoring it here
-    shows how much better a random split makes the same model look than the held-out scenes do.
-
-    Returns:
-        The drawn samples and how many of them are in the train split.
-    """
+def random_frames(root: str | Path, *, seed: int = 0) -> tuple[list[Sample], int]:
+    """A test set as a random frame-level split draws one: ``RANDOM_SPLIT_FRACTION`` of all the dataset's frames, whatever
+    their scene, and how many of them are in the train split (what a random split leaks)."""
     everything = load_splits(root)
     rng = np.random.default_rng(seed)
-    n = max(1, round(fraction * len(everything)))
+    n = max(1, round(RANDOM_SPLIT_FRACTION * len(everything)))
     pick = np.sort(rng.choice(len(everything), size=min(n, len(everything)), replace=False))
     train_ids = {s.image_id for s in load_split(root, "train")}
     drawn = [everything[i] for i in pick]
@@ -197,13 +193,8 @@ def breakdown(
 
 
 def calibrate_score_bias(samples: Sequence[Sample], predictions: Sequence[np.ndarray]) -> float:
-    """The logit shift that puts score 0.5 at the best operating point on these samples.
-
-    The operating point is the raw score that maximises F1 (precision and recall with the 5 px gate)
-    along the score-sorted predictions; shifting every logit by the returned bias maps it to 0.5, so a
-    caller's default threshold is that point. Ranking, AP and recall at any precision are unchanged.
-    Choose it on the validation split, never on the split that is reported.
-    """
+    """The logit shift that puts score 0.5 at the raw score of best F1 (5 px gate) on these samples; ranking,
+    AP and recall at any precision are unchanged. Choose it on the validation split."""
     px = pixel_metrics([truth_of(s) for s in samples], predictions, threshold=0.5)
     if not len(px.curve_score) or px.n_gt == 0:
         return 0.0

@@ -1,21 +1,9 @@
-"""Where a detector's confident false detections lie: a census that says what holds recall at high precision.
+"""Where a detector's confident false detections lie: those scoring above the score at which recall
+reaches a level (0.97 by default), each put in the first place it lies in: ``top_over_lower`` (where a top
+bar passes in front of a lower bar), ``lower_mat`` (a lower-mat crossing), ``border`` (within ``BORDER_PX``
+of the edge), ``beside_crossing`` (within ``BESIDE_PX`` of a visible crossing) or ``elsewhere``.
 
-Recall at precision 0.99 is decided by the few false detections that score above most true ones. This
-counts those above the score at which recall reaches a given level (0.97 by default: about where the
-cross-renderer goal sits), each put in the first of these places it lies in:
-
-- ``top_over_lower``: within ``near_px`` of a place where a top bar passes in front of a lower bar of the
-  other direction (:func:`~rebar_data.perception.evaluation.lower_mat.lower_mat_places`), and no farther from it
-  than from the lower mat's own crossings;
-- ``lower_mat``: within ``near_px`` of one of the lower mat's own crossings, seen between the top bars;
-- ``border``: within ``BORDER_PX`` of the frame's edge, where a crossing just outside the frame shows its
-  bars;
-- ``beside_crossing``: within ``BESIDE_PX`` of a visible crossing (one the matching gave to another
-  detection, or a second detection of it beyond the gate);
-- ``elsewhere``: the rest.
-
-False means what the metrics mean: left unmatched by the one-to-one matching within the 5 px gate.
-"""
+False means unmatched by the metrics' one-to-one matching within the 5 px gate."""
 
 from __future__ import annotations
 
@@ -42,13 +30,13 @@ def _distance(uv: np.ndarray, points: np.ndarray) -> np.ndarray:
     return np.linalg.norm(uv[:, None] - points[None], axis=2).min(axis=1)
 
 
-def _place_of(s: Sample, uv: np.ndarray, placed: dict[str, np.ndarray], near_px: float) -> np.ndarray:
+def _place_of(s: Sample, uv: np.ndarray, placed: dict[str, np.ndarray]) -> np.ndarray:
     """The index in ``PLACES`` of each false detection at ``uv`` (N, 2): the first place it lies in."""
     edge = np.minimum.reduce([uv[:, 0], uv[:, 1], s.width - uv[:, 0], s.height - uv[:, 1]])
     over, own = _distance(uv, placed["top_over_lower"]), _distance(uv, placed["own"])
     where = (
-        (over <= near_px) & (over <= own),  # the nearer of the two kinds
-        own <= near_px,
+        (over <= NEAR_PX) & (over <= own),  # the nearer of the two kinds
+        own <= NEAR_PX,
         edge <= BORDER_PX,
         _distance(uv, np.asarray(s.visible, float).reshape(-1, 2)) <= BESIDE_PX,
         np.ones(len(uv), bool),
@@ -62,7 +50,6 @@ def false_detection_census(
     predictions: Sequence[np.ndarray],
     *,
     recall: float = RECALL,
-    near_px: float = NEAR_PX,
 ) -> dict:
     """The false detections scoring at least the score where recall reaches ``recall``, by place, and
     what recall at precision 0.99 would be without each place's false detections (whatever their score):
@@ -74,7 +61,6 @@ def false_detection_census(
         predictions: Per sample, (N, 3) u, v, score.
         recall: The recall whose score is the cut; when the predictions never reach it, every prediction
             counts and ``reached`` is False.
-        near_px: How near a lower-mat place a false detection must lie to be counted there.
 
     Returns:
         ``recall``, ``reached``, ``score`` (the cut), ``false`` (how many lie above it), ``true`` (the
@@ -92,7 +78,7 @@ def false_detection_census(
         hit = np.zeros(len(p), bool)
         hit[match(np.asarray(s.visible, float).reshape(-1, 2), p[:, :2], GATE_PX)[0]] = True
         at = np.full(len(p), -1)  # -1: a true detection
-        at[~hit] = _place_of(s, p[~hit, :2], placed, near_px)
+        at[~hit] = _place_of(s, p[~hit, :2], placed)
         hits.append(hit)
         scores.append(p[:, 2])
         place.append(at)

@@ -1,31 +1,9 @@
-"""The detector's regression gate: the shipped model scored on a fixed held-out set, against its own reference.
+"""The detector's regression gate: the shipped model scored on a fixed held-out set (``pipelines/detector-gate.yaml``,
+built by :func:`build_gate_set`) against its own reference (``gate.json``, :func:`write_reference`).
 
-**The set** is ``pipelines/detector-gate.yaml``: paper-tunnel's mesh and scene randomization with a seed no
-training or other held-out pipeline uses (``tests/test_pipelines.py`` checks that no two pipelines share a
-seed), so none of its scenes was trained on; 120 scenes of one random view each at paper-tunnel's pixel
-scale (525 px focal length) on 320x320 frames, every image in the test split. It is built by the project's
-own renderer from its seed, so the suite builds it (:func:`build_gate_set`, about 35 s on one worker)
-rather than shipping its 33 MB of images and maps.
-
-**The figures** are the metrics module's AP@0.5 (OKS, the dataset's sigma), PCK@2px and recall at precision
-0.99 (:func:`~rebar_data.perception.evaluation.metrics.summary`), in two modes: ``rgb`` (the colour image alone: the
-second stage and the line check) and ``rgbd`` (with the registered depth image: the second stage and the
-depth check, the robot's input). The detector runs in ONNX Runtime in float32 with its default (mirrored)
-reading, as the model card scores it, so the figures do not depend on the CPU's bfloat16 support.
-
-**The margins.** The reference figures are one draw of a finite set: a model exactly as good would score a
-little differently on another set drawn the same way. That sampling noise is what the gate allows, and no
-more. Its standard error is estimated by a bootstrap over the set's scenes (images of one scene share its
-lights, material and surroundings, so they are not independent; resampling whole scenes keeps that):
-``BOOTSTRAP_REPLICATES`` resamples of the scenes with replacement, each scored with the same metric
-functions, and SE is the standard deviation of the resampled figure. A figure passes when it is at least
-``reference - K_SE * SE``. With ``K_SE = 3`` a model as good as the reference fails a figure by chance with
-probability about 0.13% (one-sided, normal approximation to the bootstrap distribution), any of the six
-at most 0.8%; a drop larger than the margin is a regression. The set is the same pixels from build to build
-(its digest is in ``gate.json``) and an unchanged detector gives the reference figures exactly, so the margin
-is spent only on changes to the detector, its runtime or the renderer. :func:`write_reference` measures the figures, their SEs and margins and writes them
-to ``gate.json`` beside the model; shipping a model (:func:`rebar_data.perception.evaluation.card.ship`) calls it, and
-``python -m rebar_data.perception.evaluation.gate`` runs it for the model already shipped.
+AP@0.5, PCK@2px and recall@P0.99, with RGB alone and with depth, pass when at least the reference minus
+``K_SE`` bootstrap standard errors over the set's scenes. Why the set, the figures and the margins are what
+they are: ``docs/detector/design.md``, "The regression gate".
 """
 
 from __future__ import annotations

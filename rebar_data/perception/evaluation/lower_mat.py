@@ -1,19 +1,11 @@
-"""Where a lower bar mat shows crossings in a dataset's images: negatives the labels already imply.
+"""Where a lower bar mat shows crossing-like places in a dataset's images: negatives the labels imply.
 
-A scene with a lower mat (``surr_lower_layer`` in the samples table) draws the top mat's bars again
-``surr_lower_layer_depth_m`` deeper and shifted in the mat's surface by ``surr_lower_layer_shift_a_m`` and
-``_b_m`` (:mod:`rebar_data.scene.surroundings`). None of what that mat shows is a crossing to the labels
-(the tool ties the top mat), yet in a steep view two kinds of place look just like the top mat's crossings:
-the lower mat's own crossings, seen between the top bars, and the places where a top bar passes in front
-of a lower bar of the other direction (twice as many). They are the detector's hardest negatives, and
-the dataset already says where they are: the bars, rebuilt from the mesh config in ``meta/info.json``
-(centerlines only, no solids), moved the way the scene moved them, cut into short chords and crossed in
-each image as its camera sees them (a chord of one bar and a chord of another cross in the image where
-each meets the plane through the camera and the other). One shows where the registered depth image sees
-the nearer bar there (within ``DEPTH_TOLERANCE_M``) and the instance map shows the lower mat within a top
-bar's width and ``REACH_PX`` of it (the ground can hide the lower mat, a few centimetres from it); with
-neither image every one inside the frame counts.
-"""
+A scene with a lower mat (``surr_lower_layer``) draws the top mat's bars again deeper and shifted
+(:mod:`rebar_data.scene.surroundings`). Its own crossings, and the places where a top bar passes in front of
+a lower bar, look like the top mat's crossings. Their places are found from the bars rebuilt from
+``meta/info.json``, moved as the scene moved them and crossed as each camera sees them; one counts where the
+depth image (within ``DEPTH_TOLERANCE_M``) and the instance map (within ``REACH_PX``) confirm it, or, with
+neither image, wherever it lies inside the frame."""
 
 from __future__ import annotations
 

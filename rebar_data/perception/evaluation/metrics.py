@@ -1,24 +1,12 @@
-"""Keypoint metrics that say how well crossings are localised, not only found.
+"""Keypoint metrics over the visible crossings of a split (in full: ``docs/detector/experiments.md``).
 
-Two families, both over the visible crossings of a split:
+- OKS keypoint AP as pycocotools' ``COCOeval(iouType="keypoints")`` computes it, one keypoint per object, a
+  stated sigma and the crossing's square box as the object area.
+- Pixel errors: per image a one-to-one Hungarian assignment within a 5 px gate; PCK@k, precision and recall
+  at the operating threshold, and the best recall at precision 0.99.
 
-- **OKS keypoint AP**, computed exactly as pycocotools' ``COCOeval(iouType="keypoints")`` does (greedy
-  matching by score at each OKS threshold, 101-point interpolated precision), with one keypoint per
-  object, a stated sigma and the crossing's square detection box as the object area. For one keypoint
-  ``OKS = exp(-d^2 / (2 s^2 k^2))`` with ``s^2 = box_size_px^2`` and ``k = 2 sigma``, so OKS falls to 0.5
-  at ``d = 2 sqrt(2 ln 2) sigma s = 2.355 sigma s`` pixels. With ``DEFAULT_OKS_SIGMA = 0.04`` that is
-  2.4 px for the 25 px box typical at 640x640 (four 12 mm bar diameters seen from about 1 m), 1.9 px for
-  a 20 px box and 3.8 px for a 40 px box: AP@0.5 asks for a couple of pixels, AP@0.5:0.95 for under one.
-  (Ultralytics' default of sigma 1.0 for a single custom keypoint accepts errors of more than a box size.)
-- **Pixel errors**, matched the way the project's independent scorer matches: per image, a one-to-one
-  Hungarian assignment with a 5 px gate. PCK@k is the share of visible crossings matched within k px by
-  a prediction of score at least the operating threshold; precision and recall are taken at that
-  threshold; ``recall_at_p99`` is the best recall while precision stays at least 0.99 along the
-  score-sorted predictions.
-
-Crossings that are occluded (visibility 1) are not ground truth here: a prediction on one counts as a
-false positive unless the caller passes them as ``ignore`` regions (COCO's crowd semantics: a
-prediction matched to one is neither right nor wrong).
+Occluded crossings are not ground truth: a prediction on one is a false positive unless they are passed as
+``ignore`` regions (COCO's crowd semantics).
 """
 
 from __future__ import annotations
@@ -320,11 +308,8 @@ def pixel_metrics(
 
 
 def ap_ceiling(recall: float) -> float:
-    """The most a 101-point interpolated AP can be with every prediction's ``recall`` (the recall reached
-    with all of them): COCOeval counts precision 0 at each recall threshold above the highest reached, so
-    even with no false detection ranked above a crossing the AP is the share of the thresholds reached.
-    At recall 0.988, 99 of the 101 thresholds are reached: AP at most 0.980, however few the false
-    detections; AP 0.99 needs recall 0.99 with a precision of 0.9999 up to it, or every crossing found."""
+    """The most a 101-point interpolated AP can be when every prediction together reaches ``recall``: COCOeval
+    counts precision 0 at each recall threshold above it."""
     if not np.isfinite(recall):  # no crossings to find
         return float("nan")
     reached = np.count_nonzero(recall >= RECALL_THRESHOLDS)  # as COCOeval compares

@@ -1,12 +1,8 @@
-"""The checks that read each detection's score again.
+"""The checks that score each detection again.
 
-- The depth check (:class:`DepthCheck`): a small network reads the depth patch around each detection and
-  gives the logit that it shows a crossing (two bars of one mat, within a bar diameter of each other in
-  depth); the score becomes sigmoid(logit(score) + power log p).
-- The line check (:class:`LineCheck`), without depth: a crossing of the top mat lies on two top bars along
-  which the detector finds other confident crossings; a place where a top bar hides a lower bar does not.
-  Each detection's bars are followed from candidate to candidate, the scores found along them summarised
-  (:data:`FEATURES`), and a logistic regression on those and the detection's own score gives its new score.
+:class:`DepthCheck`, a small network, gives the logit that the depth patch around a detection shows a crossing.
+:class:`LineCheck` (without depth) follows each detection's two bars from candidate to candidate and gives its
+new score by a logistic regression on the scores found along them (:data:`FEATURES`) and its own.
 """
 
 from __future__ import annotations
@@ -14,7 +10,6 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from functools import cached_property
-from pathlib import Path
 from typing import Any
 
 import cv2
@@ -27,24 +22,9 @@ CENTRE_PX = 4  # the patch's central square whose median depth is the reference
 MM_PER_M = 1000.0
 
 
-def read_depth(path: str | Path) -> np.ndarray:
-    """A dataset's depth image (uint16 millimetres of camera-frame z, 0 = no measurement) as float32 metres."""
-    raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-    if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
-        raise ConfigError(
-            f"{path}: cannot be read as a depth image; accepted: a one-channel 16-bit PNG of millimetres"
-        )
-    return raw.astype(np.float32) / MM_PER_M
-
-
 def as_depth_m(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """A depth image as float32 metres with 0 where there is no measurement.
-
-    Args:
-        depth: (H, W) metres (float; 0, negative or not finite = no measurement) or uint16 millimetres
-            (as the dataset's PNG files hold them; 0 = no measurement).
-        shape: (H, W) of the colour image it must be registered to.
-    """
+    """``depth`` ((H, W) float metres or uint16 millimetres, registered to an image of ``shape``) as float32
+    metres, 0 where there is no measurement (0, negative or not finite)."""
     d = np.asarray(depth)
     if d.ndim != 2 or d.shape != tuple(shape):
         raise ConfigError(
@@ -66,30 +46,24 @@ def as_depth_m(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def encode(
     depth_patches: np.ndarray, *, scale_m: float, clip: float, gain: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The network's input for (N, P, P) depth patches in metres (0 = no measurement).
-
-    Channel 0 is the depth relative to the median of the patch's central ``CENTRE_PX`` square, in units
-    of ``scale_m`` (times ``gain`` per patch when given), clipped to +-``clip``, 0 where there is no
-    measurement; channel 1 is 1 where there is one.
-
-    Returns:
-        (N, 2, P, P) float32 input and (N,) whether each patch's centre holds any
-        measurement.
-    """
+    """(N, 2, P, P) float32 network input for (N, P, P) depth patches in metres (0 = none), and (N,) whether
+    each patch's centre holds a measurement. Channel 0: the depth relative to the median of the central
+    :data:`CENTRE_PX` square, over ``scale_m`` (times ``gain`` per patch), clipped to +-``clip``, 0 where
+    unmeasured; channel 1: 1 where measured."""
     p = np.asarray(depth_patches, np.float32)
     n, size = p.shape[0], p.shape[1]
     lo = size // 2 - CENTRE_PX // 2
     centre = p[:, lo : lo + CENTRE_PX, lo : lo + CENTRE_PX].reshape(n, -1)
     measured = (centre > 0).sum(axis=1)
     has_centre = measured > 0
-    # the median of each row's measurements: sorted with the missing ones last (as np.nanmedian, 4x faster)
+    # the median of each row's measurements: sorted with the missing ones last
     ordered = np.sort(np.where(centre > 0, centre, np.inf), axis=1)
     rows = np.arange(n)
     a = np.maximum(measured - 1, 0) // 2
     b = np.minimum(np.maximum(measured, 1) // 2, ordered.shape[1] - 1)
     ref = np.where(has_centre, 0.5 * (ordered[rows, a] + ordered[rows, b]), 0.0).astype(np.float32)
     valid = p > 0
-    rel = p - ref[:, None, None]  # in place from here on: a frame's patches take 0.3 ms, not 1.2
+    rel = p - ref[:, None, None]
     rel *= np.float32(1.0 / scale_m)
     if gain is not None:
         rel *= np.asarray(gain, np.float32).reshape(n, 1, 1)
@@ -102,8 +76,8 @@ def encode(
 
 
 class DepthCheck:
-    """A loaded third stage: ``logits(depth_m, uv)`` gives each point's logit that the depth around it
-    shows a crossing, +inf where the patch's centre holds no measurement (the check cannot say)."""
+    """The depth check: ``logits(depth_m, uv)``, each point's logit that the depth around it shows a crossing
+    (+inf where the patch's centre holds no measurement)."""
 
     def __init__(
         self,
@@ -119,8 +93,6 @@ class DepthCheck:
         self.clip = clip
 
     def logits(self, depth_m: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """(N,) logits for the (N, 2) points ``uv`` (pixels, COCO corner origin) of the float32 metres
-        depth image ``depth_m`` (0 = no measurement, as :func:`as_depth_m` gives it)."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         out = np.full(len(uv), np.inf)
         if not len(uv):
@@ -131,9 +103,8 @@ class DepthCheck:
         return out
 
 
-# defaults of LineCheckConfig.floor and .checked_from (a fitted check carries its own in the model file)
-FLOOR = 0.05  # candidates the first stage scores below this are not followed, nor checked
-CHECKED_FROM = 0.3  # ... those it scores this or more are verified by the second stage and checked
+FLOOR = 0.05  # candidates the first stage scores this or more are evidence
+CHECKED_FROM = 0.3  # those it scores this or more are verified and checked
 RADIUS_PX = 40  # the bar directions are read within this many pixels of a candidate
 BINS = 60  # edge orientations, 3 degrees a bin over 180
 MIN_APART_DEG = 25.0  # the second bar direction is this far from the first at least
@@ -169,14 +140,12 @@ def logit(p: np.ndarray) -> np.ndarray:
 
 
 def bar_directions(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """(N, 2) angles in radians (image axes, v down) of the two bars crossing at each of ``uv`` (N, 2), the
-    stronger first: the peaks of the gradient's orientation histogram (magnitude-weighted, smoothed over
-    five bins) in the square reaching :data:`RADIUS_PX` around each point, read at half resolution."""
+    """(N, 2) angles (radians, v down) of the two bars at each of ``uv``, the stronger first: the peaks of
+    the gradient orientation histogram within :data:`RADIUS_PX`, at half resolution."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     if not len(uv):
         return np.zeros((0, 2))
     gray = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY) if image.ndim == 3 else image
-    # at half resolution (the thinnest bars are 5 px wide at full): a quarter of the pixels to read
     gray = cv2.resize(gray, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA).astype(np.float32)
     h, w = gray.shape
     mag, ang = cv2.cartToPolar(
@@ -184,23 +153,20 @@ def bar_directions(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         cv2.Sobel(gray, cv2.CV_32F, 0, 1, ksize=3),
         angleInDegrees=True,
     )
-    # the nearest of BINS orientations (modulo 180 degrees); bin k is k * 180 / BINS degrees
     bins = cv2.LUT(cv2.convertScaleAbs(ang, alpha=BINS / 180.0), _MODULO)
     r = RADIUS_PX // 2
     bins = cv2.copyMakeBorder(bins, r, r, r, r, cv2.BORDER_CONSTANT, value=0)
     mag = cv2.copyMakeBorder(mag, r, r, r, r, cv2.BORDER_CONSTANT, value=0.0)  # beyond the image: no edges
-    # each window's corner in the bordered images is its centre's pixel at half resolution; a point off
-    # the image reads the window of the nearest point on it
+    # a window's corner in the bordered images is its centre's pixel at half resolution
     centre = np.floor(uv / 2).astype(np.int64)
     top = np.clip(centre[:, 1], 0, h)
     left = np.clip(centre[:, 0], 0, w)
-    # every other pixel of each window: as good a histogram, a quarter of the sums (gathered alone: cutting
-    # whole windows and then every other pixel of them read four times the memory, 0.9 against 0.6 ms)
+    # every other pixel of each window
     rows = (top[:, None] + _EVERY_OTHER)[:, :, None]
     cols = (left[:, None] + _EVERY_OTHER)[:, None, :]
     b = bins[rows, cols].astype(np.int64) + BINS * np.arange(len(uv))[:, None, None]
     hist = np.bincount(b.ravel(), mag[rows, cols].ravel(), len(uv) * BINS).reshape(len(uv), BINS)
-    # smoothed over five bins, weights 1 2 3 2 1, around the circle of orientations (summed in this order)
+    # smoothed over five bins, weights 1 2 3 2 1, around the circle
     ring = np.concatenate([hist[:, -2:], hist, hist[:, :2]], axis=1)  # ring[:, i + 2] is hist[:, i]
     hist = ring[:, 4:] + 2 * ring[:, 3:-1] + 3 * ring[:, 2:-2] + 2 * ring[:, 1:-3] + ring[:, :-4]
     first = np.argmax(hist, axis=1)
@@ -211,9 +177,8 @@ def bar_directions(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def bar_members(uv: np.ndarray, directions: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-    """(K, 2, 2 * STEPS) the candidates ``uv`` (N, 2) met following the two bars of each candidate ``which``
-    names (K indices; None: all) both ways, -1 past a bar's last one; ``directions`` (K, 2) are the bars'
-    angles, row for row with ``which``."""
+    """(K, 2, 2 * STEPS) the candidates of ``uv`` met following both ways the two bars (angles
+    ``directions``, K x 2) of each candidate ``which`` names (None: all), -1 past a bar's last one."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     which = np.arange(len(uv)) if which is None else np.asarray(which, np.int64)
     k = len(which)
@@ -250,9 +215,8 @@ def bar_members(uv: np.ndarray, directions: np.ndarray, which: np.ndarray | None
 
 
 def features(score: np.ndarray, members: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-    """(K, len(FEATURES)) what the line check reads for each candidate ``which`` names (None: all): its own
-    score's logit and the summaries of the scores (``score``, every candidate's) along its two bars
-    (``members``, row for row with ``which``, from :func:`bar_members`), better bar first."""
+    """(K, len(FEATURES)): for each candidate ``which`` names (None: all), its own score's logit and the
+    summaries of the scores along its two bars (``members``), better bar first."""
     score = np.asarray(score, np.float64)
     which = np.arange(len(score)) if which is None else np.asarray(which, np.int64)
     k = len(which)
@@ -291,16 +255,14 @@ def features(score: np.ndarray, members: np.ndarray, which: np.ndarray | None = 
 
 
 def line_features(image: np.ndarray, uv: np.ndarray, evidence: np.ndarray, which: np.ndarray) -> np.ndarray:
-    """(K, len(FEATURES)) what the check reads for the candidates ``which`` (K indices) among an image's
-    candidates ``uv`` (N, 2) scored ``evidence`` (N,): their bars read from ``image`` and followed."""
+    """:func:`features` of the candidates ``which`` among ``uv`` scored ``evidence``, bars read from ``image``."""
     return features(evidence, bar_members(uv, bar_directions(image, uv[which]), which), which)
 
 
 @dataclass(frozen=True)
 class LineCheck:
-    """A fitted line check: ``weights`` (one per :data:`FEATURES`) and ``bias`` of its logistic regression,
-    and the first-stage scores it was fitted with: ``floor`` (candidates) and ``checked_from`` (verified and
-    checked)."""
+    """A fitted line check: its logistic regression's ``weights`` (per :data:`FEATURES`) and ``bias``, and
+    the first-stage scores it was fitted with (``floor``, ``checked_from``)."""
 
     weights: np.ndarray
     bias: float
@@ -316,9 +278,8 @@ class LineCheck:
         *,
         threshold: float,
     ) -> np.ndarray:
-        """(K,) the new scores of the candidates ``checked`` (K indices) names among an image's candidates
-        ``uv`` (N, 2), each scored ``evidence`` (N,) (see ``Detector.line_inputs``). A candidate the check
-        could not lift to ``threshold`` whatever its bars show scores 0 (its bars are not followed)."""
+        """(K,) new scores of the candidates ``checked`` among ``uv`` scored ``evidence``; 0 for one that
+        could not reach ``threshold`` whatever its bars show (not followed)."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         evidence = np.asarray(evidence, np.float64)
         checked = np.asarray(checked, np.int64)
@@ -331,7 +292,7 @@ class LineCheck:
         return out
 
     def best_logit(self, score: np.ndarray) -> np.ndarray:
-        """(N,) the highest logit the check can give a candidate scored ``score``, whatever its bars show."""
+        """(N,) the highest logit the check can give a candidate scored ``score``."""
         w = self.weights[0]
         own = logit(score)
         if w < 0:  # a lower own score would do better: bound by the lowest own logit
@@ -340,8 +301,7 @@ class LineCheck:
 
     @cached_property
     def _most_from_bars(self) -> float:
-        """The most the bar summaries can add to the logit: each lies between 0 and 1, a count between 0
-        and twice :data:`STEPS`."""
+        """The most the bar summaries (in [0, 1], counts up to 2 * STEPS) can add to the logit."""
         hi = np.ones(len(FEATURES) - 1)
         hi[[FEATURES.index(f"{bar}_count") - 1 for bar in ("better_bar", "other_bar")]] = 2 * STEPS
         return float(np.maximum(0.0, self.weights[1:] * hi).sum())

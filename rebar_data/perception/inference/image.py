@@ -1,6 +1,5 @@
-"""What is done to a frame before the stages read it: resized to the focal length the detector trained at
-(:func:`focal_scale`), and on request what lies far behind the bars in front taken out of it
-(:func:`flatten_behind`, given a registered depth image)."""
+"""A frame before the stages read it: resized to the trained focal length (:func:`focal_scale`), and on
+request what lies far behind the front bars taken out of it (:func:`flatten_behind`, given depth)."""
 
 from __future__ import annotations
 
@@ -12,9 +11,8 @@ TOLERANCE = 0.15
 
 
 def focal_scale(trained_focal_px: float | None, camera: tuple[float, float, float, float]) -> float:
-    """The factor a frame taken with ``camera`` (fx, fy, cx, cy) is resized by so that its focal length is
-    ``trained_focal_px``; 1 when that is unknown (a model file written before it was stored) or the two
-    lie within :data:`TOLERANCE`."""
+    """The factor that brings ``camera``'s focal length to ``trained_focal_px``; 1 when that is unknown or
+    within :data:`TOLERANCE`."""
     if not trained_focal_px:
         return 1.0
     focal = 0.5 * (float(camera[0]) + float(camera[1]))
@@ -30,9 +28,8 @@ def resampled_size(height: int, width: int, scale: float) -> tuple[int, int]:
 
 
 def resample(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False) -> np.ndarray:
-    """``image`` resized to ``size`` (height, width): area averaging when it shrinks, bilinear when it
-    grows, the nearest pixel with ``nearest`` (a depth image, whose values must not blend across an
-    edge). Corner-origin coordinates scale by exactly the ratio of the sizes."""
+    """``image`` resized to ``size`` (height, width): area averaging to shrink, bilinear to grow, the
+    nearest pixel with ``nearest`` (depth)."""
     h, w = image.shape[:2]
     smooth = cv2.INTER_AREA if size[0] * size[1] < h * w else cv2.INTER_LINEAR
     return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_NEAREST if nearest else smooth)
@@ -41,8 +38,7 @@ def resample(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False)
 def scaled_camera(
     camera: tuple[float, float, float, float], sx: float, sy: float
 ) -> tuple[float, float, float, float]:
-    """The intrinsics of a frame resized by ``sx`` across and ``sy`` down (COCO corner origin: the principal
-    point scales with the pixels)."""
+    """The intrinsics of a frame resized by ``sx`` across and ``sy`` down."""
     fx, fy, cx, cy = camera
     return fx * sx, fy * sy, cx * sx, cy * sy
 
@@ -54,17 +50,15 @@ BLUR_CELLS = 4.0  # the fill's Gaussian sigma, in cells (16 px)
 
 
 def front_depth(depth_m: np.ndarray) -> np.ndarray:
-    """(H, W) float32 metres: the depth of the nearest surface around each pixel of ``depth_m`` (metres, 0 =
-    no measurement): the depth image's morphological opening (a minimum, then a maximum, over
-    :data:`WINDOW_PX` squares) at a quarter of the resolution, so the bars in front fill each window and a
-    tilted mat keeps its own depth; inf where a window holds no measurement."""
+    """(H, W) float32 metres: the depth of the nearest surface around each pixel (0 in ``depth_m`` = none),
+    the morphological opening over :data:`WINDOW_PX` squares at a quarter of the resolution; inf where a
+    window holds no measurement."""
     d = np.asarray(depth_m, np.float32)
     h, w = d.shape
     hc, wc = -(-h // CELL_PX), -(-w // CELL_PX)
     padded = np.full((hc * CELL_PX, wc * CELL_PX), np.inf, np.float32)
     np.copyto(padded[:h, :w], d, where=d > 0)
-    # each cell's nearest measurement (a minimum over the cell's square, read at its corner; numpy's
-    # reduction over the cells' axes gives the same 27 times as slowly)
+    # each cell's nearest measurement
     cells = cv2.erode(padded, np.ones((CELL_PX, CELL_PX), np.uint8), anchor=(0, 0))[::CELL_PX, ::CELL_PX]
     k = np.ones((WINDOW_PX // CELL_PX,) * 2, np.uint8)
     opened = cv2.dilate(
@@ -82,17 +76,16 @@ def front_depth(depth_m: np.ndarray) -> np.ndarray:
     return up
 
 
-def behind_mask(depth_m: np.ndarray, *, gap_m: float = GAP_M) -> np.ndarray:
-    """(H, W) bool: the measured pixels of ``depth_m`` lying more than ``gap_m`` behind :func:`front_depth`."""
+def behind_mask(depth_m: np.ndarray) -> np.ndarray:
+    """(H, W) bool: the measured pixels of ``depth_m`` lying more than ``GAP_M`` behind :func:`front_depth`."""
     d = np.asarray(depth_m, np.float32)
-    return (d > 0) & (d > front_depth(d) + np.float32(gap_m))
+    return (d > 0) & (d > front_depth(d) + np.float32(GAP_M))
 
 
-def flatten_behind(image: np.ndarray, depth_m: np.ndarray, *, gap_m: float = GAP_M) -> np.ndarray:
-    """``image`` (H, W, 3) uint8 with the pixels :func:`behind_mask` names replaced by the blurred colour of
-    those pixels around them (a normalised Gaussian at a quarter of the resolution); the others as they
-    are. ``depth_m`` is registered to it, in metres (0 = no measurement). A new array; ``image`` is left."""
-    behind = behind_mask(depth_m, gap_m=gap_m)
+def flatten_behind(image: np.ndarray, depth_m: np.ndarray) -> np.ndarray:
+    """A copy of ``image`` (H, W, 3) uint8 whose pixels :func:`behind_mask` names take the blurred colour of
+    such pixels around them; ``depth_m`` is registered to it."""
+    behind = behind_mask(depth_m)
     out = image.copy()
     if not behind.any():
         return out

@@ -1,10 +1,8 @@
 """A detector's model files and what runs them.
 
-``<stem>.onnx`` is the first stage; its metadata (under :data:`META_KEY`, JSON) names the later stages, each
-in ``<stem>.<stage>.onnx`` beside it with the SHA-256 it was written with. The files run in ONNX Runtime in
-float32, or in OpenVINO in bfloat16 where the CPU has it (``runtime``: "onnxruntime", "openvino", or "auto",
-the default: OpenVINO where it is installed and the CPU has bfloat16); the int8 copy of the second stage
-always runs in ONNX Runtime.
+``<stem>.onnx`` is the first stage; its metadata (JSON under :data:`META_KEY`) names the later stages, each in
+``<stem>.<stage>.onnx`` beside it with its SHA-256. ``runtime`` "onnxruntime" runs them in float32, "openvino"
+in bfloat16 where the CPU has it, "auto" picks OpenVINO where that holds; int8 files run in ONNX Runtime.
 """
 
 from __future__ import annotations
@@ -25,20 +23,13 @@ from rebar_data.perception.inference.refine import CrossingPoint, Refiner
 
 Runtime = Literal["auto", "onnxruntime", "openvino"]
 RUNTIMES: tuple[str, ...] = get_args(Runtime)
-# input shapes an OpenVINO session compiles for (the first stage is compiled per image size: with its height
-# and width left free it ran 5.0 ms against 3.8 ms compiled for 640x480); sizes past these are served by one
-# compile with them left free, so a folder of many sizes is not compiled again image by image
-SHAPES_KEPT = 4
-# a batch of patches is padded to a multiple of this many: each batch size OpenVINO has not seen before costs
-# it a new plan (200 calls of 20-200 patches: 0.075 ms a patch as they came, 0.060 padded to 8, 0.068 to 16)
-BATCH_STEP = 8
+SHAPES_KEPT = 4  # image shapes OpenVINO compiles the first stage for; one compile with them free serves more
+BATCH_STEP = 8  # a batch of patches is padded to a multiple of this (a new batch size costs OpenVINO a plan)
 
 
 def onnx_session(path: Path, threads: int, runtime: str = "onnxruntime"):
-    """A CPU session for one of the project's model files, set up for low latency: an ONNX Runtime
-    ``InferenceSession``, or for ``runtime`` "openvino" an :class:`OpenVinoSession` that answers the same
-    calls (``get_inputs``, ``get_outputs``, ``get_modelmeta``, ``run``). "auto" is resolved here. A file
-    OpenVINO does not read (an int8 one, in ONNX Runtime's quantized operators) runs in ONNX Runtime."""
+    """A low-latency CPU session for a model file: ONNX Runtime's, or an :class:`OpenVinoSession` answering
+    the same calls; a file OpenVINO does not read (int8) runs in ONNX Runtime."""
     if resolve_runtime(runtime) == "openvino":
         try:
             return OpenVinoSession(path, threads)
@@ -52,8 +43,7 @@ def onnx_session(path: Path, threads: int, runtime: str = "onnxruntime"):
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.log_severity_level = 3
-    # threads sleep rather than spin between runs: on a 2-core machine shared with the simulator,
-    # spinning doubled the latency under load and cost nothing to drop when idle
+    # threads sleep between runs: spinning doubled the latency beside the simulator on 2 cores
     so.add_session_config_entry("session.intra_op.allow_spinning", "0")
     try:
         return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
@@ -112,12 +102,11 @@ class _Meta:
 
 
 class OpenVinoSession:
-    """An ONNX file compiled by OpenVINO for the CPU (bfloat16 where the CPU has it), answering the calls
-    the project makes of an ONNX Runtime session. A file whose inputs have free dimensions past the first
-    (the first stage's image) is compiled for each of the first :data:`SHAPES_KEPT` input shapes it is
-    given (the batch of two the detector's mirrored reading gives is a shape of its own), and once more with
-    them and the batch free for any other; one free only in the first (a batch of patches) is compiled once
-    and given batches padded to a multiple of :data:`BATCH_STEP`; one with none free is compiled once."""
+    """An ONNX file compiled by OpenVINO for the CPU, answering the calls made of an ONNX Runtime session.
+
+    A file with free image dimensions is compiled per input shape (the first :data:`SHAPES_KEPT`, then once
+    with them free); one free only in the batch is compiled once and fed batches padded to :data:`BATCH_STEP`.
+    """
 
     def __init__(self, path: Path, threads: int):
         import onnx
@@ -214,20 +203,25 @@ def sha256_file(path: Path) -> str:
     return h.hexdigest()
 
 
+def refiner_path(model: Path) -> Path:
+    return model.with_name(f"{model.stem}.refine{model.suffix}")
+
+
+def int8_passes_path(model: Path) -> Path:
+    return model.with_name(f"{model.stem}.refine.int8.onnx")
+
+
 def depth_check_path(model: Path) -> Path:
-    """Where a model file's third stage lives: beside it, ``<stem>.depth.onnx`` (or ``.depth.pt``)."""
     return model.with_name(f"{model.stem}.depth{model.suffix}")
 
 
-def load_depth_check(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> DepthCheck | None:
-    """The third stage a model file names in its meta (None when it names none)."""
-    found = stage_file(model, meta, "depth_check", depth_check_path)
-    if found is None:
-        return None
-    path, entry = found
-    return read_depth_check(
-        path, threads=threads, scale_m=float(entry["scale_m"]), clip=float(entry["clip"]), runtime=runtime
-    )
+def crossing_point_path(model: Path) -> Path:
+    return model.with_name(f"{model.stem}.crossing{model.suffix}")
+
+
+def stage_files(model: Path) -> list[Path]:
+    """Every later stage's file beside a model, whichever it has."""
+    return [f(model) for f in (refiner_path, int8_passes_path, depth_check_path, crossing_point_path)]
 
 
 def stage_file(
@@ -238,9 +232,8 @@ def stage_file(
     *,
     sha_key: str = "sha256",
 ) -> tuple[Path, dict[str, Any]] | None:
-    """The later stage that ``model``'s meta names under ``key``: its file (``beside(model)``) and its meta
-    entry; None when the meta names none. ConfigError unless the file is beside the model, and is the
-    file it was exported with (the entry's ``sha_key``)."""
+    """The file (``beside(model)``) and meta entry of the stage ``model``'s meta names under ``key`` (None:
+    none); ConfigError unless the file is there with the SHA-256 under ``sha_key``."""
     entry = meta.get(key)
     if not entry:
         return None
@@ -258,67 +251,57 @@ def stage_file(
     return path, entry
 
 
-def crossing_point_path(model: Path) -> Path:
-    """Where a model file's crossing-point stage lives: beside it, ``<stem>.crossing.onnx`` (or ``.pt``)."""
-    return model.with_name(f"{model.stem}.crossing{model.suffix}")
+def load_refiner(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> Refiner | None:
+    """The second stage ``model``'s meta names (None: none), with its int8 copy where it has one."""
+    found = stage_file(model, meta, "refiner", refiner_path)
+    if found is None:
+        return None
+    path, entry = found
+    int8 = None
+    if entry.get("quantize") == "later":
+        int8, _ = stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
+    return read_refiner(path, threads=threads, runtime=runtime, int8_path=int8, **refiner_passes(entry))
+
+
+def load_depth_check(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> DepthCheck | None:
+    """The depth check ``model``'s meta names (None: none)."""
+    found = stage_file(model, meta, "depth_check", depth_check_path)
+    if found is None:
+        return None
+    path, entry = found
+    return read_depth_check(
+        path, threads=threads, scale_m=float(entry["scale_m"]), clip=float(entry["clip"]), runtime=runtime
+    )
 
 
 def load_crossing_point(
     model: Path, meta: dict[str, Any], threads: int, runtime: str
 ) -> CrossingPoint | None:
-    """The crossing-point stage a model file names in its meta (None when it names none)."""
+    """The crossing-point stage ``model``'s meta names (None: none)."""
     found = stage_file(model, meta, "crossing_point", crossing_point_path)
-    if found is None:
-        return None
-    return read_crossing_point(found[0], threads=threads, runtime=runtime)
-
-
-def refiner_path(model: Path) -> Path:
-    """Where a model file's second stage lives: beside it, ``<stem>.refine.onnx`` (or ``.refine.pt``)."""
-    return model.with_name(f"{model.stem}.refine{model.suffix}")
-
-
-def int8_passes_path(model: Path) -> Path:
-    """Where the int8 copy of a model file's second stage that its passes after the first read lives
-    (``RefineConfig.quantize = "later"``): beside it, ``<stem>.refine.int8.onnx``."""
-    return model.with_name(f"{model.stem}.refine.int8.onnx")
-
-
-def stage_files(model: Path) -> list[Path]:
-    """Where a model file's later stages live beside it, whichever it has: what shipping or adapting the
-    model copies with it."""
-    return [f(model) for f in (refiner_path, int8_passes_path, depth_check_path, crossing_point_path)]
-
-
-def load_refiner(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> Refiner | None:
-    """The refiner a model file names in its meta (None when it names none)."""
-    found = stage_file(model, meta, "refiner", refiner_path)
-    if found is None:
-        return None
-    path, entry = found
-    int8 = None  # the int8 copy its later passes read (quantize: later)
-    if entry.get("quantize") == "later":
-        int8, _ = stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
-    return read_refiner(
-        path,
-        threads=threads,
-        runtime=runtime,
-        int8_path=int8,
-        **refiner_passes(entry),
-    )
+    return None if found is None else read_crossing_point(found[0], threads=threads, runtime=runtime)
 
 
 def refiner_passes(entry: dict[str, Any]) -> dict[str, Any]:
-    """How the second stage's passes run, as its meta entry says (keys written later default to how older
-    files ran)."""
+    """How the second stage's passes run, as its meta entry says."""
     views = int(entry.get("views", 1))
     return {
         "iterations": int(entry.get("iterations", 1)),
         "views": views,
-        "first_pass_views": int(entry.get("first_pass_views", views)),  # every pass alike
-        "step": float(entry.get("step", 1.0)),  # each pass all the way
-        "shrink_above_px": entry.get("shrink_above_px"),  # None: every pass at full resolution
+        "first_pass_views": int(entry.get("first_pass_views", views)),
+        "step": float(entry.get("step", 1.0)),
+        "shrink_above_px": entry.get("shrink_above_px"),
     }
+
+
+def _one_input(path: Path, threads: int, runtime: str, size_axis: int, what: str):
+    """A session of a one-input stage file, a call of it, and its fixed patch size."""
+    sess = onnx_session(path, threads, runtime)
+    name = sess.get_inputs()[0].name
+    size = sess.get_inputs()[0].shape[size_axis]
+    if not isinstance(size, int):
+        raise ConfigError(f"{path}: is not a {what} file (its patch size is not fixed)")
+    return sess, lambda x: sess.run(None, {name: x})[0], size
 
 
 def read_refiner(
@@ -333,40 +316,23 @@ def read_refiner(
     int8_path: Path | None = None,
     runtime: str = "onnxruntime",
 ) -> Refiner:
-    """The second stage in an ONNX file. ``int8_path``: the int8 copy the passes after the first read (None:
-    they read ``path``); it must take and give what
-    ``path`` does. ``runtime`` runs ``path`` (:mod:`~rebar_data.perception.inference.model_file`); the int8 copy always
-    runs in ONNX Runtime."""
-    sess = onnx_session(path, threads, runtime)
-    name = sess.get_inputs()[0].name
-    size = sess.get_inputs()[0].shape[1]
-    if not isinstance(size, int):
-        raise ConfigError(f"{path}: is not a refiner file (its patch size is not fixed)")
-
-    def run(x: np.ndarray) -> np.ndarray:
-        return sess.run(None, {name: x})[0]
-
+    """The second stage in an ONNX file; ``int8_path``, an int8 copy for the later passes, runs in ONNX Runtime."""
+    sess, run, size = _one_input(path, threads, runtime, 1, "refiner")
     int8_run = None
     if int8_path is not None:
-        int8 = onnx_session(int8_path, threads)
+        int8, int8_run, _ = _one_input(int8_path, threads, "onnxruntime", 1, "refiner")
         signature = (sess.get_inputs()[0].shape, sess.get_outputs()[0].shape)
         if (int8.get_inputs()[0].shape, int8.get_outputs()[0].shape) != signature:
             raise ConfigError(
                 f"{int8_path}: takes or gives other shapes than {path.name}; accepted: the int8 copy "
                 f"written from it by `rebar train` (quantize: later)"
             )
-        int8_name = int8.get_inputs()[0].name
-
-        def int8_run(x: np.ndarray) -> np.ndarray:
-            return int8.run(None, {int8_name: x})[0]
-
-    # 2: offsets; 3: offsets and the verification logit; 4: and the log box side
-    columns = sess.get_outputs()[0].shape[-1]
-    if sess.get_inputs()[0].shape[-1] != 4:  # RGB and the mask of the pixels on the image
+    if sess.get_inputs()[0].shape[-1] != 4:  # RGB and the border mask
         raise ConfigError(
             f"{path}: does not take RGB and the border mask; accepted: the refiner file written with its "
             "model file by `rebar train`"
         )
+    columns = sess.get_outputs()[0].shape[-1]  # offsets, then the verification logit, then the log box side
     return Refiner(
         run,
         patch_px=size,
@@ -388,28 +354,11 @@ def read_crossing_point(path: Path, *, threads: int, runtime: str = "onnxruntime
     if len(inputs) != 2 or not isinstance(size, int):
         raise ConfigError(f"{path}: is not a crossing-point file (it takes no patches and rays)")
     names = [i.name for i in inputs]
-
-    def run(x: np.ndarray, rays: np.ndarray) -> np.ndarray:
-        return sess.run(None, {names[0]: x, names[1]: rays})[0]
-
-    return CrossingPoint(run, patch_px=size)
+    return CrossingPoint(lambda x, rays: sess.run(None, {names[0]: x, names[1]: rays})[0], patch_px=size)
 
 
 def read_depth_check(
-    path: Path,
-    *,
-    threads: int,
-    scale_m: float,
-    clip: float,
-    runtime: str = "onnxruntime",
+    path: Path, *, threads: int, scale_m: float, clip: float, runtime: str = "onnxruntime"
 ) -> DepthCheck:
-    sess = onnx_session(path, threads, runtime)
-    name = sess.get_inputs()[0].name
-    size = sess.get_inputs()[0].shape[-1]
-    if not isinstance(size, int):
-        raise ConfigError(f"{path}: is not a depth-check file (its patch size is not fixed)")
-
-    def run(x: np.ndarray) -> np.ndarray:
-        return sess.run(None, {name: x})[0]
-
+    _, run, size = _one_input(path, threads, runtime, -1, "depth-check")
     return DepthCheck(run, patch_px=size, scale_m=scale_m, clip=clip)

@@ -1,9 +1,7 @@
-"""The patch stages, each a small network reading the full-resolution patch around every detection.
+"""The patch stages: small networks reading the full-resolution patch around each detection.
 
-- The second stage (:class:`Refiner`) moves each detection to where it places the crossing and gives the
-  logit that the patch shows one at all, which lowers the scores of false detections.
-- The crossing-point stage (:class:`CrossingPoint`) gives where each detection's 3D crossing point (the
-  centerlines' midpoint, inside the steel) projects, from the patch and its viewing ray.
+:class:`Refiner` (the second stage) moves each detection onto its crossing and gives the logit that the patch
+shows one; :class:`CrossingPoint` gives where each detection's 3D crossing point projects.
 """
 
 from __future__ import annotations
@@ -17,11 +15,10 @@ import numpy as np
 from rebar_data.errors import ConfigError
 
 BORDERS = ("mirror", "mask")  # how a patch shows what lies beyond the image's border
-# the patch's symmetries a refiner may average over, in the order ``views`` takes them: (flip rows, flip
-# columns, swap the axes); a patch is centred on a pixel corner, so each is exact about its centre
+# (flip rows, flip columns, swap axes) in the order ``views`` takes them; exact about a patch's centre corner
 SYMMETRIES = (
     (False, False, False),
-    (True, True, False),  # a half turn
+    (True, True, False),
     (False, True, False),
     (True, False, False),
     (False, False, True),
@@ -30,20 +27,27 @@ SYMMETRIES = (
     (True, False, True),
 )
 VIEWS = (1, 2, 4, 8)
-# the resolutions a later pass reads a crossing at, by the size the first pass gives it (a refiner with a
-# size output): at or below the first of ``shrink_above_px``, above it, above the second
-SHRINKS = (1.0, 0.75, 0.5)
+SHRINKS = (1.0, 0.75, 0.5)  # a later pass's resolution by the crossing's size against ``shrink_above_px``
+POINTS = ("sight", "crossing")  # what a detection's pixel stands for
 
 
-def _check_views(name: str, value: int) -> None:
-    """ConfigError unless ``value`` is one of :data:`VIEWS` (``name`` says which setting it is)."""
-    if value not in VIEWS:
-        raise ConfigError(f"{name} = {value} is not accepted; accepted: one of {', '.join(map(str, VIEWS))}")
+def _accepted(name: str, value, accepted: tuple) -> None:
+    """ConfigError naming ``name`` unless ``value`` is one of ``accepted``."""
+    if value not in accepted:
+        shown = repr(value) if isinstance(value, str) else value
+        raise ConfigError(
+            f"{name} = {shown} is not accepted; accepted: one of {', '.join(map(str, accepted))}"
+        )
+
+
+def check_point(point: str) -> str:
+    """``point`` if it is one of :data:`POINTS`, else ConfigError."""
+    _accepted("point", point, POINTS)
+    return point
 
 
 def turned(x: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
-    """Patches (N, P, P, C) under one of :data:`SYMMETRIES` (rows flipped, columns flipped, then the axes
-    swapped)."""
+    """Patches (N, P, P, C) under one of :data:`SYMMETRIES`."""
     rows, cols, swap = symmetry
     y = x[:, ::-1] if rows else x
     y = y[:, :, ::-1] if cols else y
@@ -51,7 +55,7 @@ def turned(x: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
 
 
 def turned_back(offset: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
-    """(N, 2) offsets (du, dv) measured in patches under ``symmetry``, in the original patches' axes."""
+    """(N, 2) offsets (du, dv) read in patches under ``symmetry``, in the original patches' axes."""
     rows, cols, swap = symmetry
     d = offset[:, ::-1] if swap else offset
     return d * np.array([-1.0 if cols else 1.0, -1.0 if rows else 1.0])
@@ -60,25 +64,15 @@ def turned_back(offset: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.nda
 def patches(
     image: np.ndarray, centres: np.ndarray, size: int, *, border: str = "mirror"
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Patches of ``image`` around each (u, v) of ``centres``, cut on the pixel grid.
+    """``size`` x ``size`` patches of ``image`` centred on the pixel corner nearest each (u, v) of ``centres``.
 
-    Each patch is centred on the pixel corner nearest its point, so it is a plain copy of pixels (no
-    resampling: cutting 130 patches takes 0.1 ms instead of 2.4 ms with a sub-pixel warp, and the
-    refiner scores the same either way); the refiner's offset is measured from that corner.
-
-    Beyond the image's border, with ``border = "mirror"`` the pixels are mirrored (a crossing d pixels
-    outside the frame then looks like one d pixels inside it); with ``"mask"`` they are 0 and each patch
-    gets a fourth channel, 255 on the image and 0 beyond it, so a network can tell where the frame ends
-    and place a crossing whose centre lies outside it (:class:`~rebar_data.perception.training.config.RefineConfig`
-    ``border``). ``"mask"`` needs an (H, W, 3) uint8 image.
+    Beyond the border the pixels are mirrored (``"mirror"``), or 0 with a fourth channel, 255 on the image
+    and 0 beyond it (``"mask"``, for an (H, W, 3) uint8 image).
 
     Returns:
-        (N, size, size, C) patches of the image's type (C = 3, or 4 with ``"mask"``; (N, size, size) for a
-        one-channel (H, W) image, such as a depth image), and (N, 2) the corners they are centred on (COCO
-        corner origin).
+        (N, size, size[, C]) patches of the image's type and (N, 2) the corners they are centred on.
     """
-    if border not in BORDERS:
-        raise ConfigError(f"border = {border!r} is not accepted; accepted: one of {', '.join(BORDERS)}")
+    _accepted("border", border, BORDERS)
     centres = np.asarray(centres, float).reshape(-1, 2)
     h, w = image.shape[:2]
     half = size // 2
@@ -88,53 +82,46 @@ def patches(
     mode = cv2.BORDER_CONSTANT if border == "mask" else cv2.BORDER_REFLECT
     padded = cv2.copyMakeBorder(image, half, half, half, half, mode, value=0)
     windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1))
-    cut_out = windows[corners[:, 1], corners[:, 0]]  # (N, [C,] size, size): the window axes come last
+    cut_out = windows[corners[:, 1], corners[:, 0]]  # (N, [C,] size, size)
     if cut_out.ndim == 4:
         cut_out = cut_out.transpose(0, 2, 3, 1)
     cut_out = np.ascontiguousarray(cut_out)
     if border == "mirror" or not len(cut_out):
         return cut_out, corners.astype(np.float64)
-    # the mask as a fourth channel, 255 everywhere (OpenCV's RGB to RGBA on the patches: 0.1 ms for 50,
-    # where numpy's strided copy takes 0.5), then 0 beyond the border in the few patches that reach it
     n = len(cut_out)
     out = cv2.cvtColor(cut_out.reshape(n * size, size, 3), cv2.COLOR_RGB2RGBA).reshape(n, size, size, 4)
     near = np.flatnonzero(((corners - half) < 0).any(axis=1) | ((corners + half) > [w, h]).any(axis=1))
     if len(near):
         offsets = np.arange(size) - half  # a patch's pixel k lies at corner + k - half
-        cols = (corners[near, None, 0] + offsets >= 0) & (corners[near, None, 0] + offsets < w)  # (M, size)
+        cols = (corners[near, None, 0] + offsets >= 0) & (corners[near, None, 0] + offsets < w)
         rows = (corners[near, None, 1] + offsets >= 0) & (corners[near, None, 1] + offsets < h)
         out[near, :, :, 3] = (rows[:, :, None] & cols[:, None, :]) * np.uint8(255)
     return out, corners.astype(np.float64)
 
 
-def shrunk(image: np.ndarray, scale: int) -> tuple[np.ndarray, np.ndarray]:
-    """``image`` shrunk ``scale`` times (area averaging, each side rounded), and the (2,) factors that take a
-    point's (u, v) in ``image`` to the shrunk one (COCO corner origin in both)."""
+def _shrunk_size(h: int, w: int, scale: float) -> tuple[int, int]:
+    return max(1, round(w / scale)), max(1, round(h / scale))
+
+
+def shrunk(image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
+    """``image`` shrunk ``scale`` times (area averaging), and the (2,) factors from its (u, v) to the shrunk one's."""
     h, w = image.shape[:2]
     size = _shrunk_size(h, w, scale)
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA), np.array([size[0] / w, size[1] / h])
 
 
-def _shrunk_size(h: int, w: int, scale: float) -> tuple[int, int]:
-    """(width, height) of an h x w image shrunk ``scale`` times, each side rounded."""
-    return max(1, round(w / scale)), max(1, round(h / scale))
-
-
 def shrunk_around(
     image: np.ndarray, centres: np.ndarray, scale: float, size: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """What :func:`shrunk` gives, computed only where ``size`` x ``size`` patches around ``centres`` (points
-    in ``image``) read it in the shrunk image, and 0 elsewhere: the same pixels there, for a fraction of
-    the work when the points are few (a 640 x 480 frame shrunk to 0.75 takes 0.64 ms whole).
+    """:func:`shrunk`, worked out only where ``size`` patches around ``centres`` read it (0 elsewhere).
 
-    Area averaging at a factor p / q (lowest terms) maps each q x q block of pixels to a p x p block on
-    its own, so each patch's region is widened to whole blocks and resized alone. Where the factor does
-    not divide the image's sides into whole blocks, or ``scale`` is a whole number (OpenCV's own path for
-    those shrinks a whole frame in about 0.06 ms), the whole image is shrunk (:func:`shrunk`)."""
+    Area averaging at a factor p / q maps each q x q block to a p x p block on its own, so each patch's region,
+    widened to whole blocks, is resized alone; where the factor is not such a ratio the whole image is shrunk.
+    """
     h, w = image.shape[:2]
     out_w, out_h = _shrunk_size(h, w, scale)
     factors = np.array([out_w / w, out_h / h])
-    ratio = Fraction(out_w, w).limit_denominator(16)  # blocks of at most 16 pixels a side
+    ratio = Fraction(out_w, w).limit_denominator(16)
     p, q = ratio.numerator, ratio.denominator
     if Fraction(out_h, h) != ratio or Fraction(out_w, w) != ratio or p == 1:
         return shrunk(image, scale)
@@ -143,7 +130,6 @@ def shrunk_around(
     if not len(centres):
         return canvas, factors
     half = size // 2
-    # each patch's window in the shrunk image (as :func:`patches` cuts it), widened to whole blocks
     corners = np.clip(np.floor(centres * factors + 0.5), 0, [out_w, out_h]).astype(np.int64)
     lo = np.clip(corners - half, 0, None) // p * p
     hi = np.minimum(-(-(corners + half) // p) * p, [out_w, out_h])
@@ -156,25 +142,15 @@ def shrunk_around(
 
 
 class Refiner:
-    """A loaded refiner: ``refine(image, uv) -> uv`` moves each point to the crossing the patch shows;
-    ``refine_and_verify`` also gives each point's verification logit when the refiner has one
-    (``verifies``). With ``views`` > 1 it reads each patch also turned and flipped (the first ``views`` of
-    :data:`SYMMETRIES`, in one batch) and averages the offsets, turned back: the network trained on
-    patches turned and flipped alike, so each view is another draw of its placement errors. The
-    verification logit stays the plain view's (averaged too, it lowered recall at precision 0.99 on the
-    curved Cycles set: :class:`~rebar_data.perception.training.config.RefineConfig` ``views``). The first pass
-    reads ``first_pass_views`` views (None: ``views``).
+    """The second stage: ``refine_and_verify(image, uv)`` moves each point onto its crossing and gives the
+    first pass's verification logit.
 
-    With ``iterations`` > 1 each later pass reads the patch centred where the pass before placed the
-    crossing and moves the point ``step`` of the way to where it places it (1: all the way); the
-    verification logit stays the first pass's (``RefineConfig.iterations`` and ``step``: why two passes,
-    half a step). A refiner with a size output (``sizes``) also gives, in the first pass, each crossing's
-    box side (four bar diameters); with ``shrink_above_px`` the later passes read a crossing seen larger
-    than its first size from the image shrunk to 0.75, larger than the second to 0.5 (:data:`SHRINKS`), so
-    that the patch shows all of it (``RefineConfig.size``). With ``int8_run`` the passes after the first
-    read another copy of the network, an int8 one (``RefineConfig.quantize = "later"``): the first pass,
-    whose verification every score counts and whose sizes choose the later passes' resolution, stays
-    in float."""
+    The first pass reads the patch at each point; each of the ``iterations`` - 1 later passes reads the patch
+    where the pass before placed it and moves ``step`` of the way to where it places it. ``views`` > 1
+    averages the offsets over turned and flipped patches (:data:`SYMMETRIES`). With ``sizes`` and
+    ``shrink_above_px`` the later passes read a large crossing from the image shrunk (:data:`SHRINKS`).
+    ``int8_run``, when given, reads the later passes (while ``use_int8_passes`` is on).
+    """
 
     def __init__(
         self,
@@ -191,13 +167,12 @@ class Refiner:
         int8_run: Callable[[np.ndarray], np.ndarray] | None = None,
     ):
         first_pass_views = views if first_pass_views is None else first_pass_views
-        _check_views("views", views)
-        _check_views("first_pass_views", first_pass_views)
+        _accepted("views", views, VIEWS)
+        _accepted("first_pass_views", first_pass_views, VIEWS)
         if not 0.0 < step <= 1.0:
             raise ConfigError(f"step = {step} is not accepted; accepted: a number above 0, at most 1")
         self._run = run
         self._int8_run = int8_run
-        # whether the passes after the first read the int8 copy (False: the float network, for comparing)
         self.use_int8_passes = int8_run is not None
         self.views = views
         self.first_pass_views = first_pass_views
@@ -210,11 +185,10 @@ class Refiner:
 
     @property
     def has_int8_passes(self) -> bool:
-        """Whether this refiner has an int8 copy for the passes after the first."""
         return self._int8_run is not None
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """(N, 2) refined positions of the (N, 2) points ``uv`` in ``image`` (pixels, COCO corner origin)."""
+        """(N, 2) refined positions of the points ``uv`` (N, 2)."""
         return self.refine_and_verify(image, uv)[0]
 
     def refine_and_verify(
@@ -226,81 +200,53 @@ class Refiner:
         later_views: int | None = None,
         int8_first_pass: bool = False,
     ) -> tuple[np.ndarray, np.ndarray | None]:
-        """The refined positions (N, 2) and, when the refiner verifies, (N,) logits that each point's
-        first patch (centred where the first stage put it) shows a crossing; None otherwise.
+        """(N, 2) refined positions and (N,) first-pass verification logits (None without verification).
 
-        ``keep`` (for a refiner that verifies) takes the first pass's logits and says which points the
-        later passes go on moving; the others stay where the first pass placed them (the detector drops
-        those its verification has already put under its threshold, so their later passes are spared).
-        ``later_views``: the views the later passes read (None: ``views``); ``int8_first_pass``: the first
-        pass reads the int8 copy too, where the later passes do (the detector's mirrored reading)."""
+        ``keep`` maps those logits to the points the later passes go on moving; ``later_views`` is their
+        views (None: ``views``); ``int8_first_pass`` has the first pass read the int8 copy too.
+        """
         if later_views is not None:
-            _check_views("later_views", later_views)
+            _accepted("later_views", later_views, VIEWS)
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
             return uv, (np.zeros(0) if self.verifies else None)
         corners, out = self._read_at(image, uv, self.first_pass_views, int8=int8_first_pass)
         logit = out[:, 2].copy() if self.verifies else None
-        box = None  # the first pass's sizes, when later passes read by them
-        if self.sizes and self.shrink_above_px is not None:
-            box = self.patch_px * np.exp(out[:, 3])
+        box = self.patch_px * np.exp(out[:, 3]) if self.sizes and self.shrink_above_px is not None else None
         uv = corners + out[:, :2]
-        moving = slice(None)  # the points the later passes move: all, or those ``keep`` names
+        moving = slice(None)
         if self.iterations > 1 and keep is not None and logit is not None:
             moving = np.asarray(keep(logit), bool)
-        uv[moving] = self._later_passes(image, uv[moving], None if box is None else box[moving], later_views)
+        views = self.views if later_views is None else later_views
+        moved, box = uv[moving], None if box is None else box[moving]
+        for _ in range(1, self.iterations):
+            if not len(moved):
+                break
+            moved = moved + self.step * (self._placed_at_size(image, moved, box, views) - moved)
+        uv[moving] = moved
         return uv, logit
 
-    def _later_passes(
-        self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, views: int | None = None
-    ) -> np.ndarray:
-        """``uv`` moved by the passes after the first (each ``step`` of the way to where it places them),
-        each read in ``views`` views (None: ``self.views``)."""
-        for _ in range(1, self.iterations):
-            if not len(uv):
-                break
-            uv = uv + self.step * (self._placed_at_size(image, uv, box, views) - uv)
-        return uv
-
-    def box_sizes(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """(N,) each point's crossing's box side in pixels (four bar diameters), as the patch centred there
-        shows it; needs a refiner with a size output."""
-        if not self.sizes:
-            raise ConfigError("this refiner has no size output; accepted: one trained with size: true")
-        return self.patch_px * np.exp(self._read_at(image, uv, self.first_pass_views)[1][:, 3])
-
-    def _read_at(
-        self, image: np.ndarray, uv: np.ndarray, views: int | None = None, *, int8: bool = False
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The corners the patches around ``uv`` are centred on, and the network's output for them, read in
-        ``views`` views (None: ``self.views``), by the int8 copy with ``int8`` (where there is one and
-        ``use_int8_passes`` is on)."""
-        x, corners = self._inputs_at(image, uv)
-        return corners, self._read(x, self.views if views is None else views, self._runner(int8))
-
-    def _inputs_at(self, image: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """What this network reads around each of ``uv`` in ``image``, and the corners its patches are
-        centred on (:func:`patches` with its patch size and the border mask)."""
-        return patches(image, uv, self.patch_px, border="mask")
-
     def _runner(self, int8: bool) -> Callable[[np.ndarray], np.ndarray]:
-        """The network a pass reads: the int8 copy with ``int8`` (where there is one and ``use_int8_passes``
-        is on), the float one otherwise."""
         return self._int8_run if int8 and self.use_int8_passes and self._int8_run is not None else self._run
 
+    def _read_at(
+        self, image: np.ndarray, uv: np.ndarray, views: int, *, int8: bool = False
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """The patches' corners around ``uv`` and the network's output for them in ``views`` views."""
+        x, corners = patches(image, uv, self.patch_px, border="mask")
+        return corners, self._read(x, views, self._runner(int8))
+
     def _placed_at_size(
-        self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, views: int | None = None
+        self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, views: int
     ) -> np.ndarray:
-        """Where each point's patch places its crossing, read in ``views`` views (None: ``self.views``) at
-        the resolution of :data:`SHRINKS` its box side ``box`` calls for (None: all at full resolution).
-        The patches of every resolution go through the network in one call (each call costs about what
-        ten more patches do)."""
+        """Where each point's patch places its crossing, each read at the resolution its box side ``box``
+        calls for (None: full resolution); every resolution's patches in one call."""
         if box is None:
             corners, out = self._read_at(image, uv, views, int8=True)
             return corners + out[:, :2]
         lo, hi = self.shrink_above_px
         level = (box > lo).astype(int) + (box > hi)
-        picks, inputs, shifts = [], [], []  # per resolution read: its points, patches, corner-to-image map
+        picks, inputs, shifts = [], [], []
         for lv, f in enumerate(SHRINKS):
             pick = np.flatnonzero(level == lv)
             if not len(pick):
@@ -309,15 +255,11 @@ class Refiner:
                 img, factors = image, np.ones(2)
             else:
                 img, factors = shrunk_around(image, uv[pick], 1.0 / f, self.patch_px)
-            x, corners = self._inputs_at(img, uv[pick] * factors)
+            x, corners = patches(img, uv[pick] * factors, self.patch_px, border="mask")
             picks.append(pick)
             inputs.append(x)
             shifts.append((corners, factors))
-        out = self._read(
-            np.concatenate(inputs) if len(inputs) > 1 else inputs[0],
-            self.views if views is None else views,
-            self._runner(True),
-        )
+        out = self._read(np.concatenate(inputs) if len(inputs) > 1 else inputs[0], views, self._runner(True))
         placed = np.empty_like(uv)
         start = 0
         for pick, (corners, factors) in zip(picks, shifts, strict=True):
@@ -326,33 +268,27 @@ class Refiner:
         return placed
 
     def _read(self, x: np.ndarray, views: int, run: Callable[[np.ndarray], np.ndarray]) -> np.ndarray:
-        """The output of the network ``run`` for patches ``x``: the offsets averaged over ``views`` views
-        (turned back), the rest the plain view's."""
+        """``run`` on patches ``x``: the offsets averaged over ``views`` views, the rest the plain view's."""
         if views == 1:
             return run(x).astype(np.float64)
         sym = SYMMETRIES[:views]
         out = run(np.ascontiguousarray(np.concatenate([turned(x, s) for s in sym]))).astype(np.float64)
         out = out.reshape(views, len(x), -1)
-        plain = out[0].copy()  # SYMMETRIES[0] is the identity
+        plain = out[0].copy()
         plain[:, :2] = np.mean([turned_back(o[:, :2], s) for o, s in zip(out, sym, strict=True)], axis=0)
         return plain
 
 
-# what a detection's pixel stands for: the sight point (where the image shows the bars cross, the
-# dataset's labels) or the projected 3D crossing point (this stage's output)
-POINTS = ("sight", "crossing")
-
-
 def patch_rays(corners: np.ndarray, camera: tuple[float, float, float, float]) -> np.ndarray:
-    """(N, 2) float32 viewing ray ((u - cx) / fx, (v - cy) / fy) of each patch centre (pixel corner)."""
+    """(N, 2) float32 viewing ray ((u - cx) / fx, (v - cy) / fy) of each patch centre."""
     fx, fy, cx, cy = camera
     c = np.asarray(corners, np.float64).reshape(-1, 2)
     return np.c_[(c[:, 0] - cx) / fx, (c[:, 1] - cy) / fy].astype(np.float32)
 
 
 class CrossingPoint:
-    """A loaded crossing-point stage: ``offsets(image, uv, camera)`` gives, for each sight point ``uv``, the
-    (N, 2) pixel offset to where its 3D crossing point projects."""
+    """The crossing-point stage: ``points(image, uv, camera)`` gives where each sight point's 3D crossing
+    point projects, from its patch and viewing ray."""
 
     def __init__(self, run: Callable[[np.ndarray, np.ndarray], np.ndarray], *, patch_px: int):
         self._run = run
@@ -361,8 +297,7 @@ class CrossingPoint:
     def offsets(
         self, image: np.ndarray, uv: np.ndarray, camera: tuple[float, float, float, float]
     ) -> np.ndarray:
-        """(N, 2) offsets from the (N, 2) sight points ``uv`` of the RGB ``image`` (pixels, COCO corner
-        origin) to their projected 3D crossing points; ``camera`` is (fx, fy, cx, cy)."""
+        """(N, 2) pixel offsets from the sight points ``uv`` to their projected 3D crossing points."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         if not len(uv):
             return np.zeros((0, 2))
@@ -372,13 +307,5 @@ class CrossingPoint:
     def points(
         self, image: np.ndarray, uv: np.ndarray, camera: tuple[float, float, float, float]
     ) -> np.ndarray:
-        """(N, 2) projected 3D crossing points of the sight points ``uv``."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         return uv + self.offsets(image, uv, camera)
-
-
-def check_point(point: str) -> str:
-    """``point`` if it is one of :data:`POINTS`, else ConfigError."""
-    if point not in POINTS:
-        raise ConfigError(f"point = {point!r} is not accepted; accepted: one of {', '.join(POINTS)}")
-    return point

@@ -78,13 +78,7 @@ def load_checkpoint(path: str | Path) -> tuple[KeypointNet, dict[str, Any], dict
     return net, payload.get("meta", {}), payload
 
 
-def export_onnx(
-    net: nn.Module,
-    path: str | Path,
-    meta: dict[str, Any] | None = None,
-    *,
-    example_hw: tuple[int, int] = (480, 640),
-) -> Path:
+def export_onnx(net: nn.Module, path: str | Path, meta: dict[str, Any] | None = None) -> Path:
     """Write any of the detector's networks as the ONNX file the run time reads (atomically).
 
     - :class:`KeypointNet` (the first stage): uint8 RGB (1, H, W, 3) and, with ray channels, the output
@@ -102,6 +96,7 @@ def export_onnx(
 
     path = Path(path)
     net = net.eval()
+    example_hw = (480, 640)  # the traced size; the image axes stay free
     if isinstance(net, KeypointNet):
         inputs: tuple[torch.Tensor, ...] = (torch.zeros((1, *example_hw, 3), dtype=torch.uint8),)
         names = ["image"]
@@ -274,10 +269,10 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
     return net, meta
 
 
-def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray, *, input_name: str = "patches") -> Path:
-    """The float file ``src`` (the refiner, or another patch network) as int8 at ``dst``: ONNX Runtime's
-    static quantization, int8 weights per output channel and uint8 activations, their ranges the min and
-    max seen on ``calibration`` (the network's input ``input_name``, such as uint8 patches N x P x P x 3)."""
+def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray) -> Path:
+    """The second stage's float file ``src`` as int8 at ``dst``: ONNX Runtime's static quantization, int8
+    weights per output channel and uint8 activations, their ranges the min and max seen on ``calibration``
+    (uint8 patches, N x P x P x C)."""
     from onnxruntime.quantization import CalibrationDataReader
 
     class Batches(CalibrationDataReader):
@@ -286,7 +281,7 @@ def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray, *, input_name: 
 
         def get_next(self) -> dict[str, np.ndarray] | None:
             b = next(self._it, None)
-            return None if b is None else {input_name: np.ascontiguousarray(b)}
+            return None if b is None else {"patches": np.ascontiguousarray(b)}
 
     root_logger = logging.getLogger()
     level = root_logger.level

@@ -1,12 +1,5 @@
-"""The keypoint network: a compact depthwise-separable encoder, a small top-down decoder back to stride 4,
-and a head that gives a crossing heatmap and a sub-cell offset per cell.
-
-Why this shape: a crossing is a local pattern (two bars over each other) but telling it from a bar end,
-a tie wire or a shadow needs some context, so the encoder reaches stride 16 (a receptive field of
-about 150 px) while the output stays at stride 4, where offsets recover sub-pixel positions. Few channels
-at high resolution and depthwise-separable convolutions keep a 640x480 frame within a few milliseconds
-on two CPU threads under ONNX Runtime.
-"""
+"""The keypoint network: a depthwise-separable encoder to stride 16, a top-down decoder back to stride 4,
+and a head giving a crossing heatmap and a sub-cell offset per cell (``docs/detector/design.md``)."""
 
 from __future__ import annotations
 

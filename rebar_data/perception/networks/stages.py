@@ -16,17 +16,12 @@ def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
 
 
 class PatchNet(nn.Module):
-    """(N, 4, P, P) patches, values 0-255 (RGB and a fourth channel that marks the pixels on the image)
-    -> (N, 2) offset (x, y) of the crossing from the patch centre,
-    in the patch's pixels, and with ``verify`` a third column: the logit that the patch shows a crossing
-    near its centre at all; with ``size`` a fourth: the log of the crossing's box side (four bar diameters)
-    over the patch's side, as the patch shows it.
+    """(N, 4, P, P) patches, values 0-255 (RGB and the mask of the pixels on the image) -> (N, 2) offset
+    (x, y) of the crossing from the patch centre in pixels; with ``verify`` a third column, the logit that
+    the patch shows a crossing; with ``size`` a fourth, the log of the crossing's box side over the patch's.
 
-    Plain 3x3 convolutions, the first at full resolution (folding 2x2 pixels into channels first was
-    cheaper but measurably less accurate), three halvings to P / 8 with ``blocks`` more convolutions after
-    each, then two fully connected layers: a regression over the whole patch, which sees both bars'
-    edges on every side of the crossing. A frame's detections run as one batch.
-    """
+    3x3 convolutions from full resolution, three halvings with ``blocks`` more after each, then two fully
+    connected layers."""
 
     def __init__(
         self,

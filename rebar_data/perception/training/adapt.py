@@ -154,14 +154,10 @@ def adapt_model(
     log=None,
     progress: bool = False,
 ) -> Path:
-    """The adapt epochs from a model file rather than a run: ``model``'s first stage (its ONNX file turned
-    back into a network, :func:`~rebar_data.perception.networks.files.network_from_onnx`) trains ``cfg.adapt``'s
-    epochs on ``samples`` and ``extra`` (listed ``supplement_repeats`` times) in ``out``, and
-    ``out/rebar_keypoint.onnx`` is written with it and a copy of the model's later stages beside it. What
-    lets a shipped detector learn a few dozen labelled frames of another camera or renderer; an
-    interrupted call resumes in ``out``. The later stages and the score biases stay the model's (they
-    place the operating point, not the ranking that AP and recall at precision 0.99 score). ``cfg`` None
-    trains with the settings the model trained with (its ``train_config``, the adapt epochs' among them).
+    """The adapt epochs from a model file: ``model``'s first stage (its ONNX file turned back into a network)
+    trains ``cfg.adapt``'s epochs on ``samples`` and ``extra`` in ``out`` (resumable), and
+    ``out/rebar_keypoint.onnx`` is written with it, keeping the model's later stages (copied beside it) and
+    score biases. ``cfg`` None trains with the settings the model trained with.
 
     Raises:
         ConfigError: the model is not an ONNX file from `rebar train`, or there are no ``extra`` frames.

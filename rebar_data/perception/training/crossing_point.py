@@ -223,14 +223,8 @@ def attach(
     seed: int,
     progress: bool = False,
 ) -> Path:
-    """Train the crossing-point stage (resumable in ``out``) and put it beside ``model``, an ONNX detector
-    trained before the stage existed: ``<stem>.crossing.onnx``, named in the model file's metadata with
-    its SHA-256. ``rebar train`` trains the stage with the others; this adds it to a model alone, with
-    the same settings and seed, so it is the stage that model's training run would have given.
-
-    Returns:
-        The stage's ONNX file.
-    """
+    """Train the crossing-point stage (resumable in ``out``) and put it beside ``model`` as
+    ``<stem>.crossing.onnx``, named in the model file's metadata with its SHA-256; returns that file."""
     from rebar_data.dataset.writers.manifest import sha256_file
     from rebar_data.perception.inference.model_file import crossing_point_path
     from rebar_data.perception.networks.files import check_model_file, update_onnx_meta

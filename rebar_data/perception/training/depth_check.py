@@ -21,8 +21,8 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.evaluation.data import Sample
-from rebar_data.perception.inference.checks import MM_PER_M, encode, read_depth
+from rebar_data.perception.evaluation.data import Sample, read_depth
+from rebar_data.perception.inference.checks import MM_PER_M, encode
 from rebar_data.perception.networks.files import read_checkpoint
 from rebar_data.perception.networks.stages import DepthNet
 from rebar_data.perception.training.checkpoints import (

@@ -231,14 +231,9 @@ def patch_batches(
     first: int,
     images: list[np.ndarray] | None = None,
 ) -> Iterator[Batch]:
-    """Every batch of the second stage's epochs ``first`` to ``cfg.epochs``, in order; each epoch's from a
-    generator seeded by (seed, epoch) alone, so a resumed run gets the batches it would have got. Without
-    ``images`` each image is read when first needed.
-
-    They are made in the training process: a loader process beside it, as the first stage has, made
-    training slower here (181 against 133 ms a batch of 256 on two cores), as the network's two threads
-    then wait for the core the loader takes.
-    """
+    """Every batch of the second stage's epochs ``first`` to ``cfg.epochs``, in order, each epoch's from a
+    generator seeded by (seed, epoch) alone; made in the training process. Without ``images`` each image is
+    read when first needed."""
     # by file: an image listed more than once is read once
     image_of = (lambda i: images[i]) if images is not None else per_file_lazily(samples, read_sample_image)
     distractors_of = per_file_lazily(samples, read_distractors) if aug.scales_distractors else None

@@ -125,7 +125,7 @@ def write_synthetic_dataset(
         "name": name,
         "version": "0.0.0",
         "schema_version": 1,
-        "generator": "rebar_data.perception.evaluation.synthetic",
+        "generator": "tests.perception.synthetic",
         "seed": seed,
         "image_size": {"width": spec.width, "height": spec.height},
         "keypoint_names": ["intersection"],
@@ -506,3 +506,15 @@ def _write_coco_and_yolo(out: Path, samples: list[dict], keypoints: list[dict]) 
             "categories": [{"id": 1, "name": "intersection", "keypoints": ["intersection"], "skeleton": []}],
         }
         (out / "annotations" / f"{split}.json").write_text(json.dumps(coco))
+
+
+def drawn_frame_labelled() -> tuple[np.ndarray, list[dict], np.ndarray]:
+    """A drawn 640x480 rebar frame dense with bars (focal length 525 px), its keypoint records and depth."""
+    spec = SyntheticSpec(width=640, height=480, focal_px=525.0, occluder_fraction=0.0)
+    return random_frame(spec, np.random.default_rng(0))
+
+
+def drawn_frame() -> tuple[np.ndarray, np.ndarray]:
+    """:func:`drawn_frame_labelled`'s image and depth."""
+    rgb, _, depth = drawn_frame_labelled()
+    return rgb, depth
