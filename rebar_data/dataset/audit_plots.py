@@ -32,7 +32,7 @@ def split_parameters(S: pd.DataFrame) -> tuple[list[str], dict[str, object]]:
     """The randomized columns of the samples table (``layout.RANDOMIZED_PREFIXES``): those that vary over the
     images, and the constant ones with their value (JSON types)."""
     varying, constant = [], {}
-    for c in (c for c in S.columns if c.startswith(layout.RANDOMIZED_PREFIXES)):
+    for c in layout.randomized_columns(S.columns):
         values = S[c].drop_duplicates()
         if len(values) > 1:
             varying.append(c)
