@@ -7,7 +7,7 @@ shifts another's draws, and ``record()`` has the same columns for every sample o
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
@@ -419,3 +419,40 @@ def sample_depth_sensor(cfg: SceneConfig | DepthSensorConfig, rng: np.random.Gen
             far_m=tof.range_m[1],
         )
     return DepthSensorSample(model=model, shift_x_px=dx, shift_y_px=dy, **zero)
+
+
+def nominal_depth_sensor(
+    model: str, cfg: DepthSensorConfig | None = None, *, noise: bool = True
+) -> DepthSensorSample:
+    """A depth sensor at fixed parameters (no draw): the middle of each range, the largest window, no
+    misregistration; ``noise`` false zeroes its noise. For a camera that stays one device (the robot's)."""
+    d = cfg if cfg is not None else DepthSensorConfig()
+    if model not in DEPTH_MODELS:
+        raise ValueError(f"depth sensor model {model!r} is unknown; accepted: {', '.join(DEPTH_MODELS)}")
+    mid = {
+        "structured_light": {"window_px": (d.structured_light.window_px[1],) * 2},
+        "active_stereo": {"window_px": (d.active_stereo.window_px[1],) * 2},
+    }
+    fixed = d.model_copy(
+        update={
+            "models": {model: 1.0},
+            "misregistration_px": (0.0, 0.0),
+            "structured_light": d.structured_light.model_copy(update=mid["structured_light"]),
+            "active_stereo": d.active_stereo.model_copy(update=mid["active_stereo"]),
+        }
+    )
+    s = sample_depth_sensor(fixed, _Middle())
+    return replace(s, noise=0.0, noise_per_m=0.0) if not noise else s
+
+
+class _Middle:
+    """A stand-in generator that draws the middle of every range (and the first choice)."""
+
+    def uniform(self, low=0.0, high=1.0, size=None):
+        return 0.0 if (low, high) == (0.0, 2.0 * np.pi) else (low + high) / 2.0
+
+    def integers(self, low, high=None, size=None):
+        return 0
+
+    def choice(self, n, p=None):
+        return int(np.argmax(p)) if p is not None else 0
