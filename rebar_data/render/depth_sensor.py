@@ -14,7 +14,8 @@ Models (``DepthSensorSample.model``):
   (Konolige and Mihelich, "Technical description of Kinect calibration", ros.org kinect_calibration); range
   0.5-4.5 m. Surface points the projector cannot light (the shadow beside a foreground edge, on the side
   facing away from the projector, as wide as the disparity jump ``f b (1/z_near - 1/z_far)``) have no
-  measurement; structures narrower than the window are lost to the surface behind them (the window's
+  measurement (the projector's field is wider than the camera's, so the image's margin is lit); structures
+  narrower than the window are lost to the surface behind them (the window's
   pattern is mostly the background's); smooth surfaces are averaged over the window.
 - ``active_stereo``, RealSense D4xx-like (D435): a 50 mm baseline to the right imager, 447 px focal length
   at 848x480 (the datasheet's 87 degree field of view; Intel RealSense D400 series datasheet). Depth is in
@@ -56,13 +57,16 @@ def kinect_sigma_m(z_m: np.ndarray) -> np.ndarray:
     return 0.0012 + 0.0019 * (np.asarray(z_m) - 0.4) ** 2
 
 
-def unseen_from_offset_view(z_m: np.ndarray, fx: float, baseline_m: float) -> np.ndarray:
+def unseen_from_offset_view(
+    z_m: np.ndarray, fx: float, baseline_m: float, *, image_margin: bool = True
+) -> np.ndarray:
     """Pixels a second view ``baseline_m`` along the camera's +x (-x when negative) cannot see.
 
     A pixel at column u and depth z lands at ``u - fx b / z`` in the second view. It is hidden there when
     a pixel to its right in the same row (left, for a view at -x) lands at or beyond it: the two rays cross
-    before reaching it, and the nearer point wins. Points landing left of the second view's image are also
-    unseen. Nothing-hit pixels (z = 0) hide nothing.
+    before reaching it, and the nearer point wins. With ``image_margin``, points landing outside the
+    second view's image (a second camera of the same field of view) are also unseen; a projector's wider
+    field lights them. Nothing-hit pixels (z = 0) hide nothing.
     """
     z = np.asarray(z_m, np.float64)
     flip = baseline_m < 0
@@ -75,7 +79,7 @@ def unseen_from_offset_view(z_m: np.ndarray, fx: float, baseline_m: float) -> np
     landed = np.arange(w, dtype=np.float64) + 0.5 - disparity
     first_right = np.full_like(landed, np.inf)
     first_right[:, :-1] = np.minimum.accumulate(landed[:, ::-1], axis=1)[:, ::-1][:, 1:]
-    unseen = hit & ((landed >= first_right) | (landed < 0.0))
+    unseen = hit & ((landed >= first_right) | ((landed < 0.0) & image_margin))
     return unseen[:, ::-1] if flip else unseen
 
 
@@ -113,7 +117,7 @@ def structured_light(
     z = np.asarray(z_m, np.float32)
     fb = fx * s.baseline_m
     d = _disparity(z, fb)
-    d[unseen_from_offset_view(z, fx, s.baseline_m)] = 0.0
+    d[unseen_from_offset_view(z, fx, s.baseline_m, image_margin=False)] = 0.0
     d, lost, behind = _window(d, s.window_px)
     d = np.where(lost, behind, d)
     out = _disparity(d, fb)  # back to z on the frame's pixel grid
