@@ -204,4 +204,4 @@ def sense_depth(z_m: np.ndarray, s: DepthSensorSample, rng: np.random.Generator,
 
 def depth_mm(depth_m: np.ndarray) -> np.ndarray:
     """uint16 millimetres (0 = no measurement) of a metric depth image, as the dataset stores depth."""
-    return np.clip(np.round(np.asarray(depth_m, np.float64) * 1000.0), 0, 65535).astype(np.uint16)
+    return np.clip(np.round(np.asarray(depth_m) * 1000.0), 0, 65535).astype(np.uint16)  # in the input's dtype
