@@ -217,7 +217,9 @@ def contact_sheet(
     cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
 
 
-def _read_depth_m(ds: Path, rel: str) -> np.ndarray | None:
+def _read_depth_m(ds: Path, rel: object) -> np.ndarray | None:
+    if not isinstance(rel, str):
+        return None
     d = cv2.imread(str(ds / rel), cv2.IMREAD_UNCHANGED)
     return None if d is None else d.astype(np.float32) / 1000.0
 
@@ -228,7 +230,7 @@ def sensor_depth_stats(ds: Path, S: pd.DataFrame, *, per_model: int = 100) -> di
     absolute difference from the exact depth where both have a value (mm)."""
     if "sensor_depth_file" not in S.columns or "sensor_depth_model" not in S.columns:
         return {}
-    rows = S[S.sensor_depth_file.notna()]
+    rows = S[S.sensor_depth_file.notna() & S.depth_file.notna()]
     out = {}
     for model, g in rows.groupby("sensor_depth_model"):
         pick = g.iloc[np.linspace(0, len(g) - 1, min(per_model, len(g))).astype(int)]
@@ -265,8 +267,10 @@ def sensor_depth_sheet(ds: Path, S: pd.DataFrame, path: Path, *, tile: int = 320
     (one colour scale a row, black = no measurement). False (nothing written) without sensor depth maps."""
     if "sensor_depth_file" not in S.columns or "sensor_depth_model" not in S.columns:
         return False
-    rows = S[S.sensor_depth_file.notna()].sort_values("image_id")
+    rows = S[S.sensor_depth_file.notna() & S.depth_file.notna()].sort_values("image_id")
     picks = [g.iloc[len(g) // 2] for _, g in rows.groupby("sensor_depth_model")]
+    picks = [r for r in picks if _read_depth_m(ds, r.depth_file) is not None]
+    picks = [r for r in picks if _read_depth_m(ds, r.sensor_depth_file) is not None]
     if not picks:
         return False
     first = picks[0]
