@@ -104,8 +104,8 @@ def _breakdown_lines(cfg_path: Path, tmp: Path, *, trajectories: int = 3) -> lis
         f"sensor effects {render['sensor'] * 1000:.0f} ms",
     ]
     parts += [
-        f"depth sensor {frame['depth_sensor'] * 1000:.0f} ms ({frame['depth_sensor'] / render['filament']:.0%} "
-        "of the Filament render)",
+        f"depth sensor {frame['depth_sensor'] * 1000:.0f} ms "
+        f"({frame['depth_sensor'] / max(render['filament'], 1e-9):.0%} of the Filament render)",
         f"labels {frame['labels'] * 1000:.0f} ms",
         f"PNG encoding {frame['png'] * 1000:.0f} ms",
     ]
