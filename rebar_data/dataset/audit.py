@@ -416,7 +416,13 @@ def check_leakage(info: DatasetInfo, S: pd.DataFrame) -> list[Check]:
 
 def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Check], dict]:
     """Run every check, write ``audit/report.json``, ``report.md``, plots and the contact sheet."""
-    from rebar_data.dataset.audit_plots import contact_sheet, distribution_plots, split_parameters
+    from rebar_data.dataset.audit_plots import (
+        contact_sheet,
+        distribution_plots,
+        sensor_depth_sheet,
+        sensor_depth_stats,
+        split_parameters,
+    )
 
     ds = Path(ds)
     info = DatasetInfo.read(ds)
@@ -435,6 +441,10 @@ def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Che
     stats = distribution_plots(S, K, out)
     _, constant = split_parameters(S)
     contact_sheet(ds, S, K, out / "contact_sheet.png", n=contact_sheet_images)
+    sensor_depth = sensor_depth_stats(ds, S)
+    if sensor_depth:
+        stats["sensor_depth"] = sensor_depth
+        sensor_depth_sheet(ds, S, out / "sensor_depth.png")
     report = {
         "dataset": f"{info.name} v{info.version}",
         "passed": all(c.passed for c in checks),
@@ -465,7 +475,26 @@ def _markdown(info: DatasetInfo, checks: list[Check], stats: dict, constant: dic
         )
     lines += ["", "## Distributions", ""]
     for k, v in stats.items():
-        lines.append(f"- {k}: {v}")
+        if k != "sensor_depth":
+            lines.append(f"- {k}: {v}")
+    if stats.get("sensor_depth"):
+        lines += [
+            "",
+            "## Sensor depth",
+            "",
+            "Share of the pixels with a surface that the depth sensor measured, and its median absolute",
+            "difference from the exact depth where both have a value (the labels are checked against the exact",
+            "depth):",
+            "",
+            "| model | images | measured (mean) | measured (min-max) | median abs error (mm) |",
+            "|---|---|---|---|---|",
+        ]
+        for model, m in stats["sensor_depth"].items():
+            lines.append(
+                f"| {model} | {m['images']} | {m['valid_fraction_mean']:.3f} | "
+                f"{m['valid_fraction_min']:.3f}-{m['valid_fraction_max']:.3f} | {m['abs_error_median_mm']} |"
+            )
+        lines += ["", "![sensor depth beside its colour frame and the exact depth](sensor_depth.png)"]
     lines += [
         "",
         "![keypoints per image](keypoints_per_image.png)",

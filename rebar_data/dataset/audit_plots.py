@@ -32,7 +32,7 @@ def split_parameters(S: pd.DataFrame) -> tuple[list[str], dict[str, object]]:
     """The randomized columns of the samples table (``layout.RANDOMIZED_PREFIXES``): those that vary over the
     images, and the constant ones with their value (JSON types)."""
     varying, constant = [], {}
-    for c in (c for c in S.columns if c.startswith(layout.RANDOMIZED_PREFIXES)):
+    for c in layout.randomized_columns(S.columns):
         values = S[c].drop_duplicates()
         if len(values) > 1:
             varying.append(c)
@@ -215,3 +215,94 @@ def contact_sheet(
             cv2.LINE_AA,
         )
     cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+
+
+def _read_depth_m(ds: Path, rel: object) -> np.ndarray | None:
+    if not isinstance(rel, str):
+        return None
+    d = cv2.imread(str(ds / rel), cv2.IMREAD_UNCHANGED)
+    return None if d is None else d.astype(np.float32) / 1000.0
+
+
+def sensor_depth_stats(ds: Path, S: pd.DataFrame, *, per_model: int = 100) -> dict:
+    """Per depth sensor model, over up to ``per_model`` of its images: how many images, the share of the
+    pixels with a surface (exact depth > 0) that the sensor measured (mean and range), and the median
+    absolute difference from the exact depth where both have a value (mm)."""
+    if "sensor_depth_file" not in S.columns or "sensor_depth_model" not in S.columns:
+        return {}
+    rows = S[S.sensor_depth_file.notna() & S.depth_file.notna()]
+    out = {}
+    for model, g in rows.groupby("sensor_depth_model"):
+        pick = g.iloc[np.linspace(0, len(g) - 1, min(per_model, len(g))).astype(int)]
+        shares, diffs = [], []
+        for row in pick.itertuples():
+            exact, sensed = _read_depth_m(ds, row.depth_file), _read_depth_m(ds, row.sensor_depth_file)
+            if exact is None or sensed is None:
+                continue
+            surface = exact > 0
+            shares.append(float((sensed[surface] > 0).mean()) if surface.any() else 0.0)
+            both = surface & (sensed > 0)
+            if both.any():
+                diffs.append(np.abs(sensed[both] - exact[both]) * 1000.0)
+        out[str(model)] = {
+            "images": int(len(g)),
+            "valid_fraction_mean": round(float(np.mean(shares)), 4) if shares else 0.0,
+            "valid_fraction_min": round(float(np.min(shares)), 4) if shares else 0.0,
+            "valid_fraction_max": round(float(np.max(shares)), 4) if shares else 0.0,
+            "abs_error_median_mm": round(float(np.median(np.concatenate(diffs))), 2) if diffs else None,
+        }
+    return out
+
+
+def _depth_colour(depth_m: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Depth as a colour map (near yellow, far purple), no measurement black."""
+    x = np.clip((depth_m - lo) / max(hi - lo, 1e-6), 0.0, 1.0)
+    img = cv2.applyColorMap(np.round(255 * (1.0 - x)).astype(np.uint8), cv2.COLORMAP_VIRIDIS)
+    img[depth_m <= 0] = 0
+    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
+
+
+def sensor_depth_sheet(ds: Path, S: pd.DataFrame, path: Path, *, tile: int = 320) -> bool:
+    """One row per depth sensor model in the dataset: a colour frame, its exact depth and the sensor's depth
+    (one colour scale a row, black = no measurement). False (nothing written) without sensor depth maps."""
+    if "sensor_depth_file" not in S.columns or "sensor_depth_model" not in S.columns:
+        return False
+    rows = S[S.sensor_depth_file.notna() & S.depth_file.notna()].sort_values("image_id")
+    picks = [g.iloc[len(g) // 2] for _, g in rows.groupby("sensor_depth_model")]
+    picks = [r for r in picks if _read_depth_m(ds, r.depth_file) is not None]
+    picks = [r for r in picks if _read_depth_m(ds, r.sensor_depth_file) is not None]
+    if not picks:
+        return False
+    first = picks[0]
+    tile_h = int(round(tile * first.height / max(first.width, first.height)))
+    sheet = np.full((len(picks) * (tile_h + 18), 3 * tile, 3), 30, np.uint8)
+    for r, row in enumerate(picks):
+        rgb = cv2.cvtColor(cv2.imread(str(ds / row.file_name)), cv2.COLOR_BGR2RGB)
+        exact, sensed = _read_depth_m(ds, row.depth_file), _read_depth_m(ds, row.sensor_depth_file)
+        surface = exact[exact > 0]
+        lo, hi = np.percentile(surface, [1, 99]) if surface.size else (0.0, 1.0)
+        panels = [rgb, _depth_colour(exact, lo, hi), _depth_colour(sensed, lo, hi)]
+        share = float((sensed[exact > 0] > 0).mean()) if surface.size else 0.0
+        titles = [
+            f"{row.image_id}",
+            f"exact depth {lo:.2f}-{hi:.2f} m",
+            f"{row.sensor_depth_model}: {share:.0%} measured",
+        ]
+        y = r * (tile_h + 18)
+        for c, (img, title) in enumerate(zip(panels, titles, strict=True)):
+            scale = tile / max(img.shape[:2])
+            size = (int(img.shape[1] * scale), int(img.shape[0] * scale))
+            img = cv2.resize(img, size, interpolation=cv2.INTER_NEAREST if c else cv2.INTER_AREA)
+            sheet[y + 18 : y + 18 + img.shape[0], c * tile : c * tile + img.shape[1]] = img
+            cv2.putText(
+                sheet,
+                title[:44],
+                (c * tile + 3, y + 13),
+                cv2.FONT_HERSHEY_SIMPLEX,
+                0.36,
+                (230, 230, 230),
+                1,
+                cv2.LINE_AA,
+            )
+    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    return True

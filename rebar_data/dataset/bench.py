@@ -62,7 +62,7 @@ def run() -> list[str]:
 
 
 # the stages of a frame in a build worker, in order; "render" holds the renderer's own three
-FRAME_STAGES = ("scene", "render", "labels", "png", "write")
+FRAME_STAGES = ("scene", "render", "depth_sensor", "labels", "png", "write")
 RENDER_STAGES = ("filament", "rays", "sensor")
 
 
@@ -103,7 +103,12 @@ def _breakdown_lines(cfg_path: Path, tmp: Path, *, trajectories: int = 3) -> lis
         f"depth/instance rays {render['rays'] * 1000:.0f} ms",
         f"sensor effects {render['sensor'] * 1000:.0f} ms",
     ]
-    parts += [f"labels {frame['labels'] * 1000:.0f} ms", f"PNG encoding {frame['png'] * 1000:.0f} ms"]
+    parts += [
+        f"depth sensor {frame['depth_sensor'] * 1000:.0f} ms "
+        f"({frame['depth_sensor'] / max(render['filament'], 1e-9):.0%} of the Filament render)",
+        f"labels {frame['labels'] * 1000:.0f} ms",
+        f"PNG encoding {frame['png'] * 1000:.0f} ms",
+    ]
     parts += [f"file writes {frame['write'] * 1000:.0f} ms", f"scene changes {frame['scene'] * 1000:.0f} ms"]
     if other > 0.0005:
         parts.append(f"rest {other * 1000:.0f} ms")

@@ -429,6 +429,7 @@ def make_info(cfg: PipelineConfig, plan: Plan, records: dict[str, FrameRecord]) 
             "visibility": "0 outside the image, 1 inside but occluded, 2 visible",
             "yolo_coco_objects": "visible keypoints (visibility 2) only",
             "depth_png": "uint16 millimetres of camera-frame z, 0 = no hit",
+            "sensor_depth_png": "uint16 millimetres of z as the frame's depth sensor reports it, 0 = no measurement",
             "instance_png": "uint16 instance id + 3: 0 distractor, 1 ground/background, 2 nothing, 3+ rebar part id + 3",
         },
         description=cfg.description,

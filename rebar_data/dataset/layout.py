@@ -11,9 +11,9 @@ import warnings
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
-SCHEMA_VERSION = (
-    "2.2.0"  # 2.1: info.json records the renderer; 2.2: data.yaml has kpt_oks_sigmas and flip_idx
-)
+# 2.1: info.json records the renderer; 2.2: data.yaml has kpt_oks_sigmas and flip_idx; 2.3: sensor_depth/
+# beside depth/, with the samples table's sensor_depth_file and sensor_depth_* columns
+SCHEMA_VERSION = "2.3.0"
 SPLITS = ("train", "val", "test")
 KEYPOINT_NAMES = ["intersection"]
 CATEGORY = "rebar_crossing"
@@ -27,6 +27,13 @@ KEYPOINTS = "tables/keypoints.parquet"
 AUDIT_DIR = "audit"
 # The samples table's randomized columns (beyond its field list): lights, materials, surroundings, sensor.
 RANDOMIZED_PREFIXES = ("light_", "mat_", "surr_", "sensor_")
+# listed columns that carry a randomized prefix but name a file
+FILE_COLUMNS = ("sensor_depth_file",)
+
+
+def randomized_columns(columns) -> list[str]:
+    """The samples table's randomized columns among ``columns`` (a prefix of RANDOMIZED_PREFIXES, not a file)."""
+    return [c for c in columns if c.startswith(RANDOMIZED_PREFIXES) and c not in FILE_COLUMNS]
 
 
 def image_path(split: str, image_id: str) -> str:
@@ -39,6 +46,10 @@ def label_path(split: str, image_id: str) -> str:
 
 def depth_path(split: str, image_id: str) -> str:
     return f"depth/{split}/{image_id}.png"
+
+
+def sensor_depth_path(split: str, image_id: str) -> str:
+    return f"sensor_depth/{split}/{image_id}.png"
 
 
 def instance_path(split: str, image_id: str) -> str:

@@ -23,6 +23,13 @@ from rebar_data.scene.sample import SceneSample, sample_scene
 
 # spawn keys of the independent seed streams (the mesh uses SeedSequence(seed).spawn directly)
 _SCENES, _TRAJECTORIES, _FRAMES, _SPLITS = 101, 102, 103, 104
+_DEPTH_SENSOR = 105  # below a sample's own stream
+
+
+def depth_sensor_seed(sample_seed: np.random.SeedSequence) -> np.random.SeedSequence:
+    """The stream of a sample's depth sensor draws: a child of the sample's stream that nothing else uses,
+    so the depth sensor leaves the sample's other draws (its sensor effects, the render noise) untouched."""
+    return np.random.SeedSequence(sample_seed.entropy, spawn_key=(*sample_seed.spawn_key, _DEPTH_SENSOR))
 
 
 @dataclass(frozen=True)

@@ -5,12 +5,13 @@ Checks, each failure one line ``<check>: <file> ...: <what is wrong>; expected <
 - contract: ``meta/info.json``, ``data.yaml`` and the COCO files against their JSON Schemas in
   ``schemas/``; the tables' columns and types against the field lists there;
 - manifest: every file listed in ``meta/manifest.parquet`` with its size and sha256, and nothing else;
-- content: every image, depth map and instance map decodes at its row's width and height with its type
-  (RGB uint8 3 channels; depth and instances uint16 1 channel); every number of the tables, the YOLO files
+- content: every image, depth map (exact and sensor) and instance map decodes at its row's width and height
+  with its type (RGB uint8 3 channels; depths and instances uint16 1 channel, 0 = no depth); every number of the tables, the YOLO files
   and the COCO files is finite and in its range (units and meanings in ``schemas/tables/``);
-- references: every table row's files exist at their layout paths (a depth or instance map exactly when
-  the config's ``dataset.store_depth``/``store_instances`` says so), every file under ``images/``,
-  ``depth/``, ``instances/`` and ``labels/`` belongs to a row, keypoint rows to sample rows of the same split
+- references: every table row's files exist at their layout paths (both depth maps, from schema 2.3, or an
+  instance map exactly when the config's ``dataset.store_depth``/``store_instances`` says so), every file
+  under ``images/``, ``depth/``, ``sensor_depth/``, ``instances/`` and ``labels/`` belongs to a row,
+  a sensor depth map's row names its model, keypoint rows to sample rows of the same split
   (one per crossing per image), COCO annotations to an image and a category of their file, COCO images to
   sample rows, and the tables' counts and image hashes to the keypoints table and the manifest.
 
@@ -65,6 +66,7 @@ _TYPES = {
 _PICTURES = {
     "images": ("file_name", np.uint8, 3),
     "depth": ("depth_file", np.uint16, 1),
+    "sensor_depth": ("sensor_depth_file", np.uint16, 1),
     "instances": ("instance_file", np.uint16, 1),
 }
 
@@ -128,8 +130,9 @@ def validate_dataset(path: Path, *, note: Callable[[str], None] = print) -> list
     for rel, what in foreign.items():
         note(f"note: {rel}: {what}; not part of the dataset (not checked, not published)")
     info_dict = _check_info(path, f)
-    samples = _check_table(path, layout.SAMPLES, "samples", f)
-    keypoints = _check_table(path, layout.KEYPOINTS, "keypoints", f)
+    built = _schema_minor(info_dict)
+    samples = _check_table(path, layout.SAMPLES, "samples", f, built)
+    keypoints = _check_table(path, layout.KEYPOINTS, "keypoints", f, built)
     S = samples.to_pandas() if samples is not None else None
     with ThreadPoolExecutor(max_workers=os.cpu_count() or 1) as pool:
         # the pictures decode in the pool (OpenCV releases the GIL) while this thread checks the rest
@@ -238,9 +241,10 @@ def _check_data_yaml(path: Path, info: dict, f: Failures, note: Callable[[str], 
         f.add("data.yaml", f"kpt_oks_sigmas = {d['kpt_oks_sigmas']!r}; expected [{sigma}] (info.json)")
 
 
-def _check_table(path: Path, rel: str, name: str, f: Failures) -> pa.Table | None:
+def _check_table(path: Path, rel: str, name: str, f: Failures, built: tuple[int, int]) -> pa.Table | None:
     """The table when it reads and has every listed column, each cast to its listed type for the value checks
-    (a column of another type is a failure; one that does not cast leaves no table to check further)."""
+    (a column of another type is a failure; one that does not cast leaves no table to check further). A
+    field ``since`` a later schema than the dataset's (``built``) may be absent: it reads as nulls."""
     p = path / rel
     if not p.exists():
         f.add(name, f"{rel} is missing")
@@ -252,6 +256,10 @@ def _check_table(path: Path, rel: str, name: str, f: Failures) -> pa.Table | Non
         return None
     complete = True
     for fld in field_list(name):
+        since = tuple(int(x) for x in str(fld.get("since", "0.0")).split("."))
+        if fld["name"] not in t.column_names and built < since:
+            t = t.append_column(fld["name"], pa.nulls(len(t), _TYPES[fld["type"]]))
+            continue
         if fld["name"] not in t.column_names:
             f.add(name, f"column {fld['name']} is missing")
             complete = False
@@ -325,7 +333,7 @@ def _check_samples(S: pd.DataFrame, info: dict, hashes: dict[str, str], f: Failu
     for col in ("frame", "sample_index", "n_visible", "n_occluded"):
         c.rule(col, ~(S[col].to_numpy(float) >= 0), ">= 0")
     _check_poses(c, S)
-    for col in (x for x in S.columns if x.startswith(layout.RANDOMIZED_PREFIXES)):
+    for col in layout.randomized_columns(S.columns):
         if pd.api.types.is_bool_dtype(S[col]) or not pd.api.types.is_numeric_dtype(S[col]):
             c.rule(col, S[col].isna().to_numpy(), "a value")
             continue
@@ -337,8 +345,10 @@ def _check_samples(S: pd.DataFrame, info: dict, hashes: dict[str, str], f: Failu
             c.rule(col, ok & ~(x > 0), "> 0 (a colour temperature)")
     files = [layout.image_path(s, i) for s, i in zip(S["split"], ids, strict=True)]
     c.rule("file_name", S["file_name"].to_numpy() != np.array(files, object), "images/<split>/<image_id>.png")
+    sensor_depth = _schema_minor(info) >= (2, 3)  # stored beside the depth maps since 2.3
     for col, key, template in (
         ("depth_file", "store_depth", layout.depth_path),
+        *([("sensor_depth_file", "store_depth", layout.sensor_depth_path)] if sensor_depth else []),
         ("instance_file", "store_instances", layout.instance_path),
     ):
         want = [template(s, i) for s, i in zip(S["split"], ids, strict=True)]
@@ -348,6 +358,15 @@ def _check_samples(S: pd.DataFrame, info: dict, hashes: dict[str, str], f: Failu
             c.rule(col, wrong, f"{template('<split>', '<image_id>')} (dataset.{key} is true)")
         else:
             c.rule(col, [g is not None for g in named], f"null (dataset.{key} is false)")
+    if "sensor_depth_model" in S.columns:
+        from rebar_data.scene.config import DEPTH_MODELS
+
+        named = S["sensor_depth_file"].notna().to_numpy()
+        c.rule(
+            "sensor_depth_model",
+            named & ~S["sensor_depth_model"].isin(DEPTH_MODELS).to_numpy(),
+            f"one of {', '.join(DEPTH_MODELS)}",
+        )
     if hashes:
         listed = [hashes.get(p) for p in S["file_name"]]
         c.rule(
@@ -419,6 +438,7 @@ def _check_unclaimed(path: Path, S: pd.DataFrame, foreign: dict[str, str], f: Fa
     claimed = {
         "images": set(S["file_name"]),
         "depth": set(S["depth_file"].dropna()),
+        "sensor_depth": set(S["sensor_depth_file"].dropna()),
         "instances": set(S["instance_file"].dropna()),
         "labels": {layout.label_path(s, i) for s, i in zip(S["split"], S["image_id"], strict=True)},
     }

@@ -1,6 +1,7 @@
 """Renders and labels the frames of one trajectory; one long-lived renderer per worker process.
 
-A worker writes its images (and depth and instance maps) into the staging folder and returns the
+A worker writes its images (and the exact and the sensor's depth maps, and instance maps) into the
+staging folder and returns the
 labels and per-frame parameters to the process that assembles the tables, so the tables do not
 depend on which worker did what.
 """
@@ -16,12 +17,13 @@ import cv2
 import numpy as np
 
 from rebar_data.dataset import layout
-from rebar_data.dataset.plan import Sample
+from rebar_data.dataset.plan import Sample, depth_sensor_seed
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
 from rebar_data.labels.keypoints import CrossingParts, FrameLabels, LabelRule, label_frame
 from rebar_data.pipeline import PipelineConfig
+from rebar_data.render.depth_sensor import depth_mm, sense_depth
 from rebar_data.scene.cameras import intrinsics_from_config
-from rebar_data.scene.sample import SceneSample, sample_sensor
+from rebar_data.scene.sample import SceneSample, sample_depth_sensor, sample_sensor
 from rebar_data.timing import StageTimer
 
 INSTANCE_OFFSET = 3  # instance maps store id + 3: 0 distractor, 1 surroundings, 2 nothing, 3+ rebar parts
@@ -49,7 +51,8 @@ class FrameWorker:
         self.rule = LabelRule(**cfg.labels.model_dump())
         self.renderer = renderer_class(cfg.render)(self.intrinsics, cfg.render)
         self.renderer.set_mesh(self.rm)
-        self.timer = StageTimer()  # seconds per stage of a frame: render, labels, png, write (for the bench)
+        # seconds per stage of a frame: render, depth_sensor, labels, png, write (for the bench)
+        self.timer = StageTimer()
 
     def run(self, scene: SceneSample, samples: list[Sample]) -> list[FrameRecord]:
         with self.timer("scene"):
@@ -64,6 +67,12 @@ class FrameWorker:
         sensor = sample_sensor(self.cfg.scene, rng)
         with timer("render"):
             frame = self.renderer.render(s.world_from_camera, sensor, rng)
+        sensed, depth_sensor = None, None
+        if self.cfg.dataset.store_depth:
+            with timer("depth_sensor"):
+                depth_rng = np.random.default_rng(depth_sensor_seed(s.seed))
+                depth_sensor = sample_depth_sensor(self.cfg.scene, depth_rng)
+                sensed = sense_depth(frame.depth_m, depth_sensor, depth_rng, fx=self.intrinsics.fx)
         with timer("labels"):
             labels = label_frame(
                 self.rm, self.parts, s.world_from_camera, self.intrinsics, self.renderer.cast_rays, self.rule
@@ -73,15 +82,16 @@ class FrameWorker:
             png = _encode(cv2.cvtColor(frame.rgb, cv2.COLOR_RGB2BGR))
             files.append((layout.image_path(s.split, s.image_id), png))
             if self.cfg.dataset.store_depth:
-                depth_mm = np.clip(np.round(frame.depth_m * 1000.0), 0, 65535).astype(np.uint16)
-                files.append((layout.depth_path(s.split, s.image_id), _encode(depth_mm)))
+                files.append((layout.depth_path(s.split, s.image_id), _encode(depth_mm(frame.depth_m))))
+                files.append((layout.sensor_depth_path(s.split, s.image_id), _encode(depth_mm(sensed))))
             if self.cfg.dataset.store_instances:
                 inst = (frame.instance + INSTANCE_OFFSET).astype(np.uint16)
                 files.append((layout.instance_path(s.split, s.image_id), _encode(inst)))
         with timer("write"):
             for path, data in files:
                 _write(self.staging / path, data)
-        return FrameRecord(s.image_id, labels, sensor.record(), hashlib.sha256(png).hexdigest())
+        record = sensor.record() | (depth_sensor.record() if depth_sensor is not None else {})
+        return FrameRecord(s.image_id, labels, record, hashlib.sha256(png).hexdigest())
 
     def close(self) -> None:
         self.renderer.close()

@@ -36,8 +36,8 @@ CARD = "README.md"
 CROISSANT = "croissant.json"
 CHECKSUMS = "SHA256SUMS"
 VIEW_DIRS = ("images", "labels", "annotations", "tables")
-MAP_DIRS = ("depth", "instances")
-IMAGE_DIRS = ("images", "depth", "instances")  # hard-linked when possible
+MAP_DIRS = ("depth", "sensor_depth", "instances")
+IMAGE_DIRS = ("images", "depth", "sensor_depth", "instances")  # hard-linked when possible
 AUDIT_FILES = (
     "report.json",
     "report.md",
@@ -195,7 +195,7 @@ def publish_dataset(
 
     Args:
         license_id: a Hugging Face license id (see ``card.LICENSES``).
-        maps: also ship the depth and instance maps (as PNG files).
+        maps: also ship the depth maps (exact and sensor) and instance maps (as PNG files).
         force: replace ``out`` when it holds an earlier bundle (a folder holding anything else is refused).
         allow_failed_audit: publish a dataset whose audit failed (the card says so).
     """

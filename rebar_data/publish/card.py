@@ -193,6 +193,7 @@ def dataset_card(
     if maps:
         lines += [
             "depth/<split>/<image_id>.png           uint16 PNG, camera-frame z in millimetres (0 = nothing)",
+            "sensor_depth/<split>/<image_id>.png    uint16 PNG, the depth sensor's z in mm (0 = no measurement)",
             "instances/<split>/<image_id>.png       uint16 PNG, instance id + 3 (0 distractor, 1 ground, 2 none)",
         ]
     lines += [

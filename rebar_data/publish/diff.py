@@ -334,7 +334,7 @@ def _distributions(
     d.distributions.append(
         _category_shift("visibility of keypoint rows", ka.visibility.map(names), kb.visibility.map(names))
     )
-    cols = [c for c in sa.columns if c.startswith(layout.RANDOMIZED_PREFIXES) and c in sb.columns]
+    cols = [c for c in layout.randomized_columns(sa.columns) if c in sb.columns]
     for c in cols:
         a, b = sa[c], sb[c]
         if (

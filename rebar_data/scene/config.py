@@ -401,13 +401,86 @@ class SensorConfig(Strict):
     ] = (60, 95)
 
 
+DEPTH_MODELS = ("exact", "structured_light", "active_stereo", "time_of_flight")
+
+
+def _odd(r: tuple[int, int]) -> tuple[int, int]:
+    if r[0] % 2 == 0 or r[1] % 2 == 0:
+        raise ValueError(f"window {list(r)} has an even side; accepted: odd sides, such as [7, 9]")
+    return r
+
+
+OddWindow = Annotated[
+    tuple[Annotated[int, Field(ge=1, le=31)], Annotated[int, Field(ge=1, le=31)]],
+    AfterValidator(_ordered),
+    AfterValidator(_odd),
+]
+
+
+class StructuredLightConfig(Strict):
+    """A Kinect v1-like structured-light camera (sources in :mod:`rebar_data.render.depth_sensor`)."""
+
+    baseline_m: Positive = 0.075  # projector to IR camera; the projector sits at +x of the camera
+    focal_px: Positive = 580.0  # the IR camera's focal length, in which disparity is measured
+    disparity_step_px: Positive = 0.125  # disparity quantisation
+    window_px: OddWindow = (7, 9)  # correlation window side, drawn per frame (odd values)
+    noise_scale: NonNegativeRange = (0.8, 1.2)  # times the axial noise sigma(z) of Nguyen et al. (2012)
+    range_m: PositiveRange = (0.5, 4.5)  # nearest and farthest measured z
+
+
+class ActiveStereoConfig(Strict):
+    """A RealSense D4xx-like active stereo camera (sources in :mod:`rebar_data.render.depth_sensor`)."""
+
+    baseline_m: Positive = 0.050  # left to right imager; depth is in the left imager's frame
+    focal_px: Positive = 447.0  # the imagers' focal length at 848x480
+    subpixel_px: NonNegativeRange = (0.05, 0.1)  # disparity noise sigma (RMS subpixel error)
+    window_px: OddWindow = (5, 7)  # matching window side, drawn per frame (odd values)
+    max_disparity_px: Positive = 126.0  # disparity search range; sets the nearest measured z
+    far_m: Positive = 10.0  # farthest measured z
+
+
+class TimeOfFlightConfig(Strict):
+    """A Kinect v2 / Azure Kinect-like time-of-flight camera (sources in the module)."""
+
+    noise_m: NonNegativeRange = (0.001, 0.002)  # axial noise sigma at 1 m
+    noise_per_m: NonNegative = 0.001  # axial noise sigma added per metre of z
+    flying_pixel_probability: FractionRange = (0.5, 1.0)  # share of edge pixels that mix both depths
+    edge_jump_m: Positive = 0.02  # a z step above this across a pixel's neighbours is an edge
+    range_m: PositiveRange = (0.5, 4.5)  # nearest and farthest measured z
+
+
+class DepthSensorConfig(Strict):
+    """The depth sensor behind the dataset's ``sensor_depth/`` maps, drawn per frame.
+
+    ``models`` weighs the depth sensor models a frame is drawn from (``exact``, ``structured_light``,
+    ``active_stereo``, ``time_of_flight``); ``misregistration_px`` is the depth-to-colour offset, drawn per
+    frame in a random direction, applied to every model's output. The defaults, and why, are in
+    docs/dataset.md.
+    """
+
+    models: dict[str, float] = Field(
+        default_factory=lambda: {"active_stereo": 0.5, "structured_light": 0.3, "time_of_flight": 0.2}
+    )  # weight of each model
+    misregistration_px: NonNegativeRange = (0.0, 2.0)  # depth-to-colour offset magnitude
+    structured_light: StructuredLightConfig = StructuredLightConfig()
+    active_stereo: ActiveStereoConfig = ActiveStereoConfig()
+    time_of_flight: TimeOfFlightConfig = TimeOfFlightConfig()
+
+    @field_validator("models")
+    @classmethod
+    def _models(cls, v: dict[str, float]) -> dict[str, float]:
+        return _weights(v, DEPTH_MODELS)
+
+
 class SceneConfig(Strict):
-    """The pipeline's ``scene`` section: the lighting kit, the material kit, surroundings and the sensor."""
+    """The pipeline's ``scene`` section: the lighting kit, the material kit, surroundings, the colour
+    camera's sensor effects and the depth sensor."""
 
     lighting: LightingConfig = LightingConfig()
     materials: MaterialsConfig = MaterialsConfig()
     surroundings: SurroundingsConfig = SurroundingsConfig()
     sensor: SensorConfig = SensorConfig()
+    depth_sensor: DepthSensorConfig = DepthSensorConfig()
 
 
 class CyclesConfig(Strict):

@@ -1,4 +1,5 @@
-"""Draw every randomized choice of a scene (lights, rebar material, surroundings) and of a frame's sensor.
+"""Draw every randomized choice of a scene (lights, rebar material, surroundings) and of a frame's sensors
+(the colour camera's effects and the depth sensor).
 
 Every value is drawn whether it ends up used or not, in a fixed order, so one option's setting never
 shifts another's draws, and ``record()`` has the same columns for every sample of a config.
@@ -6,13 +7,15 @@ shifts another's draws, and ``record()`` has the same columns for every sample o
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from rebar_data.scene.config import (
+    DEPTH_MODELS,
     GROUND_KINDS,
     LAMP_KINDS,
+    DepthSensorConfig,
     LightingConfig,
     RebarMaterialConfig,
     SceneConfig,
@@ -331,3 +334,125 @@ def sample_sensor(cfg: SceneConfig | SensorConfig, rng: np.random.Generator) -> 
         vignetting=vignetting,
         jpeg_quality=quality if jpeg_on else 0,
     )
+
+
+@dataclass(frozen=True)
+class DepthSensorSample:
+    """One frame's depth sensor: its model and drawn parameters (0 where the model has no such parameter).
+
+    ``baseline_m`` is the projector's (structured light) or the second imager's (active stereo) offset along
+    the camera's +x; ``noise`` is the model's noise level: a scale of the axial sigma (structured light), the
+    disparity sigma in pixels (active stereo) or the axial sigma at 1 m in metres (time of flight).
+    """
+
+    model: str  # "exact" | "structured_light" | "active_stereo" | "time_of_flight"
+    baseline_m: float
+    focal_px: float
+    disparity_step_px: float
+    window_px: int
+    noise: float
+    noise_per_m: float
+    flying_pixel_probability: float
+    edge_jump_m: float
+    near_m: float
+    far_m: float
+    shift_x_px: float  # depth-to-colour misregistration
+    shift_y_px: float
+
+    def record(self) -> Record:
+        return _flat("sensor_depth_", self)
+
+
+def _odd_window(rng: np.random.Generator, r: tuple[int, int]) -> int:
+    return int(r[0] + 2 * rng.integers(0, (r[1] - r[0]) // 2 + 1))
+
+
+def sample_depth_sensor(cfg: SceneConfig | DepthSensorConfig, rng: np.random.Generator) -> DepthSensorSample:
+    """Draw one frame's depth sensor (``cfg`` is the scene config or its ``depth_sensor`` section)."""
+    d = cfg.depth_sensor if isinstance(cfg, SceneConfig) else cfg
+    model = _choice(rng, d.models, DEPTH_MODELS)
+    sl, st, tof = d.structured_light, d.active_stereo, d.time_of_flight
+    sl_window, sl_noise = _odd_window(rng, sl.window_px), _u(rng, sl.noise_scale)
+    st_window, st_noise = _odd_window(rng, st.window_px), _u(rng, st.subpixel_px)
+    tof_noise, tof_fly = _u(rng, tof.noise_m), _u(rng, tof.flying_pixel_probability)
+    shift = _u(rng, d.misregistration_px)
+    angle = float(rng.uniform(0.0, 2.0 * np.pi))
+    dx, dy = shift * float(np.cos(angle)), shift * float(np.sin(angle))
+    zero = dict(
+        baseline_m=0.0,
+        focal_px=0.0,
+        disparity_step_px=0.0,
+        window_px=0,
+        noise=0.0,
+        noise_per_m=0.0,
+        flying_pixel_probability=0.0,
+        edge_jump_m=0.0,
+        near_m=0.0,
+        far_m=0.0,
+    )
+    if model == "structured_light":
+        zero.update(
+            baseline_m=sl.baseline_m,
+            focal_px=sl.focal_px,
+            disparity_step_px=sl.disparity_step_px,
+            window_px=sl_window,
+            noise=sl_noise,
+            near_m=sl.range_m[0],
+            far_m=sl.range_m[1],
+        )
+    elif model == "active_stereo":
+        zero.update(
+            baseline_m=st.baseline_m,
+            focal_px=st.focal_px,
+            window_px=st_window,
+            noise=st_noise,
+            near_m=st.focal_px * st.baseline_m / st.max_disparity_px,
+            far_m=st.far_m,
+        )
+    elif model == "time_of_flight":
+        zero.update(
+            noise=tof_noise,
+            noise_per_m=tof.noise_per_m,
+            flying_pixel_probability=tof_fly,
+            edge_jump_m=tof.edge_jump_m,
+            near_m=tof.range_m[0],
+            far_m=tof.range_m[1],
+        )
+    return DepthSensorSample(model=model, shift_x_px=dx, shift_y_px=dy, **zero)
+
+
+def nominal_depth_sensor(
+    model: str, cfg: DepthSensorConfig | None = None, *, noise: bool = True
+) -> DepthSensorSample:
+    """A depth sensor at fixed parameters (no draw): the middle of each range, the largest window, no
+    misregistration; ``noise`` false zeroes its noise. For a camera that stays one device (the robot's)."""
+    d = cfg if cfg is not None else DepthSensorConfig()
+    if model not in DEPTH_MODELS:
+        raise ValueError(f"depth sensor model {model!r} is unknown; accepted: {', '.join(DEPTH_MODELS)}")
+    mid = {
+        "structured_light": {"window_px": (d.structured_light.window_px[1],) * 2},
+        "active_stereo": {"window_px": (d.active_stereo.window_px[1],) * 2},
+    }
+    fixed = d.model_copy(
+        update={
+            "models": {model: 1.0},
+            "misregistration_px": (0.0, 0.0),
+            "structured_light": d.structured_light.model_copy(update=mid["structured_light"]),
+            "active_stereo": d.active_stereo.model_copy(update=mid["active_stereo"]),
+        }
+    )
+    s = sample_depth_sensor(fixed, _Middle())
+    return replace(s, noise=0.0, noise_per_m=0.0) if not noise else s
+
+
+class _Middle:
+    """A stand-in generator that draws the middle of every range (and the first choice)."""
+
+    def uniform(self, low=0.0, high=1.0, size=None):
+        return 0.0 if (low, high) == (0.0, 2.0 * np.pi) else (low + high) / 2.0
+
+    def integers(self, low, high=None, size=None):
+        return 0
+
+    def choice(self, n, p=None):
+        return int(np.argmax(p)) if p is not None else 0

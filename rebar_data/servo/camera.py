@@ -1,4 +1,6 @@
-"""The eye-in-hand RGB-D camera: a Kinect v1 pinhole model, its depth noise, projection and back-projection.
+"""The eye-in-hand RGB-D camera: a Kinect v1 pinhole model, projection, back-projection and depth reading.
+
+Its depth image comes from the shared depth sensor models (:mod:`rebar_data.render.depth_sensor`).
 
 Pixels use COCO's corner origin (``u = fx * x / z + cx``) and the camera frame is OpenCV's (x right,
 y down, z forward), as everywhere in the project.
@@ -16,12 +18,7 @@ import numpy as np
 
 KINECT_FOV_X_DEG = 57.0
 KINECT_WIDTH, KINECT_HEIGHT = 640, 480
-# Depth sensor: structured light with a 75 mm baseline, ~580 px focal length and 1/8 px disparity steps
-# (Khoshelham and Elberink, 2012), range 0.5-4.5 m; axial noise from Nguyen, Izadi and Lovell (2012).
-KINECT_BASELINE_M = 0.075
-KINECT_DEPTH_FOCAL_PX = 580.0
-KINECT_DISPARITY_STEP_PX = 1.0 / 8.0
-KINECT_RANGE_M = (0.5, 4.5)
+KINECT_RANGE_M = (0.5, 4.5)  # the structured-light depth sensor's range (rebar_data.render.depth_sensor)
 
 
 @dataclass(frozen=True)
@@ -80,30 +77,6 @@ class CameraModel:
             -1, 3
         )
         return d / np.linalg.norm(d, axis=1, keepdims=True)
-
-
-def kinect_depth_sigma_m(z_m: np.ndarray) -> np.ndarray:
-    """Axial depth noise of a Kinect v1: ``0.0012 + 0.0019 (z - 0.4)^2`` m (Nguyen, Izadi and Lovell, 2012)."""
-    return 0.0012 + 0.0019 * (np.asarray(z_m) - 0.4) ** 2
-
-
-def kinect_depth(depth_m: np.ndarray, rng: np.random.Generator, *, noise: bool = True) -> np.ndarray:
-    """What a Kinect v1 reports for an exact metric depth image: noise, disparity quantisation, range.
-
-    Gaussian axial noise with :func:`kinect_depth_sigma_m`, then quantised to 1/8 px disparity steps of
-    the 75 mm, 580 px structured-light pair (so the step grows as z^2: 0.9 mm at 0.55 m, 46 mm at 4 m);
-    depth outside 0.5-4.5 m and missing surfaces read 0 (no measurement).
-    """
-    z = np.asarray(depth_m, np.float64)
-    valid = (z >= KINECT_RANGE_M[0]) & (z <= KINECT_RANGE_M[1])
-    out = np.zeros_like(z)
-    zv = z[valid]
-    if noise:
-        zv = zv + rng.normal(0.0, 1.0, zv.shape) * kinect_depth_sigma_m(zv)
-    fb = KINECT_DEPTH_FOCAL_PX * KINECT_BASELINE_M
-    disparity = np.round(fb / zv / KINECT_DISPARITY_STEP_PX) * KINECT_DISPARITY_STEP_PX
-    out[valid] = fb / disparity
-    return out.astype(np.float32)
 
 
 def depth_at(depth_m: np.ndarray, uv: np.ndarray, *, window_px: int = 5, percentile: float = 50.0) -> float:

@@ -47,10 +47,15 @@ class WorldConfig(Strict):
 
 
 class CameraConfig(Strict):
-    """Kinect v1: 640x480 with square pixels; ``fov_x_deg`` sets fx = fy (57 deg gives 589.4 px)."""
+    """Kinect v1: 640x480 with square pixels; ``fov_x_deg`` sets fx = fy (57 deg gives 589.4 px). Its depth
+    image comes from ``depth_sensor``, a model of :mod:`rebar_data.render.depth_sensor` at the middle of the
+    dataset default's parameters (``rebar_data.scene.sample.nominal_depth_sensor``)."""
 
     fov_x_deg: Annotated[float, Field(gt=10, lt=150)] = 57.0
-    depth_noise: bool = True
+    depth_sensor: Literal["structured_light", "active_stereo", "time_of_flight", "exact"] = (
+        "structured_light"  # the depth sensor model: Kinect v1-like structured light by default
+    )
+    depth_noise: bool = True  # the depth sensor's noise (off: its shadows, window, steps and range only)
     depth_window_px: Annotated[int, Field(ge=1, le=31)] = 5
 
 

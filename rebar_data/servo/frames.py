@@ -1,7 +1,8 @@
 """Camera frames for the servo loop: the project's renderer (the detector's own domain) or a fast ray cast.
 
-Both sources return what the eye-in-hand Kinect would report: an RGB image and a metric depth image
-with the Kinect v1 noise model applied (:func:`rebar_data.servo.camera.kinect_depth`).
+Both sources return what the eye-in-hand RGB-D camera would report: an RGB image and the metric depth
+image of its depth sensor model (:func:`rebar_data.render.depth_sensor.sense_depth`; the suite's
+``camera.depth_sensor``, Kinect v1-like structured light by default).
 
 - ``renderer``: :class:`rebar_data.render.renderer.Renderer` with the dataset's materials and lights, so
   a trained detector sees images like those it was trained on.
@@ -18,8 +19,10 @@ import numpy as np
 
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.render.depth_sensor import sense_depth
 from rebar_data.scene.config import SceneConfig
-from rebar_data.servo.camera import CameraModel, kinect_depth
+from rebar_data.scene.sample import DepthSensorSample, nominal_depth_sensor
+from rebar_data.servo.camera import CameraModel
 from rebar_data.servo.raycast import Raycaster
 
 
@@ -44,14 +47,23 @@ class FrameSource(Protocol):
 class RaycastFrames:
     """Frames shaded from an exact ray cast: rebar in a rust colour, a uniform dark background."""
 
-    def __init__(self, rm: RebarMesh, camera: CameraModel, raycaster: Raycaster, *, depth_noise: bool = True):
+    def __init__(
+        self,
+        rm: RebarMesh,
+        camera: CameraModel,
+        raycaster: Raycaster,
+        *,
+        depth_sensor: DepthSensorSample | None = None,
+    ):
         self.camera = camera
         self._raycaster = raycaster
         self._dirs_camera = camera.ray_directions().astype(np.float32)
         self._rays = np.empty((len(self._dirs_camera), 6), np.float32)
         self._albedo = np.array([150.0, 95.0, 62.0], np.float32)
         self._background = np.array([38.0, 40.0, 44.0], np.float32)
-        self._depth_noise = depth_noise
+        self._depth_sensor = (
+            depth_sensor if depth_sensor is not None else nominal_depth_sensor("structured_light")
+        )
 
     def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> Frame:
         cam = self.camera
@@ -71,7 +83,7 @@ class RaycastFrames:
         rgb = np.where(hit[:, None], shade[:, None] * self._albedo, self._background)
         rgb += rng.standard_normal(rgb.shape, dtype=np.float32) * 1.5
         rgb = np.clip(rgb, 0, 255).astype(np.uint8).reshape(cam.height, cam.width, 3)
-        depth = kinect_depth(z.reshape(cam.height, cam.width), rng, noise=self._depth_noise)
+        depth = sense_depth(z.reshape(cam.height, cam.width), self._depth_sensor, rng, fx=cam.fx)
         return Frame(rgb, depth)
 
     def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -96,7 +108,7 @@ class RendererFrames:
         rng: np.random.Generator,
         *,
         shadows: bool = False,
-        depth_noise: bool = True,
+        depth_sensor: DepthSensorSample | None = None,
         scene: SceneConfig | None = None,
     ):
         try:
@@ -119,7 +131,9 @@ class RendererFrames:
         self._renderer.set_scene(sample_scene(self._scene_cfg, rng))
         self._sample_sensor = sample_sensor
         self.new_sensor(rng)
-        self._depth_noise = depth_noise
+        self._depth_sensor = (
+            depth_sensor if depth_sensor is not None else nominal_depth_sensor("structured_light")
+        )
 
     def new_sensor(self, rng: np.random.Generator) -> None:
         """Draw the camera's sensor settings (done per episode)."""
@@ -127,7 +141,7 @@ class RendererFrames:
 
     def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> Frame:
         f = self._renderer.render(world_from_camera, self._sensor, rng)
-        depth = kinect_depth(np.asarray(f.depth_m), rng, noise=self._depth_noise)
+        depth = sense_depth(np.asarray(f.depth_m), self._depth_sensor, rng, fx=self.camera.fx)
         return Frame(np.ascontiguousarray(f.rgb[..., :3]), depth)
 
     def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

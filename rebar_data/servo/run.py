@@ -24,6 +24,7 @@ import pyarrow.parquet as pq
 from rebar_data.config import ConfigError
 from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_folder
 from rebar_data.pipeline import load_pipeline
+from rebar_data.scene.sample import nominal_depth_sensor
 from rebar_data.servo.camera import CameraModel
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.detectors import GroundTruthDetector, load_shipped_detector
@@ -67,6 +68,11 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
     world = ServoWorld(suite.world, rm)
     root_seq = np.random.SeedSequence(suite.seed)
     scene_rng = np.random.default_rng(root_seq.spawn(1)[0])
+    depth_sensor = nominal_depth_sensor(
+        suite.camera.depth_sensor,
+        suite.scene.depth_sensor,
+        noise=suite.camera.depth_noise,
+    )
     if suite.frames == "renderer":
         try:
             frames = RendererFrames(
@@ -74,14 +80,14 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
                 camera,
                 scene_rng,
                 shadows=suite.shadows,
-                depth_noise=suite.camera.depth_noise,
+                depth_sensor=depth_sensor,
                 scene=suite.scene,
             )
         except BaseException:
             world.close()
             raise
     else:
-        frames = RaycastFrames(rm, camera, Raycaster(rm), depth_noise=suite.camera.depth_noise)
+        frames = RaycastFrames(rm, camera, Raycaster(rm), depth_sensor=depth_sensor)
     base = shipped or GroundTruthDetector(rm, camera, frames.cast_rays, world.world_from_camera)
 
     def make_detector(rng: np.random.Generator):

@@ -1,7 +1,9 @@
 from __future__ import annotations
 
 import hashlib
+import json
 
+import numpy as np
 import pyarrow.parquet as pq
 import pytest
 
@@ -201,3 +203,98 @@ def test_dataset_card_states_the_dataset_and_its_cocoeval_snippet_scores_the_lab
     assert run.returncode == 0, run.stderr
     ap, ap50 = (float(x) for x in re.search(r"AP ([0-9.]+) .*AP@0.5 ([0-9.]+)", run.stdout).groups())
     assert ap == pytest.approx(1.0) and ap50 == pytest.approx(1.0), run.stdout
+
+
+def test_the_dataset_keeps_the_exact_and_the_sensor_depth(tiny_dataset):
+    """depth/ is the exact z the labels are checked against; sensor_depth/ is what the frame's depth sensor
+    reports (0 = no measurement); the samples table names the file, the model and its drawn parameters."""
+    import cv2
+    import pandas as pd
+
+    from rebar_data.scene.config import DEPTH_MODELS
+
+    S = pd.read_parquet(tiny_dataset / "tables/samples.parquet")
+    assert (S.sensor_depth_file == "sensor_depth/" + S.split + "/" + S.image_id + ".png").all()
+    assert S.sensor_depth_model.isin(DEPTH_MODELS).all() and S.sensor_depth_model.nunique() > 1
+    assert {"sensor_depth_baseline_m", "sensor_depth_window_px", "sensor_depth_shift_x_px"} <= set(S.columns)
+    differs = 0
+    for row in S.itertuples():
+        exact = cv2.imread(str(tiny_dataset / row.depth_file), cv2.IMREAD_UNCHANGED)
+        sensed = cv2.imread(str(tiny_dataset / row.sensor_depth_file), cv2.IMREAD_UNCHANGED)
+        assert sensed.dtype == np.uint16 and sensed.shape == exact.shape
+        differs += not np.array_equal(exact, sensed)
+    assert differs == len(S)
+
+
+def test_the_audit_reports_the_sensor_depth_per_model_and_draws_it_beside_the_colour_frame(tiny_dataset):
+    import pandas as pd
+
+    S = pd.read_parquet(tiny_dataset / "tables/samples.parquet")
+    checks, stats = audit_dataset(tiny_dataset)
+    assert all(c.passed for c in checks)
+    assert set(stats["sensor_depth"]) == set(S.sensor_depth_model)
+    for model, m in stats["sensor_depth"].items():
+        assert m["images"] == int((S.sensor_depth_model == model).sum())
+        assert 0.0 <= m["valid_fraction_min"] <= m["valid_fraction_mean"] <= m["valid_fraction_max"] <= 1.0
+    assert (tiny_dataset / "audit/sensor_depth.png").stat().st_size > 0
+    assert "## Sensor depth" in (tiny_dataset / "audit/report.md").read_text()
+
+
+def test_the_sensor_depth_draws_leave_the_images_and_the_exact_depth_byte_identical(tiny_dataset, tmp_path):
+    """The depth sensor draws from its own stream: another sensor mix gives the same images and depth/."""
+    import yaml
+
+    from rebar_data.dataset.build import build_dataset
+
+    from .conftest import TINY, write_config
+
+    exact_only = {**TINY, "scene": {"depth_sensor": {"models": {"exact": 1.0}, "misregistration_px": [0, 0]}}}
+    other = build_dataset(write_config(tmp_path / "cfg", exact_only), tmp_path / "out", workers=1)
+    for folder in ("images", "depth"):
+        files = sorted(p.relative_to(tiny_dataset) for p in (tiny_dataset / folder).rglob("*.png"))
+        assert files and all((tiny_dataset / f).read_bytes() == (other / f).read_bytes() for f in files)
+    for f in (other / "sensor_depth").rglob("*.png"):  # exact, unshifted: the exact depth itself
+        assert f.read_bytes() == (other / "depth" / f.relative_to(other / "sensor_depth")).read_bytes()
+    assert yaml.safe_load((other / "data.yaml").read_text())
+
+
+def test_a_dataset_of_the_schema_before_sensor_depth_still_validates(tiny_dataset, tmp_path):
+    """A 2.2 dataset has no sensor_depth/ nor its columns and validates; a 2.3 one without them fails."""
+    import shutil
+
+    import pyarrow.parquet as pq
+
+    from rebar_data.dataset.writers.manifest import write_manifest
+
+    old = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, old)
+    shutil.rmtree(old / "sensor_depth")
+    t = pq.read_table(old / "tables/samples.parquet")
+    pq.write_table(
+        t.select([c for c in t.column_names if not c.startswith("sensor_depth_")]),
+        old / "tables/samples.parquet",
+    )
+    write_manifest(old)
+    assert any("sensor_depth_file is missing" in f for f in validate_dataset(old, note=lambda s: None))
+    info = json.loads((old / "meta/info.json").read_text())
+    info["schema_version"] = "2.2.0"
+    (old / "meta/info.json").write_text(json.dumps(info, indent=2))
+    write_manifest(old)
+    assert validate_dataset(old, note=lambda s: None) == []
+
+
+def test_validate_names_a_sensor_depth_map_of_the_wrong_type(tiny_dataset, tmp_path):
+    import shutil
+
+    import cv2
+    import pandas as pd
+
+    from rebar_data.dataset.writers.manifest import write_manifest
+
+    bad = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, bad)
+    rel = pd.read_parquet(bad / "tables/samples.parquet").sensor_depth_file.iloc[0]
+    cv2.imwrite(str(bad / rel), np.zeros((120, 160), np.uint8))
+    write_manifest(bad)
+    failures = validate_dataset(bad, note=lambda s: None)
+    assert any(f.startswith("sensor_depth:") and rel in f and "uint16" in f for f in failures), failures

@@ -66,6 +66,7 @@ class Replay:
                 for rel in (
                     layout.image_path(s.split, s.image_id),
                     layout.depth_path(s.split, s.image_id),
+                    layout.sensor_depth_path(s.split, s.image_id),
                     layout.instance_path(s.split, s.image_id),
                 ):
                     if (self.source / rel).exists():

@@ -1,9 +1,11 @@
 from __future__ import annotations
 
+from dataclasses import replace
+
 import numpy as np
 import pytest
 
-from rebar_data.servo.camera import CameraModel, depth_at, kinect_depth, kinect_depth_sigma_m
+from rebar_data.servo.camera import CameraModel, depth_at
 
 
 def test_kinect_field_of_view_is_57_degrees_with_square_pixels():
@@ -21,16 +23,33 @@ def test_projection_and_back_projection_round_trip():
     np.testing.assert_allclose(cam.back_project(uv, P[:, 2]), P, atol=1e-12)
 
 
-def test_kinect_depth_noise_range_and_quantisation():
+def test_the_robots_default_depth_sensor_keeps_the_kinect_noise_range_and_quantisation():
+    """The suite's default depth sensor (structured light at its nominal parameters) reads a plane at 2 m
+    with Nguyen's axial noise and 1/8 px disparity steps of the 75 mm, 580 px pair, and nothing outside
+    0.5-4.5 m."""
+    from rebar_data.render.depth_sensor import kinect_sigma_m, sense_depth
+    from rebar_data.scene.sample import nominal_depth_sensor
+    from rebar_data.servo.config import CameraConfig
+
+    cam = CameraModel.kinect()
+    s = nominal_depth_sensor(CameraConfig().depth_sensor)
+    assert (s.model, s.baseline_m, s.focal_px, s.disparity_step_px) == (
+        "structured_light",
+        0.075,
+        580.0,
+        0.125,
+    )
     rng = np.random.default_rng(0)
-    z = np.full((200, 200), 2.0)
-    out = kinect_depth(z, rng)
+    out = sense_depth(np.full((200, 200), 2.0, np.float32), s, rng, fx=cam.fx)
     step = 2.0**2 / (580 * 0.075 * 8)  # one 1/8 px disparity step at 2 m
-    assert out.std() == pytest.approx(np.hypot(kinect_depth_sigma_m(2.0), step / np.sqrt(12)), rel=0.05)
+    assert out.std() == pytest.approx(np.hypot(kinect_sigma_m(2.0), step / np.sqrt(12)), rel=0.05)
     assert abs(out.mean() - 2.0) < 0.002
-    steps = np.diff(np.unique(kinect_depth(np.linspace(3.0, 3.2, 500), rng, noise=False)))
+    quiet = nominal_depth_sensor("structured_light", noise=False)
+    ramp = np.tile(np.linspace(3.0, 3.2, 500, dtype=np.float32), (20, 1))
+    steps = np.diff(np.unique(sense_depth(ramp, replace(quiet, window_px=1), rng, fx=cam.fx)[:, 100:]))
     assert steps.min() > 0.02  # quantised: ~z^2 / 346 at 3 m
-    assert np.all(kinect_depth(np.array([0.3, 5.0, 0.0]), rng) == 0)  # out of range: no reading
+    near_far = np.tile(np.array([0.3, 5.0, 0.0], np.float32).repeat(40), (20, 1))
+    assert np.all(sense_depth(near_far, s, rng, fx=cam.fx) == 0)  # out of range: no reading
 
 
 def test_depth_at_uses_only_valid_pixels():

@@ -43,6 +43,7 @@ def samples_table(
         put("sample_index", s.index)
         put("image_sha256", rec.image_sha256)
         put("depth_file", layout.depth_path(s.split, s.image_id) if depth else None)
+        put("sensor_depth_file", layout.sensor_depth_path(s.split, s.image_id) if depth else None)
         put("instance_file", layout.instance_path(s.split, s.image_id) if instances else None)
         put("n_visible", int((vis == 2).sum()))
         put("n_occluded", int((vis == 1).sum()))
@@ -59,6 +60,7 @@ def samples_table(
         "n_visible": pa.int32(),
         "n_occluded": pa.int32(),
         "depth_file": pa.string(),
+        "sensor_depth_file": pa.string(),
         "instance_file": pa.string(),
     }
     return pa.table({k: pa.array(v, type=fixed.get(k)) for k, v in rows.items()})
