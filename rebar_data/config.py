@@ -8,9 +8,10 @@ that takes one. Unknown keys are errors: a typo must never be silently ignored.
 
 from __future__ import annotations
 
+import difflib
 import re
 from pathlib import Path
-from typing import Annotated, Any, Literal
+from typing import Annotated, Any, Literal, get_args
 
 import numpy as np
 import yaml
@@ -306,17 +307,56 @@ def validate(model: type[BaseModel], data: dict[str, Any], source: str) -> Any:
     try:
         return model.model_validate(data)
     except ValidationError as e:
-        raise ConfigError(format_validation_error(e, source, data)) from None
+        raise ConfigError(format_validation_error(e, source, data, model)) from None
 
 
-def format_validation_error(e: ValidationError, source: str, data: Any = None) -> str:
+def _models_in(annotation: Any) -> list[type[BaseModel]]:
+    """The pydantic models an annotation can hold (through Optional, unions, lists, dicts and Annotated)."""
+    if isinstance(annotation, type) and issubclass(annotation, BaseModel):
+        return [annotation]
+    return [m for arg in get_args(annotation) for m in _models_in(arg)]
+
+
+def accepted_keys(model: type[BaseModel], loc: tuple) -> list[str] | None:
+    """The keys the model accepts at ``loc`` (an error location without its last key), or None when the
+    location does not lead to one model."""
+    models = [model]
+    for item in loc:
+        if isinstance(item, int):
+            continue  # a list index: the element's models are already those of the list
+        named = [m for m in models if item in m.model_fields]
+        if named:
+            models = [x for m in named for x in _models_in(m.model_fields[item].annotation)]
+            continue
+        tagged = [  # a union's tag: the member whose kind is the tag, or its class name
+            m
+            for m in models
+            if m.__name__ == item or item in get_args(getattr(m.model_fields.get("kind"), "annotation", None))
+        ]
+        if tagged:
+            models = tagged
+        # otherwise a dict key: the values' models stay
+    return sorted(models[0].model_fields) if len(models) == 1 else None
+
+
+def format_validation_error(
+    e: ValidationError, source: str, data: Any = None, model: type[BaseModel] | None = None
+) -> str:
     err = e.errors(include_url=False)[0]
     path = [x for x in err["loc"] if not _is_union_tag(x)]
     loc = ".".join(str(x) for x in path)
     kind, msg = err["type"], err["msg"]
     value = err.get("input")
     if kind == "extra_forbidden":
-        return f"{source}: unknown key '{loc}'; check its spelling (accepted keys are listed in the README)"
+        keys = accepted_keys(model, tuple(err["loc"][:-1])) if model is not None else None
+        if not keys:
+            return (
+                f"{source}: unknown key '{loc}'; check its spelling (accepted keys are listed in the README)"
+            )
+        close = difflib.get_close_matches(str(path[-1]), keys, n=1)
+        where = ".".join(str(x) for x in path[:-1]) or "the top level"
+        hint = f"did you mean '{close[0]}'? " if close else ""
+        return f"{source}: unknown key '{loc}'; {hint}accepted at {where}: {', '.join(keys)}"
     if kind == "missing" and path and isinstance(path[-1], int):
         parent = ".".join(str(x) for x in path[:-1])
         given = _lookup(data, path[:-1])

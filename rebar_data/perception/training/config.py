@@ -267,5 +267,5 @@ def resolve_config(
         from pydantic import ValidationError
 
         if isinstance(e, ValidationError):
-            raise ConfigError(format_validation_error(e, source, base)) from None
+            raise ConfigError(format_validation_error(e, source, base, TrainConfig)) from None
         raise
