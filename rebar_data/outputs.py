@@ -169,6 +169,20 @@ def output_file(
     return p
 
 
+def replace_file(path: Path, write: Callable[[Path], object]) -> Path:
+    """``write(tmp)`` to a file beside ``path``, then rename it over ``path``: a reader finds the whole old file
+    or the whole new one, and a failed write leaves no temporary file."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    try:
+        write(tmp)
+        os.replace(tmp, path)
+    finally:
+        tmp.unlink(missing_ok=True)
+    return path
+
+
 def _old_of(final: Path) -> Path:
     return final.parent / f".{final.name}.old"
 

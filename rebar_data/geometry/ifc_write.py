@@ -27,6 +27,7 @@ import numpy as np
 from rebar_data import __version__
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.geometry.curves import Curve
+from rebar_data.outputs import replace_file
 
 SCHEMAS = ("IFC4", "IFC2X3")
 ORIGINATING_SYSTEM = f"rebar mesh (rebar-data {__version__})"
@@ -95,14 +96,7 @@ def write_ifc(
 
 def write_model(model: ifcopenshell.file, path: str | Path) -> Path:
     """Write ``model`` to ``path`` whole or not at all (a temporary file beside it, renamed into place)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    try:
-        model.write(str(tmp))
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-    return path
+    return replace_file(Path(path), lambda tmp: model.write(str(tmp)))
 
 
 def is_mesh_ifc(path: Path) -> bool:

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import tempfile
 from contextlib import ExitStack, contextmanager
@@ -12,6 +11,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from rebar_data.arguments import bounded
+from rebar_data.outputs import replace_file
 from rebar_data.perception.inference.detector import READINGS
 from rebar_data.perception.inference.image import TOLERANCE
 from rebar_data.perception.inference.model_file import RUNTIMES
@@ -319,18 +319,6 @@ def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path |
     return out, metrics
 
 
-def _replace_file(path: Path, write) -> None:
-    """``write(tmp)`` to a file beside ``path``, then rename it over ``path``: a reader finds the whole
-    old file or the whole new one."""
-    tmp = path.with_name(f".{path.name}.tmp-{os.getpid()}")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    try:
-        write(tmp)
-        os.replace(tmp, path)
-    finally:
-        tmp.unlink(missing_ok=True)
-
-
 def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> None:
     """The predictions file, with `rebar detect`'s mark in its Parquet metadata."""
     import pyarrow.parquet as pq
@@ -342,7 +330,7 @@ def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> 
         meta = {**(table.schema.metadata or {}), WRITTEN_BY.encode(): DETECT.encode()}
         pq.write_table(table.replace_schema_metadata(meta), tmp)
 
-    _replace_file(path, write)
+    replace_file(path, write)
 
 
 def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
@@ -398,7 +386,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
             if census is not None:
                 record["false_detections"] = census
             text = json.dumps(record, indent=2) + "\n"
-            _replace_file(metrics_path, lambda tmp: tmp.write_text(text))
+            replace_file(metrics_path, lambda tmp: tmp.write_text(text))
     print(out)
     return 0
 

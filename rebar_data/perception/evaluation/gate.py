@@ -19,6 +19,7 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from rebar_data.config import PAPER_PIPELINE
+from rebar_data.outputs import replace_file
 from rebar_data.perception.evaluation.data import Sample, load_split, read_info, stated_oks_sigma
 from rebar_data.perception.evaluation.evaluate import predict, truth_of
 from rebar_data.perception.evaluation.metrics import keypoint_ap, pixel_metrics, summary
@@ -208,11 +209,7 @@ def write_reference(
     with tempfile.TemporaryDirectory(prefix="rebar-gate-") as tmp:
         root = build_gate_set(data_root if data_root is not None else tmp)
         ref = reference(detector, root, replicates=replicates)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp_out = out.with_name(out.name + ".tmp")
-    tmp_out.write_text(json.dumps(ref, indent=1, sort_keys=True) + "\n")
-    tmp_out.replace(out)
-    return out
+    return replace_file(out, lambda tmp: tmp.write_text(json.dumps(ref, indent=1, sort_keys=True) + "\n"))
 
 
 def read_reference(path: str | Path = GATE_FILE) -> dict:

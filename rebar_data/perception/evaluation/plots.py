@@ -29,17 +29,22 @@ def _col(history: Sequence[dict], key: str) -> np.ndarray:
     return np.array([float(h.get(key, np.nan)) for h in history])
 
 
-def plot_history(history: Sequence[dict], path: str | Path, *, mosaic_epochs: int | None = None) -> Path:
-    """Training loss and validation metrics against epochs (one row of ``history`` per epoch)."""
-    ep = _col(history, "epoch")
-    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
-    ax = axes[0]
+def _plot_first_stage_losses(ax, history: Sequence[dict], ep: np.ndarray) -> None:
+    """The first stage's training losses (total, heatmap, offset) per epoch on ``ax``."""
     for key, label in (
         ("train_loss", "total"),
         ("train_heat_loss", "heatmap"),
         ("train_offset_loss", "offset"),
     ):
         ax.plot(ep, _col(history, key), label=label)
+
+
+def plot_history(history: Sequence[dict], path: str | Path, *, mosaic_epochs: int | None = None) -> Path:
+    """Training loss and validation metrics against epochs (one row of ``history`` per epoch)."""
+    ep = _col(history, "epoch")
+    fig, axes = plt.subplots(1, 3, figsize=(15, 4.2))
+    ax = axes[0]
+    _plot_first_stage_losses(ax, history, ep)
     ax.set_yscale("log")
     ax.set_title("training loss")
     ax = axes[1]
@@ -200,12 +205,7 @@ def plot_training(
     fig, axes = plt.subplots(1, 3, figsize=(10.5, 3.2))
     ep = _col(history, "epoch")
     ax = axes[0]
-    for key, label in (
-        ("train_loss", "total"),
-        ("train_heat_loss", "heatmap"),
-        ("train_offset_loss", "offset"),
-    ):
-        ax.plot(ep, _col(history, key), label=label)
+    _plot_first_stage_losses(ax, history, ep)
     if adapt:
         last = ep.max() if len(ep) else 0
         ax.plot(

@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from rebar_data.config import ConfigError
+from rebar_data.outputs import replace_file
 from rebar_data.perception.inference.detector import STRIDE
 from rebar_data.perception.inference.model_file import FORMAT, FORMAT_VERSION, META_KEY
 from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig, UInt8Input
@@ -32,10 +33,7 @@ from rebar_data.perception.networks.stages import (
 
 def write_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
     """Write a ``.pt`` checkpoint atomically (a temporary file renamed into place)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".tmp")
-    torch.save(payload, tmp)
-    tmp.replace(path)
+    replace_file(Path(path), lambda tmp: torch.save(payload, tmp))
 
 
 def read_checkpoint(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
@@ -162,10 +160,7 @@ def update_onnx_meta(path: str | Path, changes: dict[str, Any]) -> Path:
     model = onnx.load(str(path))
     entry = _meta_entry(model, path)
     entry.value = json.dumps({**json.loads(entry.value), **changes}, sort_keys=True)
-    tmp = path.with_name(path.name + ".tmp")
-    onnx.save(model, str(tmp))
-    tmp.replace(path)
-    return path
+    return replace_file(path, lambda tmp: onnx.save(model, str(tmp)))
 
 
 def _meta_entry(model, path: Path):
