@@ -9,9 +9,8 @@ patch around its sight point (the label's u, v) and the offset to its projected 
 
 from __future__ import annotations
 
-import copy
+import itertools
 import sys
-import time
 from pathlib import Path
 from typing import Any
 
@@ -27,9 +26,8 @@ from rebar_data.perception.inference.refine import patch_rays, patches
 from rebar_data.perception.networks.files import export_onnx, read_checkpoint
 from rebar_data.perception.networks.stages import CrossingNet
 from rebar_data.perception.training.augment import photometric_batch
-from rebar_data.perception.training.checkpoints import fit_weights, resume_stage, save_stage
 from rebar_data.perception.training.config import AugmentConfig, CrossingPointConfig
-from rebar_data.perception.training.schedule import warmup_cosine
+from rebar_data.perception.training.later_stages import fit_weights, save_stage, train_stage
 
 FORMAT = "rebar-keypoint-crossing-point"
 FORMAT_VERSION = 1
@@ -43,15 +41,8 @@ def build(cfg: CrossingPointConfig) -> CrossingNet:
 
 
 def save(path: Path, net: CrossingNet, cfg: CrossingPointConfig, **extra: Any) -> None:
-    save_stage(
-        path,
-        fmt=FORMAT,
-        version=FORMAT_VERSION,
-        config_key="crossing_point_config",
-        cfg=cfg,
-        net=net,
-        **extra,
-    )
+    key = "crossing_point_config"
+    save_stage(path, fmt=FORMAT, version=FORMAT_VERSION, config_key=key, cfg=cfg, net=net, **extra)
 
 
 def load(path: str | Path) -> tuple[CrossingNet, CrossingPointConfig, dict[str, Any]]:
@@ -150,67 +141,36 @@ def train_crossing_point(
     seed: int,
     progress: bool = False,
 ) -> tuple[CrossingNet, list[dict[str, float]]]:
-    """Train the crossing-point stage on the visible crossings of ``samples``; resumable per epoch.
-
-    ``out/crossing_last.pt`` holds the weights, optimiser and the epochs done after every epoch; a
-    finished one with the same settings is returned as it is.
-
-    Returns:
-        The trained network (eval mode) and one row per epoch (L1 loss in pixels, seconds).
-    """
-    last = out / CHECKPOINT
+    """Train the crossing-point stage on the visible crossings of ``samples``, resumable in
+    ``out/crossing_last.pt``; returns the network and one row per epoch (L1 loss in pixels, seconds)."""
     torch.manual_seed(seed)
-    net = build(cfg)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    payload = resume_stage(last, net, opt, load=load, settings=_settings, want=_settings(cfg))
-    history: list[dict[str, float]] = payload["history"] if payload else []
-    if len(history) >= cfg.epochs:
-        return net.eval(), history
-    threads_before = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads)
-    try:
-        data = PatchSet(samples, cfg, seed=seed, progress=progress)
-        steps = -(-len(data) // cfg.batch_size)
-        total = cfg.epochs * steps
-        for epoch in range(len(history) + 1, cfg.epochs + 1):
-            net.train()
-            t0, loss_sum = time.perf_counter(), 0.0
-            bar = tqdm(
-                batches(data, cfg, aug, seed=seed, epoch=epoch),
-                total=steps,
-                desc=f"crossing point {epoch}/{cfg.epochs}",
-                unit="batch",
-                disable=not progress,
-                leave=False,
-                file=sys.stderr,
-            )
-            for b, (x, rays, y) in enumerate(bar):
-                for g in opt.param_groups:
-                    g["lr"] = warmup_cosine(
-                        (epoch - 1) * steps + b, peak=cfg.lr, warm=max(1, round(0.03 * total)), total=total
-                    )
-                loss = F.l1_loss(net(x, rays), y)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                loss_sum += loss.item()
-                bar.set_postfix(loss=f"{loss.item():.3f}")
-            row = {"epoch": epoch, "loss_px": loss_sum / steps, "seconds": time.perf_counter() - t0}
-            history.append(row)
-            if progress:
-                tqdm.write(
-                    f"crossing point epoch {epoch}/{cfg.epochs}: L1 {row['loss_px']:.3f} px "
-                    f"({len(data)} patches, {row['seconds']:.0f} s)",
-                    file=sys.stderr,
-                )
-            save(last, net, cfg, optimizer=opt.state_dict(), history=history)
-    finally:
-        torch.set_num_threads(threads_before)
-    return copy.deepcopy(net).eval(), history
+    found: list[PatchSet] = []
 
+    def prepare(payload, first):
+        found.append(PatchSet(samples, cfg, seed=seed, progress=progress))
+        epochs = range(first, cfg.epochs + 1)
+        each = (batches(found[0], cfg, aug, seed=seed, epoch=epoch) for epoch in epochs)
+        return itertools.chain.from_iterable(each), -(-len(found[0]) // cfg.batch_size), {}
 
-def _settings(cfg: CrossingPointConfig) -> dict[str, Any]:
-    return cfg.model_dump(mode="json", exclude=EXPORT_ONLY)
+    def loss(net, batch, tally):
+        x, rays, y = batch
+        return F.l1_loss(net(x, rays), y)
+
+    return train_stage(
+        build(cfg),
+        cfg,
+        out / CHECKPOINT,
+        name="crossing point",
+        load=load,
+        save=save,
+        settings=lambda c: c.model_dump(mode="json", exclude=EXPORT_ONLY),
+        data=None,
+        prepare=prepare,
+        loss=loss,
+        summary=lambda tally, steps: {"loss_px": tally["loss"] / steps},
+        describe=lambda row: f"L1 {row['loss_px']:.3f} px ({len(found[0])} patches, {row['seconds']:.0f} s)",
+        progress=progress,
+    )
 
 
 def attach(

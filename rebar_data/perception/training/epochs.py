@@ -25,7 +25,6 @@ from rebar_data.perception.networks.keypoint_net import KeypointNet
 from rebar_data.perception.training.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.training.config import TrainConfig
 from rebar_data.perception.training.loss import detection_loss
-from rebar_data.perception.training.schedule import warmup_cosine
 from rebar_data.perception.training.targets import encode
 
 
@@ -211,6 +210,14 @@ def batch_stream(
             multiprocessing_context="spawn",
         )
     )
+
+
+def warmup_cosine(step: int, *, peak: float, warm: float, total: float) -> float:
+    """Linear warm-up over the first ``warm`` steps, then cosine decay to 2% of ``peak`` at ``total``."""
+    if step < warm:
+        return peak * (step + 1) / warm
+    t = min(1.0, (step - warm) / max(1.0, total - warm))
+    return peak * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * t)))
 
 
 def learning_rate(step: int, *, steps_per_epoch: int, cfg: TrainConfig) -> float:
