@@ -26,7 +26,13 @@ from rebar_data.perception.networks.files import (
     write_checkpoint,
 )
 from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
-from rebar_data.perception.training.epochs import WeightAverage, batch_stream, train_epoch
+from rebar_data.perception.training.epochs import (
+    WeightAverage,
+    batch_stream,
+    checkpoint_state,
+    restore,
+    train_epoch,
+)
 
 ADAPT_LAST = "adapt_last.pt"
 ADAPTED = "adapted.pt"
@@ -63,14 +69,14 @@ def adapt_first_stage(
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=cfg.weight_decay)
     state: dict[str, Any] = {"epoch": 0, "step": 0, "history": []}
     path = out / ADAPT_LAST
-    saved = _read(path)
+    saved = None
+    if path.exists():
+        try:
+            saved = read_checkpoint(path, fmt=FORMAT, what="adapt")
+        except ConfigError:  # unreadable: trained afresh
+            saved = None
     if saved is not None and saved["want"] == want:
-        net.load_state_dict(saved["state_dict"])
-        avg.net.load_state_dict(saved["average_state_dict"])
-        avg.updates = saved["average_updates"]
-        opt.load_state_dict(saved["optimizer"])
-        torch.set_rng_state(saved["torch_rng"])
-        state = saved["state"]
+        state = restore(saved, net, avg, opt)
         if state["epoch"] >= a.epochs and (out / ADAPTED).exists():
             return out / ADAPTED, state["history"]
     (out / ADAPTED).unlink(missing_ok=True)
@@ -109,19 +115,8 @@ def adapt_first_stage(
             log(f"adapt epoch {epoch}/{a.epochs}: loss {row['train_loss']:.4f}")
         state["history"].append({**row, "seconds": row["train_seconds"]})
         state["epoch"] = epoch
-        write_checkpoint(
-            path,
-            {
-                "format": FORMAT,
-                "want": want,
-                "state_dict": net.state_dict(),
-                "average_state_dict": avg.net.state_dict(),
-                "average_updates": avg.updates,
-                "optimizer": opt.state_dict(),
-                "torch_rng": torch.get_rng_state(),
-                "state": state,
-            },
-        )
+        payload = {"format": FORMAT, "want": want, "state_dict": net.state_dict()}
+        write_checkpoint(path, {**payload, **checkpoint_state(net, avg, opt, state)})
     batches = None  # stops the loader process
     save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
     return out / ADAPTED, state["history"]
@@ -131,16 +126,6 @@ def adapt_settings(a: AdaptConfig) -> dict[str, Any]:
     """What the adapt epochs train by: their settings, without a lower-mat weight of 1 (they train as they did
     before it existed, so a checkpoint from then still counts)."""
     return a.model_dump(mode="json", exclude={"lower_mat_weight"} if a.lower_mat_weight == 1.0 else set())
-
-
-def _read(path: Path) -> dict[str, Any] | None:
-    """The adapt checkpoint's payload, or None (to train afresh) when there is none or it cannot be read."""
-    if not path.exists():
-        return None
-    try:
-        return read_checkpoint(path, fmt=FORMAT, what="adapt")
-    except ConfigError:
-        return None
 
 
 def adapt_model(
@@ -164,7 +149,6 @@ def adapt_model(
     """
     import shutil
 
-    from rebar_data.config import ConfigError
     from rebar_data.perception.inference.model_file import stage_files
     from rebar_data.perception.networks.files import export_onnx, network_from_onnx
 

@@ -49,6 +49,29 @@ class WeightAverage:
                 v.copy_(src[k])
 
 
+def restore(payload: dict[str, Any], net: torch.nn.Module, avg: WeightAverage, opt: torch.optim.Optimizer):
+    """Load a checkpoint's weights, weight average, optimiser and random state; returns its run state."""
+    net.load_state_dict(payload["state_dict"])
+    avg.net.load_state_dict(payload["average_state_dict"])
+    avg.updates = payload["average_updates"]
+    opt.load_state_dict(payload["optimizer"])
+    torch.set_rng_state(payload["torch_rng"])
+    return payload["state"]
+
+
+def checkpoint_state(
+    net: torch.nn.Module, avg: WeightAverage, opt: torch.optim.Optimizer, state: dict[str, Any]
+):
+    """What a checkpoint keeps beside ``net``'s weights so that :func:`restore` goes on where it stopped."""
+    return {
+        "average_state_dict": avg.net.state_dict(),
+        "average_updates": avg.updates,
+        "optimizer": opt.state_dict(),
+        "torch_rng": torch.get_rng_state(),
+        "state": state,
+    }
+
+
 class TrainingImages:
     """The training split's images (decoded once when caching) and their crossings; with ``distractors``,
     where each image's instance map shows the distractors (for ``AugmentConfig.distractor_gain``)."""
