@@ -1,10 +1,8 @@
-"""Training and model files of the detector's crossing-point stage (:mod:`rebar_data.perception.inference.refine`).
+"""Training and model files of the crossing-point stage (:mod:`rebar_data.perception.inference.refine`).
 
-It trains on its own, from the labels alone: for each visible crossing of the training images, the
-patch around its sight point (the label's u, v) and the offset to its projected 3D crossing point
-(:attr:`~rebar_data.perception.evaluation.data.Sample.crossings`). The patches are cut once, wider than the network's
-(``context_px``); each batch then draws its scale, quarter turns, flips and colour changes (seeded by
-(seed, epoch) alone, so a resumed run gets the batches it would have got).
+It trains from the labels alone: for each visible crossing of the training images, the patch around its
+sight point and the offset to its projected 3D crossing point. The patches are cut once, wider than the
+network's (``context_px``); each batch draws its scale, turns, flips and colour changes.
 """
 
 from __future__ import annotations

@@ -59,8 +59,8 @@ def check_depth(samples: list[Sample]) -> None:
     missing = [s for s in samples if s.depth_path is None]
     if missing:
         raise ConfigError(
-            f"{missing[0].path}: has no depth image beside it ({len(missing)} of {len(samples)} training images "
-            "lack one); accepted: a dataset with its depth/ folder, or depth_check: {enabled: false}"
+            f"{missing[0].path}: has no depth image beside it ({len(missing)} of {len(samples)} training "
+            "images lack one); accepted: a dataset with its depth/ folder, or depth_check: {enabled: false}"
         )
 
 

@@ -261,5 +261,5 @@ def train_refiner(
 
 
 def calibrated_on(dataset: str | None, supplements: list[dict[str, Any]]) -> list[str]:
-    """What an int8 file's metadata says it was calibrated on: ``dataset``'s train split and each supplement."""
+    """What an int8 file's metadata says it was calibrated on: the train split and each supplement."""
     return [f"{dataset} train"] + [f"{m['name']} v{m['version']}" for m in supplements]

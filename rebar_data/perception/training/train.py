@@ -277,10 +277,9 @@ def _names(supplements: list[dict[str, Any]]) -> list[str]:
     return [f"{d.get('name')} v{d.get('version')}" for d in supplements]
 
 
-def _check_resumable(payload: dict[str, Any], run: _Run, path: Path) -> None:
-    """ConfigError unless the run in ``payload`` trained on the settings and supplements ``run`` has."""
-    now = run.cfg.model_dump(mode="json")
-    saved = payload["train_config"]
+def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> None:
+    """ConfigError unless the run ``saved`` settings describe may resume with ``cfg``."""
+    now = cfg.model_dump(mode="json")
     for k in sorted(set(saved) | set(now)):
         was = saved.get(k, NEWER_FIELDS.get(k))
         if k not in RESUMABLE_CHANGES and was != now.get(k):
@@ -288,6 +287,10 @@ def _check_resumable(payload: dict[str, Any], run: _Run, path: Path) -> None:
                 f"{path}: holds a run with {k} = {was!r}, not {now.get(k)!r}; accepted: the same "
                 "settings to resume, or a fresh start (--fresh) or another run folder"
             )
+
+
+def _check_same_supplements(payload: dict[str, Any], run: _Run, path: Path) -> None:
+    """ConfigError unless the run in ``payload`` trained its first epochs on ``run``'s supplements."""
     # the second-stage supplements count when they trained the first epochs too
     for key in ("supplements", "refine_supplements")[: 1 + bool(run.cfg.other_renderer_repeats)]:
         was, now_names = _names(payload["meta"]["dataset"].get(key, [])), _names(run.dataset[key])
@@ -318,7 +321,8 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
     last = out / "last.pt"
     if resume and last.exists():
         _, _, payload = load_checkpoint(last)
-        _check_resumable(payload, run, last)
+        _check_resumable(payload["train_config"], cfg, last)
+        _check_same_supplements(payload, run, last)
         state = restore(payload, net, avg, opt)
         run.log(f"resuming {out} after epoch {state['epoch']}")
     config = {
@@ -601,7 +605,8 @@ def _finish(
         for name, preds in found.items():
             against_points[name] = score(points, preds, sigma=sigma)
             run.log(
-                f"against the 3D crossing points on test, RGB only, {name}: {format_summary(against_points[name])}"
+                f"against the 3D crossing points on test, RGB only, {name}: "
+                f"{format_summary(against_points[name])}"
             )
     meta = {**meta, "results": results}
     save_checkpoint(first_path, net, meta)
