@@ -65,30 +65,10 @@ from rebar_data.perception.inference.model_file import int8_passes_path
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, quantize_onnx, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
+from rebar_data.perception.training import crossing_point, depth_check, epochs, refine
 from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage, adapt_settings
 from rebar_data.perception.training.config import TrainConfig, resolve_config
-from rebar_data.perception.training.crossing_point import save as save_crossing_point
-from rebar_data.perception.training.crossing_point import train_crossing_point
-from rebar_data.perception.training.depth_check import check_depth, train_depth_check
-from rebar_data.perception.training.depth_check import save as save_depth_check
-from rebar_data.perception.training.epochs import (
-    WeightAverage,
-    batch_stream,
-    checkpoint_state,
-    restore,
-    train_epoch,
-)
 from rebar_data.perception.training.line_check import UnfitLineCheck, fit_line_check, fitted_on
-from rebar_data.perception.training.refine import (
-    calibrated_on,
-    calibration_patches,
-    first_stage_detections,
-    negatives_in,
-    train_refiner,
-    with_lower_mat,
-)
-from rebar_data.perception.training.refine import load as load_refiner
-from rebar_data.perception.training.refine import save as save_refiner
 
 COMMAND = "rebar train"
 EARLY_STOP_METRIC = "val_oks_ap"
@@ -194,7 +174,7 @@ def train(
     refine_extra, refine_meta = supplement_images(refine_supplements, trained_on=info.get("name"))
     line_extra, line_meta = supplement_images(line_supplements, trained_on=info.get("name"))
     if cfg.depth_check.enabled:  # fail now, not after the first two stages have trained
-        check_depth(train_samples)
+        depth_check.check_depth(train_samples)
     dataset = {
         "path": str(root),
         "name": info.get("name"),
@@ -308,22 +288,15 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)
     # channels-last: the depthwise convolutions train faster on a CPU in that layout
     net = KeypointNet(cfg.model).to(memory_format=torch.channels_last)
-    avg = WeightAverage(net)
+    avg = epochs.WeightAverage(net)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    state: dict[str, Any] = {
-        "epoch": 0,
-        "step": 0,
-        "best": -1.0,
-        "best_epoch": 0,
-        "stopped": False,
-        "history": [],
-    }
+    state: dict[str, Any] = dict(epoch=0, step=0, best=-1.0, best_epoch=0, stopped=False, history=[])
     last = out / "last.pt"
     if resume and last.exists():
         _, _, payload = load_checkpoint(last)
         _check_resumable(payload["train_config"], cfg, last)
         _check_same_supplements(payload, run, last)
-        state = restore(payload, net, avg, opt)
+        state = epochs.restore(payload, net, avg, opt)
         run.log(f"resuming {out} after epoch {state['epoch']}")
     config = {
         "train_config": cfg.model_dump(mode="json"),
@@ -353,7 +326,7 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
     steps = max(1, math.ceil(len(first_samples) * cfg.crops_per_image / cfg.batch_size))
     run.started = time.perf_counter()
     if not state["stopped"] and state["epoch"] < cfg.epochs:
-        batches = batch_stream(
+        batches = epochs.batch_stream(
             first_samples,
             cfg,
             first=state["epoch"] + 1,
@@ -364,7 +337,9 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
     for epoch in range(state["epoch"] + 1, cfg.epochs + 1):
         if state["stopped"]:
             break
-        row = train_epoch(net, avg, opt, batches, cfg, state, epoch=epoch, steps=steps, progress=run.progress)
+        row = epochs.train_epoch(
+            net, avg, opt, batches, cfg, state, epoch=epoch, steps=steps, progress=run.progress
+        )
         line = f"epoch {epoch}/{cfg.epochs}: loss {row['train_loss']:.4f}"
         if val_sub and (epoch % cfg.val_every == 0 or epoch == cfg.epochs):
             m = score(val_sub, predict(eager.detector(avg.net), val_sub, images=val_images), sigma=run.sigma)
@@ -388,7 +363,7 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
             net,
             meta,
             train_config=cfg.model_dump(mode="json"),
-            **checkpoint_state(net, avg, opt, state),
+            **epochs.checkpoint_state(net, avg, opt, state),
         )
         _write_history(out / "metrics.csv", state["history"])
     batches = None  # stops the loader process
@@ -410,22 +385,24 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
         if id(samples) not in found:
             first, _, _ = load_checkpoint(first_path)
-            found[id(samples)] = first_stage_detections(
+            found[id(samples)] = refine.first_stage_detections(
                 eager.detector(first), samples, cfg.refine, images=images, progress=run.progress
             )
-        return negatives_in(found[id(samples)], samples, cfg.refine)  # the first stage's misses
+        return refine.negatives_in(found[id(samples)], samples, cfg.refine)  # the first stage's misses
 
     def depth_negatives() -> list[np.ndarray]:
         """The second stage's mined negatives kept in its checkpoint, or mined now when it has none, with
         the lower mat's crossings."""
         mined = None
         if (out / "refine_last.pt").exists():
-            mined = load_refiner(out / "refine_last.pt")[2].get("negatives")
+            mined = refine.load(out / "refine_last.pt")[2].get("negatives")
         if mined is None or len(mined) != len(refine_samples) or not any(len(n) for n in mined):
             mined = negatives_of(run.train, [read_image(s.path) for s in run.train])
         mined = mined[: len(run.train)]  # the second stage's images begin with the first's
         n = cfg.depth_check.lower_mat_negatives
-        return with_lower_mat(run.train, mined, n, gate_px=cfg.refine.negative_gate_px, seed=cfg.seed + 1)
+        return refine.with_lower_mat(
+            run.train, mined, n, gate_px=cfg.refine.negative_gate_px, seed=cfg.seed + 1
+        )
 
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = run.train + run.refine_extra * cfg.refine.supplement_repeats
@@ -435,7 +412,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
         "crossing_point": (None, []),
     }
     if cfg.refine.enabled:
-        stages["refine"] = train_refiner(
+        stages["refine"] = refine.train_refiner(
             refine_samples,
             out,
             cfg.refine,
@@ -447,7 +424,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
         )
     if cfg.depth_check.enabled:
         n = cfg.depth_check.lower_mat_negatives
-        stages["depth_check"] = train_depth_check(
+        stages["depth_check"] = depth_check.train_depth_check(
             run.train,
             depth_negatives,
             out,
@@ -457,7 +434,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
             progress=run.progress,
         )
     if cfg.crossing_point.enabled:
-        stages["crossing_point"] = train_crossing_point(
+        stages["crossing_point"] = crossing_point.train_crossing_point(
             run.train, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=run.progress
         )
     run.train_seconds = time.perf_counter() - run.started
@@ -505,7 +482,7 @@ def _finish(
     int8_passes_path(out / "best.onnx").unlink(missing_ok=True)
     refiner, depth_net, crossing_net = (stages[k][0] for k in ("refine", "depth_check", "crossing_point"))
     if refiner is not None:
-        save_refiner(out / "best.refine.pt", refiner, cfg.refine)
+        refine.save(out / "best.refine.pt", refiner, cfg.refine)
         onnx_path = export_onnx(refiner, out / "best.refine.onnx")
         meta["refiner"] = {
             "patch_px": cfg.refine.patch_px,
@@ -522,16 +499,16 @@ def _finish(
         }
         if cfg.refine.quantize == "later":  # an int8 copy beside it for the passes after the first
             later = int8_passes_path(out / "best.onnx")
-            patches = calibration_patches(run.train, cfg.refine, seed=cfg.seed)
+            patches = refine.calibration_patches(run.train, cfg.refine, seed=cfg.seed)
             quantize_onnx(onnx_path, later, patches)
             run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
             meta["refiner"]["int8_sha256"] = sha256_file(later)
             meta["refiner"]["int8_calibrated_on"] = {
-                "data": calibrated_on(run.dataset.get("name"), run.dataset.get("supplements", [])),
+                "data": refine.calibrated_on(run.dataset.get("name"), run.dataset.get("supplements", [])),
                 "patches": len(patches),
             }
     if depth_net is not None:
-        save_depth_check(out / "best.depth.pt", depth_net, cfg.depth_check)
+        depth_check.save(out / "best.depth.pt", depth_net, cfg.depth_check)
         meta["depth_check"] = {
             "patch_px": cfg.depth_check.patch_px,
             "scale_m": cfg.depth_check.scale_m,
@@ -540,7 +517,7 @@ def _finish(
             "sha256": sha256_file(export_onnx(depth_net, out / "best.depth.onnx")),
         }
     if crossing_net is not None:
-        save_crossing_point(out / "best.crossing.pt", crossing_net, cfg.crossing_point)
+        crossing_point.save(out / "best.crossing.pt", crossing_net, cfg.crossing_point)
         meta["crossing_point"] = {
             "patch_px": cfg.crossing_point.patch_px,
             "sha256": sha256_file(export_onnx(crossing_net, out / "best.crossing.onnx")),
@@ -656,7 +633,7 @@ def _finish(
 def load_detector(path: str | Path | None = None, **kwargs: Any):
     """A detector from a model file: ``.onnx`` through :meth:`Detector.load` (``kwargs`` its arguments), a
     ``.pt`` checkpoint (with its later stages' ``.pt`` files beside it) run in eager PyTorch."""
-    from rebar_data.perception.inference.detector import Detector, resolve_model_path
+    from rebar_data.perception.inference.detector import resolve_model_path
     from rebar_data.perception.inference.model_file import (
         crossing_point_path,
         depth_check_path,
@@ -664,9 +641,6 @@ def load_detector(path: str | Path | None = None, **kwargs: Any):
         refiner_path,
         stage_file,
     )
-    from rebar_data.perception.networks import eager
-    from rebar_data.perception.networks.files import load_checkpoint
-    from rebar_data.perception.training import crossing_point, depth_check, refine
 
     p = resolve_model_path(path)
     if p.suffix == ".onnx":
