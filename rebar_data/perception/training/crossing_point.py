@@ -10,7 +10,6 @@ from __future__ import annotations
 import itertools
 import sys
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -21,16 +20,11 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_image
 from rebar_data.perception.inference.refine import patch_rays, patches
-from rebar_data.perception.networks.files import export_onnx, read_checkpoint
+from rebar_data.perception.networks.files import export_onnx
 from rebar_data.perception.networks.stages import CrossingNet
 from rebar_data.perception.training.augment import photometric_batch
 from rebar_data.perception.training.config import AugmentConfig, CrossingPointConfig
-from rebar_data.perception.training.later_stages import fit_weights, save_stage, train_stage
-
-FORMAT = "rebar-keypoint-crossing-point"
-FORMAT_VERSION = 1
-CHECKPOINT = "crossing_last.pt"
-EXPORT_ONLY = {"threads"}  # settings that leave training alone
+from rebar_data.perception.training.later_stages import StageFile, train_stage
 
 
 def build(cfg: CrossingPointConfig) -> CrossingNet:
@@ -38,16 +32,15 @@ def build(cfg: CrossingPointConfig) -> CrossingNet:
     return CrossingNet(cfg.patch_px, cfg.widths, cfg.hidden)
 
 
-def save(path: Path, net: CrossingNet, cfg: CrossingPointConfig, **extra: Any) -> None:
-    key = "crossing_point_config"
-    save_stage(path, fmt=FORMAT, version=FORMAT_VERSION, config_key=key, cfg=cfg, net=net, **extra)
-
-
-def load(path: str | Path) -> tuple[CrossingNet, CrossingPointConfig, dict[str, Any]]:
-    """Rebuild the network from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    payload = read_checkpoint(path, fmt=FORMAT, what="crossing-point")
-    cfg = CrossingPointConfig.model_validate(payload["crossing_point_config"])
-    return fit_weights(build(cfg), payload, path), cfg, payload
+FILE = StageFile(
+    "rebar-keypoint-crossing-point",
+    "crossing-point",
+    CrossingPointConfig,
+    "crossing_point_config",
+    build,
+    frozenset({"threads"}),
+)
+save, load = FILE.save, FILE.load
 
 
 class PatchSet:
@@ -155,13 +148,11 @@ def train_crossing_point(
         return F.l1_loss(net(x, rays), y)
 
     return train_stage(
+        FILE,
         build(cfg),
         cfg,
-        out / CHECKPOINT,
+        out / "crossing_last.pt",
         name="crossing point",
-        load=load,
-        save=save,
-        settings=lambda c: c.model_dump(mode="json", exclude=EXPORT_ONLY),
         data=None,
         prepare=prepare,
         loss=loss,

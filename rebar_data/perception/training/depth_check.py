@@ -7,7 +7,6 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable, Iterator
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -18,22 +17,10 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_depth
 from rebar_data.perception.inference.checks import MM_PER_M, encode
-from rebar_data.perception.networks.files import read_checkpoint
 from rebar_data.perception.networks.stages import DepthNet
 from rebar_data.perception.training.config import DepthCheckConfig
-from rebar_data.perception.training.later_stages import (
-    classed_rightly,
-    count_classes,
-    fit_weights,
-    save_stage,
-    train_stage,
-)
+from rebar_data.perception.training.later_stages import StageFile, classed_rightly, count_classes, train_stage
 from rebar_data.perception.training.refine_data import patch_keys, steps_per_epoch
-
-FORMAT = "rebar-keypoint-depth-check"
-FORMAT_VERSION = 1
-EXPORT_ONLY = {"power", "threads"}  # settings that leave training alone
-CHECKPOINT = "depth_last.pt"
 
 
 def build(cfg: DepthCheckConfig) -> DepthNet:
@@ -41,17 +28,15 @@ def build(cfg: DepthCheckConfig) -> DepthNet:
     return DepthNet(cfg.patch_px, cfg.widths, cfg.hidden)
 
 
-def save(path: Path, net: DepthNet, cfg: DepthCheckConfig, **extra: Any) -> None:
-    save_stage(
-        path, fmt=FORMAT, version=FORMAT_VERSION, config_key="depth_check_config", cfg=cfg, net=net, **extra
-    )
-
-
-def load(path: str | Path) -> tuple[DepthNet, DepthCheckConfig, dict[str, Any]]:
-    """Rebuild the network from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    payload = read_checkpoint(path, fmt=FORMAT, what="depth-check")
-    cfg = DepthCheckConfig.model_validate(payload["depth_check_config"])
-    return fit_weights(build(cfg), payload, path), cfg, payload
+FILE = StageFile(
+    "rebar-keypoint-depth-check",
+    "depth-check",
+    DepthCheckConfig,
+    "depth_check_config",
+    build,
+    frozenset({"power", "threads"}),
+)
+save, load = FILE.save, FILE.load
 
 
 def check_depth(samples: list[Sample]) -> None:
@@ -164,13 +149,11 @@ def train_depth_check(
         )
 
     return train_stage(
+        FILE,
         build(cfg),
         cfg,
-        out / CHECKPOINT,
+        out / "depth_last.pt",
         name="depth check",
-        load=load,
-        save=save,
-        settings=lambda c: c.model_dump(mode="json", exclude=EXPORT_ONLY),
         data=data,
         prepare=prepare,
         loss=loss,

@@ -7,6 +7,7 @@ import sys
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -16,39 +17,54 @@ from torch import nn
 from tqdm import tqdm
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.networks.files import write_checkpoint
+from rebar_data.perception.networks.files import read_checkpoint, write_checkpoint
 from rebar_data.perception.training.epochs import warmup_cosine
 
 
-def save_stage(
-    path: Path, *, fmt: str, version: int, config_key: str, cfg, net: nn.Module, **extra: Any
-) -> None:
-    """Write a stage's checkpoint: its format, settings (under ``config_key``), weights and ``extra``."""
-    payload = {"format": fmt, "format_version": version, config_key: cfg.model_dump(mode="json")}
-    write_checkpoint(path, {**payload, "state_dict": net.state_dict(), **extra})
+@dataclass(frozen=True)
+class StageFile:
+    """A later stage's ``.pt`` file: its format, its settings (class, key) and the network they build."""
 
+    fmt: str
+    what: str  # the stage, in an error
+    config: type
+    config_key: str
+    build: Callable[[Any], nn.Module]
+    export_only: frozenset[str] = frozenset()  # settings that leave training alone
+    defaults: tuple[tuple[str, Any], ...] = ()  # settings of files written before them
+    retrain: str = ""  # what to train again, in an error
 
-def fit_weights(net: nn.Module, payload: dict[str, Any], path: str | Path, *, retrain: str = "") -> nn.Module:
-    """``net`` with the payload's weights, in eval mode; ConfigError when they do not fit its settings."""
-    try:
-        net.load_state_dict(payload["state_dict"])
-    except RuntimeError:
-        raise ConfigError(
-            f"{path}: its weights do not fit the network its settings describe; accepted: a file written "
-            f"by this version of `rebar train`{retrain}"
-        ) from None
-    return net.eval()
+    def save(self, path: Path, net: nn.Module, cfg, **extra: Any) -> None:
+        """Write the stage's format, settings, weights and ``extra`` (training state)."""
+        head = {"format": self.fmt, "format_version": 1, self.config_key: cfg.model_dump(mode="json")}
+        write_checkpoint(path, {**head, "state_dict": net.state_dict(), **extra})
+
+    def load(self, path: str | Path) -> tuple[nn.Module, Any, dict[str, Any]]:
+        """Rebuild the network from its file: (network in eval mode, its settings, the whole payload)."""
+        payload = read_checkpoint(path, fmt=self.fmt, what=self.what)
+        cfg = self.config.model_validate({**dict(self.defaults), **payload[self.config_key]})
+        net = self.build(cfg)
+        try:
+            net.load_state_dict(payload["state_dict"])
+        except RuntimeError:
+            raise ConfigError(
+                f"{path}: its weights do not fit the network its settings describe; accepted: a file written "
+                f"by this version of `rebar train`{self.retrain}"
+            ) from None
+        return net.eval(), cfg, payload
+
+    def settings(self, cfg) -> dict[str, Any]:
+        """The settings a trained stage depends on."""
+        return cfg.model_dump(mode="json", exclude=set(self.export_only))
 
 
 def train_stage(
+    stage: StageFile,
     net: nn.Module,
     cfg,
     last: Path,
     *,
     name: str,
-    load: Callable[[Path], tuple[nn.Module, Any, dict[str, Any]]],
-    save: Callable[..., None],
-    settings: Callable[[Any], dict[str, Any]],
     data: list[str] | None,
     prepare: Callable[[dict[str, Any] | None, int], tuple[Iterator, int, dict[str, Any]]],
     loss: Callable[[nn.Module, Any, dict[str, Any]], torch.Tensor],
@@ -60,7 +76,7 @@ def train_stage(
     per epoch.
 
     ``last`` holds the weights, optimiser, history and ``data`` (what it trained on beyond the run's own
-    images) after every epoch; one with the same ``settings`` and ``data`` goes on where it stopped, a
+    images) after every epoch; one with the same training settings and ``data`` goes on where it stopped, a
     finished one is kept as it is. ``prepare(payload, first)`` runs only when there is training to do and
     gives the batches from epoch ``first`` on, the steps an epoch and what else the checkpoint keeps;
     ``loss`` adds to an epoch's tally, from which ``summary`` makes its row and ``describe`` its log line.
@@ -70,10 +86,14 @@ def train_stage(
     payload = None
     if last.exists():
         try:
-            _, saved, payload = load(last)
+            _, saved, payload = stage.load(last)
         except ConfigError:  # an older layout: trained afresh
             payload = None
-    if payload is not None and settings(saved) == settings(cfg) and payload.get("data", []) == data:
+    if (
+        payload is not None
+        and stage.settings(saved) == stage.settings(cfg)
+        and payload.get("data", []) == data
+    ):
         net.load_state_dict(payload["state_dict"])
         opt.load_state_dict(payload["optimizer"])
     else:
@@ -111,7 +131,7 @@ def train_stage(
             history.append({"epoch": epoch, **summary(tally, steps), "seconds": time.perf_counter() - t0})
             if progress:
                 tqdm.write(f"{name} epoch {epoch}/{cfg.epochs}: {describe(history[-1])}", file=sys.stderr)
-            save(last, net, cfg, optimizer=opt.state_dict(), history=history, data=data, **keep)
+            stage.save(last, net, cfg, optimizer=opt.state_dict(), history=history, data=data, **keep)
     finally:
         torch.set_num_threads(threads_before)
     return copy.deepcopy(net).to(memory_format=torch.contiguous_format).eval(), history

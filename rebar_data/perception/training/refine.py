@@ -21,32 +21,10 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_image, read_images
 from rebar_data.perception.evaluation.lower_mat import lower_mat_of
-from rebar_data.perception.networks.files import read_checkpoint
 from rebar_data.perception.networks.stages import PatchNet
 from rebar_data.perception.training.config import AugmentConfig, RefineConfig
-from rebar_data.perception.training.later_stages import (
-    classed_rightly,
-    count_classes,
-    fit_weights,
-    save_stage,
-    train_stage,
-)
+from rebar_data.perception.training.later_stages import StageFile, classed_rightly, count_classes, train_stage
 from rebar_data.perception.training.refine_data import patch_batches, steps_per_epoch
-
-FORMAT = "rebar-keypoint-refiner"
-FORMAT_VERSION = 1
-# settings that leave training alone: they shape the exported file or how its output is used
-EXPORT_ONLY = {
-    "quantize",
-    "calibration_patches",
-    "verify_power",
-    "verify_power_with_depth",
-    "views",
-    "first_pass_views",
-    "iterations",
-    "step",
-    "shrink_above_px",
-}
 
 
 def build(cfg: RefineConfig) -> PatchNet:
@@ -54,19 +32,30 @@ def build(cfg: RefineConfig) -> PatchNet:
     return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks, verify=cfg.verify, size=cfg.size)
 
 
-def save(path: Path, net: PatchNet, cfg: RefineConfig, **extra: Any) -> None:
-    save_stage(
-        path, fmt=FORMAT, version=FORMAT_VERSION, config_key="refine_config", cfg=cfg, net=net, **extra
-    )
-
-
-def load(path: str | Path) -> tuple[PatchNet, RefineConfig, dict[str, Any]]:
-    """Rebuild a refiner from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    payload = read_checkpoint(path, fmt=FORMAT, what="refiner")
-    settings = {"verify": False, "size": False, **payload["refine_config"]}  # files from before either
-    cfg = RefineConfig.model_validate(settings)
-    net = fit_weights(build(cfg), payload, path, retrain=" (train the second stage again)")
-    return net, cfg, payload
+# export_only: the settings that shape the exported file or how its output is used
+FILE = StageFile(
+    "rebar-keypoint-refiner",
+    "refiner",
+    RefineConfig,
+    "refine_config",
+    build,
+    export_only=frozenset(
+        [
+            "quantize",
+            "calibration_patches",
+            "verify_power",
+            "verify_power_with_depth",
+            "views",
+            "first_pass_views",
+            "iterations",
+            "step",
+            "shrink_above_px",
+        ]
+    ),
+    defaults=(("verify", False), ("size", False)),  # files from before the stage could verify or size
+    retrain=" (train the second stage again)",
+)
+save, load = FILE.save, FILE.load
 
 
 def calibration_patches(
@@ -244,13 +233,11 @@ def train_refiner(
         )
 
     return train_stage(
+        FILE,
         net,
         cfg,
         out / "refine_last.pt",
         name="refiner",
-        load=load,
-        save=save,
-        settings=lambda c: c.model_dump(mode="json", exclude=EXPORT_ONLY),
         data=data,
         prepare=prepare,
         loss=loss,

@@ -13,8 +13,7 @@ A run folder holds everything about one run:
 - ``results.json``: the best model's metrics on the validation and test splits;
 - ``curves.png``, ``pr_curve.png``, ``predictions.png``.
 
-The weights evaluated and saved are an exponential moving average of the trained ones (as Ultralytics
-keeps), which is steadier from epoch to epoch than the raw weights.
+The weights evaluated and saved are an exponential moving average of the trained ones.
 """
 
 from __future__ import annotations
@@ -84,6 +83,7 @@ RESUMABLE_CHANGES = {
     "line_check",
 }
 STAGE_FILES = ("refine", "depth", "crossing")  # the later stages' files beside best.onnx: best.<name>.onnx
+STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
 
 
 @dataclass
@@ -326,13 +326,9 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
     steps = max(1, math.ceil(len(first_samples) * cfg.crops_per_image / cfg.batch_size))
     run.started = time.perf_counter()
     if not state["stopped"] and state["epoch"] < cfg.epochs:
+        first, focal_px = state["epoch"] + 1, base_meta["focal_px"]
         batches = epochs.batch_stream(
-            first_samples,
-            cfg,
-            first=state["epoch"] + 1,
-            last=cfg.epochs,
-            steps=steps,
-            focal_px=base_meta["focal_px"],
+            first_samples, cfg, first=first, last=cfg.epochs, steps=steps, focal_px=focal_px
         )
     for epoch in range(state["epoch"] + 1, cfg.epochs + 1):
         if state["stopped"]:
@@ -358,13 +354,8 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
         elif key is not None and epoch - state["best_epoch"] >= cfg.patience:
             state["stopped"] = True
             run.log(f"early stop: no better {EARLY_STOP_METRIC} for {cfg.patience} epochs")
-        save_checkpoint(
-            last,
-            net,
-            meta,
-            train_config=cfg.model_dump(mode="json"),
-            **epochs.checkpoint_state(net, avg, opt, state),
-        )
+        resumable = epochs.checkpoint_state(net, avg, opt, state)
+        save_checkpoint(last, net, meta, train_config=cfg.model_dump(mode="json"), **resumable)
         _write_history(out / "metrics.csv", state["history"])
     batches = None  # stops the loader process
     if not (out / "best.pt").exists():  # no epoch had a finite validation score: keep the latest weights
@@ -406,11 +397,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
 
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = run.train + run.refine_extra * cfg.refine.supplement_repeats
-    stages: dict[str, tuple[Any, list]] = {
-        "refine": (None, []),
-        "depth_check": (None, []),
-        "crossing_point": (None, []),
-    }
+    stages: dict[str, tuple[Any, list]] = {k: (None, []) for k in ("refine", "depth_check", "crossing_point")}
     if cfg.refine.enabled:
         stages["refine"] = refine.train_refiner(
             refine_samples,
@@ -463,15 +450,7 @@ def _finish(
 
     cfg, out, sigma, val_samples, test_samples = run.cfg, run.out, run.sigma, run.val, run.test
     net, meta, _ = load_checkpoint(first_path)
-    stale = (
-        "score_bias",
-        "score_bias_without_depth",
-        "results",
-        "refiner",
-        "depth_check",
-        "crossing_point",
-        "line_check",
-    )
+    stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)
     meta = {k: v for k, v in meta.items() if k not in stale}
     # the run as it finished: its later stages may have trained on other settings or data than the first
     # stage's best epoch recorded
