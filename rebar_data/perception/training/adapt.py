@@ -22,8 +22,14 @@ from rebar_data.perception.networks.files import (
     save_checkpoint,
     write_checkpoint,
 )
-from rebar_data.perception.training import epochs
 from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
+from rebar_data.perception.training.epochs import (
+    WeightAverage,
+    batch_stream,
+    checkpoint_state,
+    restore,
+    train_epoch,
+)
 
 ADAPT_LAST = "adapt_last.pt"
 ADAPTED = "adapted.pt"
@@ -55,7 +61,7 @@ def adapt_first_stage(
     want = {"adapt": adapt_settings(a), "base_epoch": base_epoch, "data": list(data)}
     net, meta, _ = load_checkpoint(out / "best.pt")
     net = net.to(memory_format=torch.channels_last)
-    avg = epochs.WeightAverage(net)
+    avg = WeightAverage(net)
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=cfg.weight_decay)
     state: dict[str, Any] = {"epoch": 0, "step": 0, "history": []}
     path = out / ADAPT_LAST
@@ -66,7 +72,7 @@ def adapt_first_stage(
         except ConfigError:  # unreadable: trained afresh
             saved = None
     if saved is not None and saved["want"] == want:
-        state = epochs.restore(saved, net, avg, opt)
+        state = restore(saved, net, avg, opt)
         if state["epoch"] >= a.epochs and (out / ADAPTED).exists():
             return out / ADAPTED, state["history"]
     (out / ADAPTED).unlink(missing_ok=True)
@@ -88,7 +94,7 @@ def adapt_first_stage(
             f"{len(extra)} x {a.supplement_repeats} of {', '.join(data)}"
         )
     first, focal_px = state["epoch"] + 1, meta.get("focal_px")  # other cameras' frames drawn at the model's
-    batches = epochs.batch_stream(
+    batches = batch_stream(
         mix,
         run,
         first=first,
@@ -98,7 +104,7 @@ def adapt_first_stage(
         focal_px=focal_px,
     )
     for epoch in range(state["epoch"] + 1, a.epochs + 1):
-        row = epochs.train_epoch(
+        row = train_epoch(
             net, avg, opt, batches, run, state, epoch=epoch, steps=steps, progress=progress, frozen_norm=True
         )
         if log:
@@ -106,7 +112,7 @@ def adapt_first_stage(
         state["history"].append({**row, "seconds": row["train_seconds"]})
         state["epoch"] = epoch
         payload = {"format": FORMAT, "want": want, "state_dict": net.state_dict()}
-        write_checkpoint(path, {**payload, **epochs.checkpoint_state(net, avg, opt, state)})
+        write_checkpoint(path, {**payload, **checkpoint_state(net, avg, opt, state)})
     batches = None  # stops the loader process
     save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
     return out / ADAPTED, state["history"]

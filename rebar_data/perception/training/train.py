@@ -82,7 +82,11 @@ RESUMABLE_CHANGES = {
     "crossing_point",
     "line_check",
 }
-STAGE_FILES = ("refine", "depth", "crossing")  # the later stages' files beside best.onnx: best.<name>.onnx
+STAGES = {
+    "refine": "refine",
+    "depth_check": "depth",
+    "crossing_point": "crossing",
+}  # their files: best.<name>.pt
 STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
 
 
@@ -455,51 +459,48 @@ def _finish(
     # the run as it finished: its later stages may have trained on other settings or data than the first
     # stage's best epoch recorded
     meta.update(dataset=run.dataset, train_config=cfg.model_dump(mode="json"))
-    for name in STAGE_FILES:
+    for name in STAGES.values():
         for suffix in ("onnx", "pt"):
             (out / f"best.{name}.{suffix}").unlink(missing_ok=True)
     int8_passes_path(out / "best.onnx").unlink(missing_ok=True)
-    refiner, depth_net, crossing_net = (stages[k][0] for k in ("refine", "depth_check", "crossing_point"))
-    if refiner is not None:
-        refine.save(out / "best.refine.pt", refiner, cfg.refine)
-        onnx_path = export_onnx(refiner, out / "best.refine.onnx")
+    files = {}  # each later stage's ONNX file
+    for module, (key, name) in zip((refine, depth_check, crossing_point), STAGES.items(), strict=True):
+        if stages[key][0] is not None:
+            module.save(out / f"best.{name}.pt", stages[key][0], getattr(cfg, key))
+            files[key] = export_onnx(stages[key][0], out / f"best.{name}.onnx")
+    if "refine" in files:
+        r = cfg.refine
         meta["refiner"] = {
-            "patch_px": cfg.refine.patch_px,
-            "iterations": cfg.refine.iterations,
-            "step": cfg.refine.step,
-            "shrink_above_px": list(cfg.refine.shrink_above_px) if cfg.refine.size else None,
-            "quantize": cfg.refine.quantize,
-            "verify": refiner.verify,
-            "verify_power": cfg.refine.verify_power,
-            "verify_power_with_depth": cfg.refine.verify_power_with_depth,
-            "views": cfg.refine.views,
-            "first_pass_views": cfg.refine.first_pass_views,
-            "sha256": sha256_file(onnx_path),
+            "patch_px": r.patch_px,
+            "iterations": r.iterations,
+            "step": r.step,
+            "shrink_above_px": list(r.shrink_above_px) if r.size else None,
+            "quantize": r.quantize,
+            "verify": stages["refine"][0].verify,
+            "verify_power": r.verify_power,
+            "verify_power_with_depth": r.verify_power_with_depth,
+            "views": r.views,
+            "first_pass_views": r.first_pass_views,
+            "sha256": sha256_file(files["refine"]),
         }
-        if cfg.refine.quantize == "later":  # an int8 copy beside it for the passes after the first
+        if r.quantize == "later":  # an int8 copy beside it for the passes after the first
             later = int8_passes_path(out / "best.onnx")
-            patches = refine.calibration_patches(run.train, cfg.refine, seed=cfg.seed)
-            quantize_onnx(onnx_path, later, patches)
+            patches = refine.calibration_patches(run.train, r, seed=cfg.seed)
+            quantize_onnx(files["refine"], later, patches)
             run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
             meta["refiner"]["int8_sha256"] = sha256_file(later)
             meta["refiner"]["int8_calibrated_on"] = {
                 "data": refine.calibrated_on(run.dataset.get("name"), run.dataset.get("supplements", [])),
                 "patches": len(patches),
             }
-    if depth_net is not None:
-        depth_check.save(out / "best.depth.pt", depth_net, cfg.depth_check)
-        meta["depth_check"] = {
-            "patch_px": cfg.depth_check.patch_px,
-            "scale_m": cfg.depth_check.scale_m,
-            "clip": cfg.depth_check.clip,
-            "power": cfg.depth_check.power,
-            "sha256": sha256_file(export_onnx(depth_net, out / "best.depth.onnx")),
-        }
-    if crossing_net is not None:
-        crossing_point.save(out / "best.crossing.pt", crossing_net, cfg.crossing_point)
+    if "depth_check" in files:
+        d = cfg.depth_check
+        entry = {"patch_px": d.patch_px, "scale_m": d.scale_m, "clip": d.clip, "power": d.power}
+        meta["depth_check"] = entry | {"sha256": sha256_file(files["depth_check"])}
+    if "crossing_point" in files:
         meta["crossing_point"] = {
             "patch_px": cfg.crossing_point.patch_px,
-            "sha256": sha256_file(export_onnx(crossing_net, out / "best.crossing.onnx")),
+            "sha256": sha256_file(files["crossing_point"]),
         }
     detector = Detector.load(
         export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
