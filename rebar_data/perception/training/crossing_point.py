@@ -175,6 +175,7 @@ def attach(
     """Train the crossing-point stage (resumable in ``out``) and put it beside ``model`` as
     ``<stem>.crossing.onnx``, named in the model file's metadata with its SHA-256; returns that file."""
     from rebar_data.dataset.writers.manifest import sha256_file
+    from rebar_data.outputs import replace_file
     from rebar_data.perception.inference.model_file import crossing_point_path
     from rebar_data.perception.networks.files import check_model_file, update_onnx_meta
 
@@ -183,10 +184,8 @@ def attach(
     net, history = train_crossing_point(samples, out, cfg, aug, seed=seed, progress=progress)
     save(out / "best.crossing.pt", net, cfg, history=history)
     stage = export_onnx(net, out / "best.crossing.onnx")
-    dst = crossing_point_path(model)
-    tmp = dst.with_name(dst.name + ".tmp")
-    tmp.write_bytes(stage.read_bytes())
-    tmp.replace(dst)  # the stage lands first, so the model never names a missing file
+    # the stage lands first, so the model never names a missing file
+    dst = replace_file(crossing_point_path(model), lambda tmp: tmp.write_bytes(stage.read_bytes()))
     entry = {"patch_px": cfg.patch_px, "sha256": sha256_file(dst)}
     update_onnx_meta(model, {"crossing_point": entry})
     return dst

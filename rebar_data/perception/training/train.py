@@ -34,7 +34,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset.writers.manifest import sha256_file
-from rebar_data.outputs import OutputLock, mark_output, output_folder
+from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_file
 from rebar_data.perception.evaluation.data import (
     Sample,
     check_dataset,
@@ -436,13 +436,16 @@ def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
     keys: list[str] = []
     for row in history:
         keys += [k for k in row if k not in keys]
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        for row in history:
-            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-    tmp.replace(path)
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=keys)
+            w.writeheader()
+            w.writerows(
+                {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()} for row in history
+            )
+
+    replace_file(path, write)
 
 
 def _finish(
