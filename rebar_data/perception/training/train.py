@@ -630,17 +630,12 @@ def load_detector(path: str | Path | None = None, **kwargs: Any):
         return Detector.load(p, **kwargs)
     net, meta, _ = load_checkpoint(p)
     det = eager.detector(net, meta=meta, path=p)
-    found = stage_file(p, det.meta, "refiner", refiner_path)
-    if found is not None:
+    if (found := stage_file(p, det.meta, "refiner", refiner_path)) is not None:
         det.refiner = eager.refiner(refine.load(found[0])[0], **refiner_passes(found[1]))
-    found = stage_file(p, det.meta, "depth_check", depth_check_path)
-    if found is not None:
-        entry = found[1]
-        det.depth_check = eager.depth_check(
-            depth_check.load(found[0])[0], scale_m=float(entry["scale_m"]), clip=float(entry["clip"])
-        )
-    found = stage_file(p, det.meta, "crossing_point", crossing_point_path)
-    if found is not None:
+    if (found := stage_file(p, det.meta, "depth_check", depth_check_path)) is not None:
+        scale_m, clip = float(found[1]["scale_m"]), float(found[1]["clip"])
+        det.depth_check = eager.depth_check(depth_check.load(found[0])[0], scale_m=scale_m, clip=clip)
+    if (found := stage_file(p, det.meta, "crossing_point", crossing_point_path)) is not None:
         det.crossing_point = eager.crossing_point(crossing_point.load(found[0])[0])
     det.attach_line_check(kwargs.get("line_check", True))
     det.reading = kwargs.get("reading", "mirrored")
