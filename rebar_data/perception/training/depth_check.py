@@ -107,15 +107,9 @@ def train_depth_check(
     data: list[str] | None = None,
     progress: bool = False,
 ) -> tuple[DepthNet, list[dict[str, float]]]:
-    """Train the depth check on the depth images of ``samples``, resumable in ``out/depth_last.pt``.
-
-    ``negatives`` (each sample's (M, 2) points) may be a function that gives them, called only when there
-    is training to do; ``data`` names what they came from (a checkpoint from other ones trains afresh).
-
-    Returns:
-        The trained network and one row per epoch (loss, the shares of negatives and of crossings classed
-        rightly, seconds).
-    """
+    """Train the depth check on the depth images of ``samples``, resumable in ``out/depth_last.pt``; returns
+    it and one row per epoch. ``negatives`` (each sample's (M, 2) points) may be a function that gives
+    them, called only when there is training to do; ``data`` names what they came from."""
     check_depth(samples)
     torch.manual_seed(seed)
 

@@ -72,15 +72,11 @@ def train_stage(
     describe: Callable[[dict[str, float]], str],
     progress: bool,
 ) -> tuple[nn.Module, list[dict[str, float]]]:
-    """Train ``net`` for ``cfg.epochs``, resumable per epoch from ``last``; returns it (eval mode) and a row
-    per epoch.
-
-    ``last`` holds the weights, optimiser, history and ``data`` (what it trained on beyond the run's own
-    images) after every epoch; one with the same training settings and ``data`` goes on where it stopped, a
-    finished one is kept as it is. ``prepare(payload, first)`` runs only when there is training to do and
-    gives the batches from epoch ``first`` on, the steps an epoch and what else the checkpoint keeps;
-    ``loss`` adds to an epoch's tally, from which ``summary`` makes its row and ``describe`` its log line.
-    """
+    """Train ``net`` for ``cfg.epochs``; returns it (eval mode) and a row per epoch. ``last`` is saved after
+    every epoch; one with the same training settings and ``data`` (what it trained on beyond the run's own
+    images) goes on where it stopped. ``prepare(payload, first)`` gives the batches from epoch ``first`` on,
+    the steps an epoch and what else the checkpoint keeps; ``loss`` adds to an epoch's tally, from which
+    ``summary`` makes its row and ``describe`` its log line."""
     data = data or []
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     payload = None

@@ -158,17 +158,10 @@ def train_refiner(
     data: list[str] | None = None,
     progress: bool = False,
 ) -> tuple[PatchNet, list[dict[str, float]]]:
-    """Train the refiner on the visible crossings of ``samples``, resumable in ``out/refine_last.pt``.
-
-    With ``cfg.verify``, ``negatives_of(samples, images)`` gives each sample's (M, 2) negatives (usually
-    :func:`mine_negatives`); it is called only when there is training to do, and its answer is kept in the
-    checkpoint. Without it the verification learns from positives alone. ``data`` names what it trains on
-    beyond the run's own images; a checkpoint trained on other such data trains afresh.
-
-    Returns:
-        The trained network and one row per epoch (loss, mean offset error in px, seconds, and with
-        ``verify`` the shares of negatives and of crossings classed rightly).
-    """
+    """Train the refiner on the visible crossings of ``samples``, resumable in ``out/refine_last.pt``; returns
+    it and one row per epoch. With ``cfg.verify``, ``negatives_of(samples, images)`` gives each sample's
+    (M, 2) negatives (:func:`mine_negatives`; called only when there is training to do, its answer kept in
+    the checkpoint); without it the verification learns from positives alone."""
     if not any(len(s.visible) for s in samples):
         raise ConfigError(
             "the train split has no visible crossings; accepted: a dataset with labelled crossings"

@@ -40,15 +40,11 @@ def training_patch(
     uniform: bool = True,
     distractors: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
-    """One patch around ``crossing`` before colour changes, the crossing's offset from its centre and the
-    patch's scale; ``geometry`` is :func:`patch_geometry`'s.
-
-    ``uniform = False`` draws the centre's error from the Gaussian alone (for a mined negative, which a
-    uniform error could move next to a real crossing); the ``distractors`` pixels (H, W bool) get
-    ``AugmentConfig.distractor_gain``'s factor. A fourth channel is 255 where the patch shows the image (0
-    beyond its border, as the run time cuts patches), and a ``cfg.border_fraction`` of patches get a
-    straight border of their own along a patch axis, within ``cfg.border_reach_px`` of the crossing.
-    """
+    """One patch around ``crossing`` before colour changes (a fourth channel 255 where it shows the image),
+    the crossing's offset from its centre and the patch's scale. ``uniform = False`` draws the centre's
+    error from the Gaussian alone (for a mined negative); the ``distractors`` pixels get
+    ``AugmentConfig.distractor_gain``'s factor; a ``cfg.border_fraction`` of patches get a straight border of
+    their own within ``cfg.border_reach_px`` of the crossing."""
     gain = draw_gain(rng, geometry, distractors)  # first: the patch's other draws stay those without it
     if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
