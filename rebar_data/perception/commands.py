@@ -1,4 +1,4 @@
-"""`rebar train` and `rebar detect`: train the crossing detector, and run it on a dataset split or on images."""
+"""`rebar train`, `adapt`, `add-crossing-point` and `detect`: train the detector, run it."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ from contextlib import ExitStack, contextmanager
 from pathlib import Path
 from typing import TYPE_CHECKING
 
+from rebar_data import outputs
 from rebar_data.arguments import bounded
-from rebar_data.outputs import replace_file
+from rebar_data.config import ConfigError
 from rebar_data.perception.inference.detector import READINGS
 from rebar_data.perception.inference.image import TOLERANCE
 from rebar_data.perception.inference.model_file import RUNTIMES
@@ -31,8 +32,7 @@ THREADS = bounded(int, 1, 256)
 
 
 def _detect_wrote_predictions(path: Path) -> bool:
-    """``path`` is a predictions file `rebar detect` wrote: its mark in the Parquet metadata, or (files
-    from before the mark) exactly its columns."""
+    """``path`` is a predictions file `rebar detect` wrote: its mark, or (older files) its columns."""
     import pyarrow.parquet as pq
 
     try:
@@ -44,49 +44,35 @@ def _detect_wrote_predictions(path: Path) -> bool:
 
 
 def _detect_wrote_metrics(path: Path) -> bool:
-    """``path`` is a metrics file `rebar detect` wrote: its mark, or (files from before the mark) the
-    record's own keys."""
+    """``path`` is a metrics file `rebar detect` wrote: its mark, or (older files) its keys."""
     try:
         record = json.loads(path.read_text())
     except (OSError, ValueError):
         return False
-    if not isinstance(record, dict):
-        return False
-    return record.get(WRITTEN_BY) == DETECT or {"split", "dataset", "truth", "point", "runtime"} <= set(
-        record
-    )
+    keys = {"split", "dataset", "truth", "point", "runtime"}
+    return isinstance(record, dict) and (record.get(WRITTEN_BY) == DETECT or keys <= set(record))
 
 
 def _detect_wrote_overlays(folder: Path) -> bool:
-    """``folder`` has the layout of an earlier `rebar detect` on images (from before the mark):
-    detections.parquet, cameras.json and overlays."""
-    names = {p.name: p for p in folder.iterdir()}
-    return (
-        "cameras.json" in names
-        and "detections.parquet" in names
-        and all(n in ("cameras.json", "detections.parquet") or n.endswith(".png") for n in names)
-    )
+    """``folder`` has the layout of an earlier `rebar detect` on images (from before the mark)."""
+    names, kept = {p.name for p in folder.iterdir()}, {"cameras.json", "detections.parquet"}
+    return kept <= names and all(n in kept or n.endswith(".png") for n in names)
 
 
 def _adapt_folder(folder: Path) -> bool:
     """``folder`` has the layout of an earlier `rebar adapt` (not a training run, which has config.json)."""
-    return (
-        (folder / "best.pt").is_file()
-        and not (folder / "config.json").exists()
-        and any((folder / n).exists() for n in ("adapt_last.pt", "adapted.pt", "rebar_keypoint.onnx"))
-    )
+    made = any((folder / n).exists() for n in ("adapt_last.pt", "adapted.pt", "rebar_keypoint.onnx"))
+    return (folder / "best.pt").is_file() and not (folder / "config.json").exists() and made
 
 
 def _crossing_point_folder(folder: Path) -> bool:
     """``folder`` has the layout of an earlier `rebar add-crossing-point` (not a training run)."""
-    return not (folder / "config.json").exists() and any(
-        (folder / n).is_file() for n in ("crossing_last.pt", "best.crossing.pt")
-    )
+    made = any((folder / n).is_file() for n in ("crossing_last.pt", "best.crossing.pt"))
+    return not (folder / "config.json").exists() and made
 
 
 def run_train(args: argparse.Namespace) -> None:
-    from rebar_data.config import ConfigError, read_yaml
-    from rebar_data.outputs import outside_inputs
+    from rebar_data.config import read_yaml
     from rebar_data.perception.evaluation.data import check_dataset, read_info
     from rebar_data.perception.training.config import resolve_config
     from rebar_data.perception.training.train import check_run_folder, train
@@ -98,14 +84,10 @@ def run_train(args: argparse.Namespace) -> None:
         check_dataset(path)
     settings = read_yaml(args.config) if args.config else None
     config = resolve_config(settings, {}, source=str(args.config or "train settings"))
-    out = (
-        Path(args.out)
-        if args.out
-        else Path("runs/train") / str(read_info(root).get("name") or root.parent.name)
-    )
+    out = Path(args.out or Path("runs/train") / str(read_info(root).get("name") or root.parent.name))
     check_run_folder(out)
     inputs = [root, *(args.eval or ()), *(args.supplement or ()), *(args.refine_supplement or ())]
-    outside_inputs(out, [*inputs, *(args.line_supplement or ())], arg="--out")
+    outputs.outside_inputs(out, [*inputs, *(args.line_supplement or ())], arg="--out")
     result = train(
         root,
         out,
@@ -122,116 +104,88 @@ def run_train(args: argparse.Namespace) -> None:
 
         model = ship(out, evaluate_on=args.eval or (), progress=not args.quiet)
         print(f"shipped {model}", file=sys.stderr)
-    print(
-        f"best epoch {result.best_epoch} of {result.epochs_run}"
-        + (" (stopped early)" if result.stopped_early else ""),
-        file=sys.stderr,
-    )
+    early = " (stopped early)" if result.stopped_early else ""
+    print(f"best epoch {result.best_epoch} of {result.epochs_run}{early}", file=sys.stderr)
     print(out)
 
 
-def _added_stage_inputs(args: argparse.Namespace):
-    """What `rebar add-crossing-point` reads: the dataset (checked), the model file, the training settings
-    (``--config``, else the defaults) and every image of the supplements."""
+def _stage_inputs(args: argparse.Namespace, command: str, owned, datasets) -> tuple:
+    """What `rebar adapt` and `rebar add-crossing-point` read: ``--out`` (new, empty or the command's own,
+    outside every input), the dataset, the model file, ``--config`` (None without it) and every image of
+    ``datasets``, with their records."""
     from rebar_data.config import read_yaml
-    from rebar_data.perception.evaluation.data import check_dataset, read_info
+    from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
     from rebar_data.perception.inference.detector import resolve_model_path
     from rebar_data.perception.training.config import resolve_config
     from rebar_data.perception.training.train import supplement_images
 
+    outputs.outside_inputs(Path(args.out), [args.dataset, *datasets], arg="--out")
+    out = outputs.output_folder(args.out, arg="--out", command=command, owned=owned)
     root = check_dataset(args.dataset)
     model = resolve_model_path(args.model)
-    settings, source = (read_yaml(args.config), str(args.config)) if args.config else (None, "train settings")
-    cfg = resolve_config(settings, {}, source=source)
-    extra, _ = supplement_images(args.supplement or (), trained_on=read_info(root).get("name"))
-    return root, model, cfg, extra
-
-
-def _training_out(args: argparse.Namespace, command: str, owned, inputs) -> Path:
-    """``--out`` of a command that trains in a folder and resumes there: new, empty, or its own earlier
-    one, and outside every input."""
-    from rebar_data.outputs import output_folder, outside_inputs
-
-    outside_inputs(Path(args.out), inputs, arg="--out")
-    return output_folder(args.out, arg="--out", command=command, owned=owned)
+    cfg = resolve_config(read_yaml(args.config), {}, source=str(args.config)) if args.config else None
+    extra, meta = supplement_images(datasets, trained_on=read_info(root).get("name"))
+    return out, load_split(root, "train"), model, cfg, extra, meta
 
 
 @contextmanager
 def _writing(out: Path, command: str, owned):
     """Hold ``out``'s one-writer lock, make the folder and leave ``command``'s mark in it."""
-    from rebar_data.outputs import OutputLock, mark_output, output_folder
-
-    with OutputLock(out, command=command):
-        output_folder(out, arg="--out", command=command, owned=owned)  # again under the lock
+    with outputs.OutputLock(out, command=command):
+        outputs.output_folder(out, arg="--out", command=command, owned=owned)  # again under the lock
         out.mkdir(parents=True, exist_ok=True)
-        mark_output(out, command)
+        outputs.mark_output(out, command)
         yield out
 
 
 def run_add_crossing_point(args: argparse.Namespace) -> None:
-    from rebar_data.perception.evaluation.data import load_split
+    from rebar_data.perception.training.config import resolve_config
     from rebar_data.perception.training.crossing_point import attach
 
-    out = _training_out(
-        args, ADD_CROSSING_POINT, _crossing_point_folder, [args.dataset, *(args.supplement or ())]
-    )
-    root, model, cfg, extra = _added_stage_inputs(args)
-    samples = load_split(root, "train") + extra
+    found = _stage_inputs(args, ADD_CROSSING_POINT, _crossing_point_folder, args.supplement or ())
+    out, samples, model, cfg, extra, _ = found
+    cfg = cfg or resolve_config(None, {})
     with _writing(out, ADD_CROSSING_POINT, _crossing_point_folder):
         stage = attach(
-            model, samples, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=not args.quiet
+            model,
+            samples + extra,
+            out,
+            cfg.crossing_point,
+            cfg.augment,
+            seed=cfg.seed,
+            progress=not args.quiet,
         )
     print(f"crossing-point stage beside {model}: {stage}", file=sys.stderr)
     print(stage)
 
 
 def run_adapt(args: argparse.Namespace) -> None:
-    from rebar_data.config import read_yaml
-    from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
-    from rebar_data.perception.inference.detector import resolve_model_path
     from rebar_data.perception.training.adapt import adapt_model
-    from rebar_data.perception.training.config import resolve_config
-    from rebar_data.perception.training.train import supplement_images
 
-    out = _training_out(args, ADAPT, _adapt_folder, [args.dataset, *args.frames])
-    root = check_dataset(args.dataset)
-    model = resolve_model_path(args.model)
-    # None: the settings the model trained with (adapt_model reads them from the file it loads)
-    cfg = resolve_config(read_yaml(args.config), {}, source=str(args.config)) if args.config else None
-    extra, frames = supplement_images(args.frames, trained_on=read_info(root).get("name"))
+    # cfg None: the settings the model trained with (adapt_model reads them from the file it loads)
+    out, samples, model, cfg, extra, frames = _stage_inputs(args, ADAPT, _adapt_folder, args.frames)
+    log = None if args.quiet else (lambda msg: print(msg, file=sys.stderr))
     with _writing(out, ADAPT, _adapt_folder):
-        out = adapt_model(
-            model,
-            load_split(root, "train"),
-            extra,
-            out,
-            cfg,
-            data=[str(f["path"]) for f in frames],
-            log=None if args.quiet else (lambda msg: print(msg, file=sys.stderr)),
-            progress=not args.quiet,
-        )
+        data = [str(f["path"]) for f in frames]
+        out = adapt_model(model, samples, extra, out, cfg, data=data, log=log, progress=not args.quiet)
     print(f"adapted {model} on {len(extra)} frames: {out}", file=sys.stderr)
     print(out)
 
 
 def run_detect(args: argparse.Namespace) -> int:
-    from rebar_data.config import ConfigError
-    from rebar_data.outputs import input_file, input_folder
     from rebar_data.perception.inference.detector import resolve_model_path
 
     target = Path(args.input)
     accepted = "a dataset folder, an image or a folder of images"
     if not target.exists():
         raise ConfigError(f"{target}: no such dataset, image or folder; accepted: {accepted}")
-    if target.is_dir():
-        input_folder(target, arg="input", what=accepted)
-    else:
-        input_file(target, arg="input", what=accepted)
+    (outputs.input_folder if target.is_dir() else outputs.input_file)(target, arg="input", what=accepted)
     dataset = (target / "tables/samples.parquet").exists()
     if dataset:
         if args.flatten_behind and args.no_depth:
             raise ConfigError(
-                "--flatten-behind reads the depth images, which --no-depth leaves out; accepted: one of the two"
+                "--flatten-behind reads the depth images, which --no-depth leaves out; accepted: one of the "
+                "two"
             )
         if args.camera is not None or args.no_exif:
             given = f"--camera {args.camera}" if args.camera is not None else "--no-exif"
@@ -243,8 +197,8 @@ def run_detect(args: argparse.Namespace) -> int:
     else:
         if args.flatten_behind:
             raise ConfigError(
-                f"--flatten-behind: {target} is read without depth (images given as files have none); accepted: "
-                "--flatten-behind with a dataset that has depth images"
+                f"--flatten-behind: {target} is read without depth (images given as files have none); "
+                "accepted: --flatten-behind with a dataset that has depth images"
             )
         if args.metrics:
             raise ConfigError(
@@ -267,8 +221,6 @@ def run_detect(args: argparse.Namespace) -> int:
 
 def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
     """``--camera FX,FY,CX,CY`` as four numbers (None when not given)."""
-    from rebar_data.config import ConfigError
-
     if text is None:
         return None
     try:
@@ -284,36 +236,25 @@ def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
 
 
 def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path | None]:
-    """``--out`` and ``--metrics`` of a dataset's predictions: each new or `rebar detect`'s own earlier
-    file, outside the dataset, and not the same file."""
-    from rebar_data.config import ConfigError
-    from rebar_data.outputs import output_file, outside_inputs
-
+    """``--out`` and ``--metrics`` of a dataset's predictions: each new or `rebar detect`'s own, outside the
+    dataset, and not the same file."""
     out = Path(args.out)
     if out.suffix != ".parquet":
         raise ConfigError(
             f"--out {out}: predictions on a dataset go to a .parquet file, such as pred.parquet"
         )
-    outside_inputs(out, [root], arg="--out")
-    output_file(
-        out,
-        arg="--out",
-        what="a new .parquet file, or one an earlier `rebar detect` wrote",
-        owned=_detect_wrote_predictions,
-    )
+    outputs.outside_inputs(out, [root], arg="--out")
+    what = "a new .parquet file, or one an earlier `rebar detect` wrote"
+    outputs.output_file(out, arg="--out", what=what, owned=_detect_wrote_predictions)
     if args.oks_sigma is not None and not args.oks_sigma > 0:
         raise ConfigError(
             f"--oks-sigma {args.oks_sigma} is not accepted; accepted: a number above 0, such as 0.04"
         )
     if not args.metrics:
         return out, None
-    outside_inputs(Path(args.metrics), [root], arg="--metrics")
-    metrics = output_file(
-        args.metrics,
-        arg="--metrics",
-        what="a new JSON file, or one an earlier `rebar detect` wrote",
-        owned=_detect_wrote_metrics,
-    )
+    outputs.outside_inputs(Path(args.metrics), [root], arg="--metrics")
+    what = "a new JSON file, or one an earlier `rebar detect` wrote"
+    metrics = outputs.output_file(args.metrics, arg="--metrics", what=what, owned=_detect_wrote_metrics)
     if metrics.resolve() == out.resolve():
         raise ConfigError(f"--metrics {metrics}: is --out as well; accepted: another file than --out")
     return out, metrics
@@ -330,16 +271,15 @@ def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> 
         meta = {**(table.schema.metadata or {}), WRITTEN_BY.encode(): DETECT.encode()}
         pq.write_table(table.replace_schema_metadata(meta), tmp)
 
-    replace_file(path, write)
+    outputs.replace_file(path, write)
 
 
 def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
-    from rebar_data.config import ConfigError
-    from rebar_data.outputs import OutputLock
     from rebar_data.perception.evaluation.data import SPLITS, stated_oks_sigma
     from rebar_data.perception.evaluation.evaluate import LOW_THRESHOLD, load_splits, predict, score
     from rebar_data.perception.evaluation.false_detections import false_detection_census, format_census
     from rebar_data.perception.evaluation.metrics import format_summary
+    from rebar_data.perception.inference.model_file import runtime_description
 
     samples = load_splits(root, SPLITS if args.split == "all" else (args.split,), truth=args.truth)
     if not samples:
@@ -348,18 +288,12 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
     point = args.point or args.truth
     with ExitStack() as held:
         out, metrics_path = _dataset_outputs(root, args)
-        held.enter_context(OutputLock(out, command=DETECT))
+        held.enter_context(outputs.OutputLock(out, command=DETECT))
         if metrics_path is not None:
-            held.enter_context(OutputLock(metrics_path, command=DETECT, arg="--metrics"))
+            held.enter_context(outputs.OutputLock(metrics_path, command=DETECT, arg="--metrics"))
         _dataset_outputs(root, args)  # again under the locks: another writer may have finished meanwhile
-        preds = predict(
-            detector,
-            samples,
-            threshold=threshold,
-            depth=not args.no_depth,
-            progress=not args.quiet,
-            point=point,
-        )
+        depth, progress = not args.no_depth, not args.quiet
+        preds = predict(detector, samples, threshold=threshold, depth=depth, progress=progress, point=point)
         _write_marked_predictions(out, [s.image_id for s in samples], preds)
         sigma = args.oks_sigma if args.oks_sigma is not None else stated_oks_sigma(root)
         metrics = score(samples, preds, sigma=sigma)
@@ -372,12 +306,11 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
         if census is not None:
             print(format_census(census), file=sys.stderr)
         if metrics_path is not None:
-            record = {
-                "split": args.split,
-                "dataset": str(root),
-                "truth": args.truth,
-                "point": point,
-                "runtime": _runtime_words(detector),
+            # what ran the first stage: its figures may move a little with the runtime
+            torch = detector.backend == "torch"
+            runtime = "PyTorch, float32" if torch else runtime_description(detector.backend)
+            record = dict(split=args.split, dataset=str(root), truth=args.truth, point=point, runtime=runtime)
+            record |= {
                 "reading": detector.reading,
                 "resample": detector.resample,
                 WRITTEN_BY: DETECT,
@@ -386,27 +319,16 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
             if census is not None:
                 record["false_detections"] = census
             text = json.dumps(record, indent=2) + "\n"
-            replace_file(metrics_path, lambda tmp: tmp.write_text(text))
+            outputs.replace_file(metrics_path, lambda tmp: tmp.write_text(text))
     print(out)
     return 0
 
 
-def _runtime_words(detector) -> str:
-    """What ran ``detector``'s first stage, in words (its figures may move a little with the runtime)."""
-    from rebar_data.perception.inference.model_file import runtime_description
-
-    return "PyTorch, float32" if detector.backend == "torch" else runtime_description(detector.backend)
-
-
 def _image_files(target: Path) -> list[Path]:
     """The images to read: ``target`` itself, or every image file in the folder ``target``."""
-    from rebar_data.config import ConfigError
-
-    files = (
-        sorted(p for p in target.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
-        if target.is_dir()
-        else [target]
-    )
+    if not target.is_dir():
+        return [target]
+    files = sorted(p for p in target.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
     if not files:
         raise ConfigError(
             f"{target}: holds no images ({', '.join(IMAGE_SUFFIXES)}); accepted: an image or a folder of them"
@@ -416,16 +338,13 @@ def _image_files(target: Path) -> list[Path]:
 
 def _images_out(target: Path, args: argparse.Namespace) -> Path:
     """``--out`` for images: a folder, new, empty or `rebar detect`'s own earlier one, outside the input."""
-    from rebar_data.config import ConfigError
-    from rebar_data.outputs import output_folder, outside_inputs
-
     out = Path(args.out)
     if out.suffix == ".parquet":
         raise ConfigError(
             f"--out {out}: for images, --out is a folder for the overlays and detections.parquet"
         )
-    outside_inputs(out, [target], arg="--out")
-    output_folder(out, arg="--out", command=DETECT, owned=_detect_wrote_overlays, swapped=True)
+    outputs.outside_inputs(out, [target], arg="--out")
+    outputs.output_folder(out, arg="--out", command=DETECT, owned=_detect_wrote_overlays, swapped=True)
     if target.is_file() and out.resolve() == target.parent.resolve():
         raise ConfigError(
             f"--out {out}: is the folder of the input {target}, whose files would be overwritten; accepted: "
@@ -437,8 +356,6 @@ def _images_out(target: Path, args: argparse.Namespace) -> Path:
 def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
     """Overlays, detections.parquet and cameras.json of every image, in a folder swapped in whole at the
     end; an image that cannot be read is named and skipped, and the command then ends with status 1."""
-    from rebar_data.config import ConfigError
-    from rebar_data.outputs import OutputLock, mark_output, replace_folder
     from rebar_data.perception.evaluation.data import read_image
     from rebar_data.perception.inference.detector import OPERATING_THRESHOLD
 
@@ -447,7 +364,7 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
     threshold = args.threshold if args.threshold is not None else OPERATING_THRESHOLD
     final = Path(args.out)
     unread: list[Path] = []
-    with OutputLock(final, command=DETECT):
+    with outputs.OutputLock(final, command=DETECT):
         _images_out(target, args)  # again under the lock: another writer may have finished meanwhile
         with tempfile.TemporaryDirectory(dir=final.parent, prefix=f".{final.name}.tmp-") as tmp:
             out = Path(tmp) / "detect"
@@ -466,8 +383,8 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
             _write_marked_predictions(out / "detections.parquet", ids, preds)
             # the intrinsics each image was read with, beside its detections (COCO corner origin, pixels)
             (out / "cameras.json").write_text(json.dumps(cameras, indent=2) + "\n")
-            mark_output(out, DETECT)
-            replace_folder(out, final)
+            outputs.mark_output(out, DETECT)
+            outputs.replace_folder(out, final)
     print(final)
     if unread:
         print(f"error: {len(unread)} of {len(files)} images could not be read", file=sys.stderr)
@@ -477,14 +394,19 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
 
 def _detect_image(detector, f: Path, rgb: np.ndarray, out: Path, camera, threshold: float, args) -> tuple:
     """Detect in one image and draw its overlay into ``out``; returns the detections and the camera it
-    was read with."""
+    was read with: ``camera``, else the photograph's EXIF 35 mm equivalent focal length's, else None (the
+    training camera's field of view)."""
     import cv2
 
     from rebar_data.perception.evaluation.plots import draw_overlay
+    from rebar_data.perception.photo import photo_camera
 
     used, how = camera, "--camera"
     if camera is None:
-        used, how = _photo_camera(f, rgb, exif=not args.no_exif)
+        found = photo_camera(f, *rgb.shape[:2]) if not args.no_exif else None
+        used, how = None, "the training camera's field of view" + (", --no-exif" if args.no_exif else "")
+        if found is not None:
+            used, how = found.camera, f"EXIF {found.focal_35mm:g} mm equivalent, fx {found.camera[0]:.0f} px"
     det = detector.detect(rgb, threshold=threshold, camera=used, point=args.point or "sight")
     overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
     cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
@@ -494,204 +416,78 @@ def _detect_image(detector, f: Path, rgb: np.ndarray, out: Path, camera, thresho
     return det, {"file": f.name, "width": w, "height": h, "fx": fx, "fy": fy, "cx": cx, "cy": cy, "from": how}
 
 
-def _photo_camera(
-    path: Path, rgb: np.ndarray, *, exif: bool
-) -> tuple[tuple[float, float, float, float] | None, str]:
-    """The intrinsics a photograph is read with when ``--camera`` gives none: its EXIF 35 mm equivalent
-    focal length's (:mod:`~rebar_data.perception.photo`) unless ``exif`` is off, else None (the training
-    camera's field of view); and words saying which, for the command's line per image."""
-    from rebar_data.perception.photo import photo_camera
-
-    found = photo_camera(path, *rgb.shape[:2]) if exif else None
-    if found is None:
-        return None, "the training camera's field of view" + ("" if exif else ", --no-exif")
-    return found.camera, f"EXIF {found.focal_35mm:g} mm equivalent, fx {found.camera[0]:.0f} px"
-
-
 def register(sub: argparse._SubParsersAction) -> None:
+    quiet = "no progress bars or per-epoch lines"
+    shipped = "the model's .onnx file (default: the shipped model)"
+    repeatable = dict(action="append", metavar="DATASET")
     t = sub.add_parser("train", help="train the crossing detector on a dataset (CPU; resumable)")
     t.add_argument("dataset", help="dataset folder ROOT/<name>/v<version>/, as `rebar dataset build` prints")
-    t.add_argument(
-        "--out",
-        help="run folder (default runs/train/<dataset name>): new, empty, or an earlier run, which resumes "
-        "(a folder holding other files is refused; one training writes a run at a time)",
-    )
-    t.add_argument(
-        "--config", help="YAML of training settings (fields of TrainConfig: epochs, batch_size, ...)"
-    )
+    t.add_argument("--out", help="run folder (default runs/train/<dataset name>; an earlier run resumes)")
+    t.add_argument("--config", help="YAML of training settings (TrainConfig's fields: epochs, ...)")
     t.add_argument("--epochs", type=EPOCHS, help=f"epochs, {EPOCHS} (overrides the config)")
-    t.add_argument(
-        "--supplement",
-        action="append",
-        metavar="DATASET",
-        help="another dataset whose every image also trains the model (repeatable); val and test stay the first's",
-    )
+    t.add_argument("--supplement", **repeatable, help="another dataset whose every image also trains")
     t.add_argument(
         "--refine-supplement",
-        action="append",
-        metavar="DATASET",
+        **repeatable,
         help="another renderer's dataset whose every image trains the adapt epochs and the second stage "
-        "(and the first epochs, other_renderer_repeats times; repeatable)",
+        "(and the first epochs, other_renderer_repeats times)",
     )
-    t.add_argument(
-        "--line-supplement",
-        action="append",
-        metavar="DATASET",
-        help="a dataset whose every image the line check is fitted on beside the val split (repeatable; "
-        "make train: LINE_SUPPLEMENTS)",
-    )
+    t.add_argument("--line-supplement", **repeatable, help="a dataset the line check is also fitted on")
     t.add_argument("--fresh", action="store_true", help="start afresh instead of resuming the run in --out")
     t.add_argument(
         "--ship", action="store_true", help="then copy the best model and its card into the package"
     )
-    t.add_argument(
-        "--eval",
-        action="append",
-        metavar="DATASET",
-        help="with --ship: also score the model on every split of this dataset for its card (repeatable)",
-    )
-    t.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
+    t.add_argument("--eval", **repeatable, help="with --ship: also score the model on this dataset")
+    t.add_argument("--quiet", action="store_true", help=quiet)
     t.set_defaults(func=run_train)
 
-    a = sub.add_parser(
-        "add-crossing-point",
-        help="train the crossing-point stage alone and put it beside a model trained without it",
-    )
+    a = sub.add_parser("add-crossing-point", help="train the crossing-point stage alone, for a model")
     a.add_argument("dataset", help="the dataset the model trained on (its train split trains the stage)")
-    a.add_argument("--model", help="the model's .onnx file (default: the shipped model)")
-    a.add_argument(
-        "--out",
-        required=True,
-        help="folder for the stage's checkpoint: new, empty, or an earlier one of this command (resumes "
-        "there)",
-    )
-    a.add_argument(
-        "--supplement", action="append", metavar="DATASET", help="as for `rebar train` (repeatable)"
-    )
-    a.add_argument(
-        "--config", help="YAML of training settings, as for `rebar train` (its crossing_point and seed)"
-    )
-    a.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
+    a.add_argument("--model", help=shipped)
+    a.add_argument("--out", required=True, help="folder for the stage's checkpoint (an earlier one resumes)")
+    a.add_argument("--supplement", **repeatable, help="as for `rebar train`")
+    a.add_argument("--config", help="YAML of training settings (its crossing_point and seed)")
+    a.add_argument("--quiet", action="store_true", help=quiet)
     a.set_defaults(func=run_add_crossing_point)
 
-    p = sub.add_parser(
-        "adapt",
-        help="train a model's first stage a few more epochs on another camera's or renderer's labelled frames",
-    )
+    p = sub.add_parser("adapt", help="train a model's first stage more epochs on another camera's frames")
     p.add_argument("dataset", help="the dataset the model trained on (its train split stays in the mix)")
-    p.add_argument(
-        "--frames",
-        action="append",
-        required=True,
-        metavar="DATASET",
-        help="a dataset of the other camera's frames, every image used (repeatable)",
-    )
-    p.add_argument("--model", help="the model's .onnx file (default: the shipped model)")
-    p.add_argument(
-        "--out",
-        required=True,
-        help="folder for the adapted model, rebar_keypoint.onnx: new, empty, or an earlier `rebar adapt` "
-        "folder (resumes there)",
-    )
-    p.add_argument(
-        "--config", help="YAML of training settings (default: the model's own; its adapt and seed)"
-    )
-    p.add_argument("--quiet", action="store_true", help="no progress bars or per-epoch lines")
+    p.add_argument("--frames", **repeatable, required=True, help="a dataset of the other camera's frames")
+    p.add_argument("--model", help=shipped)
+    p.add_argument("--out", required=True, help="folder for rebar_keypoint.onnx (an earlier one resumes)")
+    p.add_argument("--config", help="YAML of training settings (default: the model's; its adapt and seed)")
+    p.add_argument("--quiet", action="store_true", help=quiet)
     p.set_defaults(func=run_adapt)
 
-    d = sub.add_parser(
-        "detect", help="detect crossings in a dataset split (to Parquet) or in images (overlays)"
-    )
+    d = sub.add_parser("detect", help="detect crossings in a dataset split (Parquet) or in images (overlays)")
     d.add_argument("input", help="a dataset folder, an image, or a folder of images")
-    d.add_argument(
-        "--out",
-        required=True,
-        help="PRED.parquet for a dataset; a folder for images (new, empty, or an earlier one of `rebar detect`, "
-        "which is replaced; never inside the input)",
-    )
-    d.add_argument(
-        "--split",
-        default="test",
-        choices=("train", "val", "test", "all"),
-        help="dataset split, or all of them (default test)",
-    )
-    d.add_argument(
-        "--model", help="model file (.onnx, .pt) or training run folder (default: the shipped model)"
-    )
-    d.add_argument(
-        "--threshold",
-        type=THRESHOLD,
-        help=f"lowest score written, {THRESHOLD} (default 0.05 for a dataset, so curves are complete; 0.5 for "
-        "images)",
-    )
-    d.add_argument(
-        "--metrics",
-        help="also write the split's metrics to this JSON file, new or an earlier one of `rebar detect` "
-        "(dataset input)",
-    )
-    d.add_argument(
-        "--no-depth",
-        action="store_true",
-        help="leave the dataset's depth images out (the RGB stages and the line check, as for photographs); "
-        "images given as files are always read without depth",
-    )
-    d.add_argument(
-        "--flatten-behind",
-        action="store_true",
-        help="with the dataset's depth images, take what lies far behind the front bars (lower mat, ground) "
-        "out of each colour image before reading it (off by default)",
-    )
-    d.add_argument(
-        "--oks-sigma",
-        type=float,
-        help="score OKS AP at this sigma (above 0) instead of the dataset's (info.json); 1.0 is Ultralytics' "
-        "default for one keypoint, the paper's mAP@0.5 (dataset input)",
-    )
-    d.add_argument(
-        "--truth",
-        default="sight",
-        choices=("sight", "crossing"),
-        help="what a crossing's pixel is when scoring (dataset input): sight (default), where the image shows "
-        "the bars cross; crossing, where the 3D crossing point (the centerlines' midpoint) projects",
-    )
-    d.add_argument(
-        "--point",
-        choices=("sight", "crossing"),
-        help="what each detection's u, v stands for: sight or crossing (from the model's crossing-point "
-        "stage); default: as --truth for a dataset, sight for images",
-    )
+    d.add_argument("--out", required=True, help="PRED.parquet for a dataset; a folder for images")
+    d.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="default test")
+    d.add_argument("--model", help="model file (.onnx, .pt) or run folder (default: the shipped model)")
+    low = f"lowest score written, {THRESHOLD} (default 0.05 for a dataset, 0.5 for images)"
+    d.add_argument("--threshold", type=THRESHOLD, help=low)
+    d.add_argument("--metrics", help="dataset: also write the split's metrics to this JSON file")
+    d.add_argument("--no-depth", action="store_true", help="leave the dataset's depth images out")
+    behind = "dataset: take what lies far behind the front bars (lower mat, ground) out of each image"
+    d.add_argument("--flatten-behind", action="store_true", help=behind)
+    d.add_argument("--oks-sigma", type=float, help="dataset: score OKS AP at this sigma (above 0)")
+    points = ("sight", "crossing")
+    truth = "dataset: score against the labels' sight points (default) or the projected 3D crossing points"
+    d.add_argument("--truth", default="sight", choices=points, help=truth)
+    point = "each detection's u, v: sight or 3D crossing point (default: as --truth; images: sight)"
+    d.add_argument("--point", choices=points, help=point)
     d.add_argument("--threads", type=THREADS, default=2, help=f"CPU threads, {THREADS} (default 2)")
-    d.add_argument(
-        "--runtime",
-        choices=RUNTIMES,
-        default="auto",
-        help="what runs the model's float stages: auto (OpenVINO in bfloat16 where the CPU has it, else "
-        "ONNX Runtime; the default), onnxruntime (float32, as training fits) or openvino",
-    )
-    d.add_argument(
-        "--reading",
-        choices=READINGS,
-        default="mirrored",
-        help="how the stages read each image: mirrored (the default: the first stage reads the image and its "
-        "mirror image and takes their mean, the second stage reads its int8 copy) or single (once, faster)",
-    )
+    runtime = "auto (OpenVINO in bfloat16 where the CPU has it, else ONNX Runtime), onnxruntime or openvino"
+    d.add_argument("--runtime", choices=RUNTIMES, default="auto", help=runtime)
+    reading = "mirrored (the image and its mirror image, the mean; the default) or single (once, faster)"
+    d.add_argument("--reading", choices=READINGS, default="mirrored", help=reading)
     d.add_argument(
         "--camera",
         metavar="FX,FY,CX,CY",
-        help="images: the camera's intrinsics in pixels, COCO corner origin (default: from each photograph's "
-        "EXIF 35 mm equivalent focal length, else the training camera's field of view; the principal point "
-        "at the centre); a frame is read resized to the focal length the model trained at when its own "
-        f"differs by more than {TOLERANCE * 100:.0f}%%",
+        help="images: the intrinsics in pixels (default: from EXIF, else the training field of view); a "
+        f"frame whose focal length differs over {TOLERANCE * 100:.0f}%% is read resized to the model's",
     )
-    d.add_argument(
-        "--no-exif",
-        action="store_true",
-        help="images: leave the photographs' EXIF focal length unread (the training camera's field of view)",
-    )
-    d.add_argument(
-        "--no-resample",
-        action="store_true",
-        help="read every frame at its own scale, whatever its focal length (for comparison)",
-    )
+    d.add_argument("--no-exif", action="store_true", help="images: leave the EXIF focal length unread")
+    d.add_argument("--no-resample", action="store_true", help="read every frame at its own scale")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=run_detect)

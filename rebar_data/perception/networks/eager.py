@@ -13,11 +13,7 @@ from rebar_data.perception.inference.checks import DepthCheck
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.inference.refine import CrossingPoint, Refiner
 from rebar_data.perception.networks.keypoint_net import KeypointNet, UInt8Input
-from rebar_data.perception.networks.stages import (
-    CrossingNet,
-    DepthNet,
-    PatchNet,
-)
+from rebar_data.perception.networks.stages import CrossingNet, DepthNet, PatchNet
 
 
 def detector(net: KeypointNet, *, meta: dict[str, Any] | None = None, path: Path | None = None) -> Detector:
@@ -32,15 +28,7 @@ def detector(net: KeypointNet, *, meta: dict[str, Any] | None = None, path: Path
     return Detector(run, meta=dict(meta or {}), backend="torch", path=path)
 
 
-def refiner(
-    net: PatchNet,
-    *,
-    iterations: int = 1,
-    views: int = 1,
-    step: float = 1.0,
-    shrink_above_px: tuple[float, float] | None = None,
-    first_pass_views: int | None = None,
-) -> Refiner:
+def refiner(net: PatchNet, *, iterations: int = 1, **passes: Any) -> Refiner:
     """A second stage that runs ``net``, its passes as the arguments say (:class:`Refiner`)."""
     wrapped = UInt8Input(net.eval())  # uint8 (N, P, P, C) in, as the ONNX file takes them
 
@@ -49,15 +37,7 @@ def refiner(
             return wrapped(torch.from_numpy(x)).numpy()
 
     return Refiner(
-        run,
-        patch_px=net.patch_px,
-        iterations=iterations,
-        verifies=net.verify,
-        views=views,
-        step=step,
-        sizes=net.size,
-        shrink_above_px=shrink_above_px,
-        first_pass_views=first_pass_views,
+        run, patch_px=net.patch_px, iterations=iterations, verifies=net.verify, sizes=net.size, **passes
     )
 
 

@@ -1,11 +1,6 @@
-"""Model files: PyTorch checkpoints (weights + architecture + provenance) and ONNX exports for inference.
-
-A ``.pt`` file is a dict with ``format``, ``model_config``, ``state_dict`` and ``meta``; training's own
-checkpoints add the optimiser and progress so a run can resume. An ``.onnx`` file takes uint8 RGB
-(1, H, W, 3) and returns the network's (1, 3, H/4, W/4) output; the same ``meta`` is stored in its
-metadata under ``rebar_keypoint`` as JSON, so the one file says what it is, how it was trained and how
-well it scored.
-"""
+"""Model files: PyTorch checkpoints (``format``, ``model_config``, ``state_dict``, ``meta`` and, for
+training's own, its progress) and the ONNX files the run time reads, the first stage's with the same
+``meta`` as JSON in its metadata (what it is, how it was trained, how well it scored)."""
 
 from __future__ import annotations
 
@@ -24,11 +19,7 @@ from rebar_data.outputs import replace_file
 from rebar_data.perception.inference.detector import STRIDE
 from rebar_data.perception.inference.model_file import FORMAT, FORMAT_VERSION, META_KEY
 from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig, UInt8Input
-from rebar_data.perception.networks.stages import (
-    CrossingNet,
-    DepthNet,
-    PatchNet,
-)
+from rebar_data.perception.networks.stages import CrossingNet, DepthNet, PatchNet
 
 
 def write_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
@@ -50,62 +41,44 @@ def read_checkpoint(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
 
 def save_checkpoint(path: str | Path, net: KeypointNet, meta: dict[str, Any], **extra: Any) -> None:
     """Write the first stage's weights, architecture and ``meta`` (plus any training state in ``extra``)."""
-    write_checkpoint(
-        path,
-        {
-            "format": FORMAT,
-            "format_version": FORMAT_VERSION,
-            "model_config": net.cfg.model_dump(mode="json"),
-            "state_dict": net.state_dict(),
-            "meta": meta,
-            **extra,
-        },
-    )
+    head = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "model_config": net.cfg.model_dump(mode="json"),
+    }
+    write_checkpoint(path, {**head, "state_dict": net.state_dict(), "meta": meta, **extra})
 
 
 def load_checkpoint(path: str | Path) -> tuple[KeypointNet, dict[str, Any], dict[str, Any]]:
     """Rebuild the network of a ``.pt`` file; returns (network in eval mode, meta, the whole payload)."""
     payload = read_checkpoint(path, fmt=FORMAT, what="detector")
     if payload.get("format_version", 0) > FORMAT_VERSION:
+        version = payload["format_version"]
         raise ConfigError(
-            f"{path}: format_version {payload['format_version']} is newer than this code reads ({FORMAT_VERSION})"
+            f"{path}: format_version {version} is newer than this code reads ({FORMAT_VERSION})"
         )
     net = KeypointNet(ModelConfig.model_validate(payload["model_config"]))
     net.load_state_dict(payload["state_dict"])
-    net.eval()
-    return net, payload.get("meta", {}), payload
+    return net.eval(), payload.get("meta", {}), payload
 
 
 def export_onnx(net: nn.Module, path: str | Path, meta: dict[str, Any] | None = None) -> Path:
-    """Write any of the detector's networks as the ONNX file the run time reads (atomically).
-
-    - :class:`KeypointNet` (the first stage): uint8 RGB (1, H, W, 3) and, with ray channels, the output
-      cells' rays (1, 2, H/4, W/4) -> (1, 3, H/4, W/4), image size dynamic; ``meta`` (with the format and
-      the model config) goes into the file's metadata under :data:`META_KEY`.
-    - :class:`PatchNet` (the second stage): uint8 patches (N, P, P, C) -> (N, 2 to 4) offsets, verification
-      logit and log box side.
-    - :class:`DepthNet` (the depth check): float32 (N, 2, P, P) encoded patches -> (N,) logits.
-    - :class:`CrossingNet` (the crossing-point stage): uint8 (N, P, P, 3) patches and float32 (N, 2) rays
-      -> (N, 2) offsets.
-
-    The later stages' batch axis is dynamic; their files carry no metadata (the first stage's names them).
-    """
+    """Write any of the detector's networks as the ONNX file the run time reads (atomically): the first
+    stage takes uint8 RGB (1, H, W, 3) and the cells' rays, any image size, ``meta`` in its metadata under
+    :data:`META_KEY`; the later stages take a batch of patches (uint8, or the depth check's encoded float32)
+    and carry no metadata (the first stage's names them)."""
     import onnx
 
     path = Path(path)
     net = net.eval()
     example_hw = (480, 640)  # the traced size; the image axes stay free
     if isinstance(net, KeypointNet):
-        inputs: tuple[torch.Tensor, ...] = (torch.zeros((1, *example_hw, 3), dtype=torch.uint8),)
-        names = ["image"]
-        axes = {"image": {1: "height", 2: "width"}, "output": {2: "cells_y", 3: "cells_x"}}
-        if net.cfg.ray_channels:
-            inputs += (
-                torch.zeros((1, 2, example_hw[0] // STRIDE, example_hw[1] // STRIDE), dtype=torch.float32),
-            )
-            names.append("rays")
-            axes["rays"] = {2: "cells_y", 3: "cells_x"}
-        module, output = UInt8Input(net), "output"
+        cells = (example_hw[0] // STRIDE, example_hw[1] // STRIDE)
+        image, rays = torch.zeros((1, *example_hw, 3), dtype=torch.uint8), torch.zeros((1, 2, *cells))
+        inputs: tuple[torch.Tensor, ...] = (image, rays)
+        module, names, output = UInt8Input(net), ["image", "rays"], "output"
+        grid = {2: "cells_y", 3: "cells_x"}
+        axes = {"image": {1: "height", 2: "width"}, "output": grid, "rays": dict(grid)}
     else:
         size = net.patch_px
         if isinstance(net, PatchNet):
@@ -152,8 +125,7 @@ def export_onnx(net: nn.Module, path: str | Path, meta: dict[str, Any] | None = 
 
 
 def update_onnx_meta(path: str | Path, changes: dict[str, Any]) -> Path:
-    """Rewrite the ``meta`` of an ONNX file from :func:`export_onnx` with ``changes`` merged in (atomically;
-    the network is untouched)."""
+    """Merge ``changes`` into the ``meta`` of an ONNX file from :func:`export_onnx` (atomically)."""
     import onnx
 
     path = Path(path)
@@ -164,7 +136,7 @@ def update_onnx_meta(path: str | Path, changes: dict[str, Any]) -> Path:
 
 
 def _meta_entry(model, path: Path):
-    """The metadata entry of a loaded ONNX ``model`` (read from ``path``) that holds the detector's meta."""
+    """The metadata entry of a loaded ONNX ``model`` (from ``path``) that holds the detector's meta."""
     for entry in model.metadata_props:
         if entry.key == META_KEY:
             return entry
@@ -183,8 +155,7 @@ def onnx_meta(path: str | Path) -> dict[str, Any]:
 
 
 def check_model_file(model: str | Path) -> Path:
-    """``model`` as a Path, once it is an ONNX file written by ``rebar train`` (a stage is to be added to
-    it); a clear ``ConfigError`` otherwise."""
+    """``model`` as a Path once it is an ONNX file written by ``rebar train``; ConfigError otherwise."""
     model = Path(model)
     if model.suffix != ".onnx" or not model.exists():
         raise ConfigError(
@@ -198,18 +169,12 @@ def check_model_file(model: str | Path) -> Path:
 
 
 def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
-    """The network of an ONNX file from :func:`export_onnx` turned back into PyTorch, and its ``meta``:
-    what lets training go on from a shipped first stage (a run folder's ``best.pt``, the adapt epochs)
-    when its checkpoint is gone.
+    """The first stage of an ONNX file from :func:`export_onnx` back in PyTorch, and its ``meta``, so that
+    training can go on from a shipped model (with its batch norms frozen, as the adapt epochs do).
 
-    The export folds each batch norm into the convolution before it, so the weights come back folded:
-    each such convolution holds the folded kernel and its batch norm the folded bias, with unit scale
-    and the statistics that make it the identity in eval mode (mean 0, variance 1 - eps). The outputs
-    equal the file's within float rounding; batch norms trained again in train mode start from other
-    statistics, so go on with them frozen, as the adapt epochs do.
-
-    Raises:
-        ConfigError: the file is not a detector's ONNX file, or its layers do not match its model config.
+    The export folds each batch norm into the convolution before it: each such convolution gets the
+    folded kernel, its batch norm the folded bias with unit scale, mean 0 and variance 1 - eps. ConfigError
+    when the file is not a detector's or its layers do not match its model config.
     """
     import onnx
     from onnx import numpy_helper
@@ -234,8 +199,9 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
     }
     if len(nodes["Conv"]) != len(convs) or len(nodes["Gemm"]) != len(linears):
         raise ConfigError(
-            f"{path}: holds {len(nodes['Conv'])} convolutions and {len(nodes['Gemm'])} linear layers where its "
-            f"model config has {len(convs)} and {len(linears)}; accepted: a file exported by `rebar train`"
+            f"{path}: holds {len(nodes['Conv'])} convolutions and {len(nodes['Gemm'])} linear layers where "
+            f"its model config has {len(convs)} and {len(linears)}; accepted: a file exported by "
+            "`rebar train`"
         )
     with torch.no_grad():
         # the export traces the layers in the order the modules were made (the context's linear layers
@@ -266,9 +232,17 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
 
 def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray) -> Path:
     """The second stage's float file ``src`` as int8 at ``dst``: ONNX Runtime's static quantization, int8
-    weights per output channel and uint8 activations, their ranges the min and max seen on ``calibration``
-    (uint8 patches, N x P x P x C)."""
-    from onnxruntime.quantization import CalibrationDataReader
+    weights per output channel and uint8 activations ranged on the ``calibration`` patches."""
+    import tempfile
+
+    from onnxruntime.quantization import (
+        CalibrationDataReader,
+        CalibrationMethod,
+        QuantFormat,
+        QuantType,
+        quantize_static,
+    )
+    from onnxruntime.quantization.shape_inference import quant_pre_process
 
     class Batches(CalibrationDataReader):
         def __init__(self) -> None:
@@ -280,37 +254,25 @@ def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray) -> Path:
 
     root_logger = logging.getLogger()
     level = root_logger.level
-    # ONNX Runtime warns on the root logger, with the whole tensor type, that the uint8 input is not
-    # quantized (it is already 8-bit): kept quiet
+    # ONNX Runtime warns on the root logger that the uint8 input is not quantized (it is already 8-bit)
     root_logger.setLevel(logging.ERROR)
-    try:
-        _quantize(src, dst, Batches())
+    try:  # in a folder beside dst, so the finished file is renamed into place atomically
+        with tempfile.TemporaryDirectory(prefix=".rebar-quant-", dir=dst.parent) as tmp:
+            pre, out = Path(tmp) / "pre.onnx", Path(tmp) / "int8.onnx"
+            # symbolic shape inference cannot resolve the batch axis and would leave a file in the working
+            # folder; ONNX's own shape inference is enough for a plain convolution network
+            quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
+            quantize_static(
+                str(pre),
+                str(out),
+                Batches(),
+                quant_format=QuantFormat.QOperator,
+                per_channel=True,
+                activation_type=QuantType.QUInt8,
+                weight_type=QuantType.QInt8,
+                calibrate_method=CalibrationMethod.MinMax,
+            )
+            out.replace(dst)
     finally:
         root_logger.setLevel(level)
     return dst
-
-
-def _quantize(src: Path, dst: Path, batches) -> None:
-    import tempfile
-
-    from onnxruntime.quantization import CalibrationMethod, QuantFormat, QuantType, quantize_static
-    from onnxruntime.quantization.shape_inference import quant_pre_process
-
-    # the temporary folder sits beside dst, so the finished file is renamed into place atomically
-    with tempfile.TemporaryDirectory(prefix=".rebar-quant-", dir=dst.parent) as tmp:
-        pre = Path(tmp) / "pre.onnx"
-        # symbolic shape inference cannot resolve the batch axis and would leave a file in the working
-        # folder; ONNX's own shape inference, which still runs, is enough for a plain convolution network
-        quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
-        out = Path(tmp) / "int8.onnx"
-        quantize_static(
-            str(pre),
-            str(out),
-            batches,
-            quant_format=QuantFormat.QOperator,
-            per_channel=True,
-            activation_type=QuantType.QUInt8,
-            weight_type=QuantType.QInt8,
-            calibrate_method=CalibrationMethod.MinMax,
-        )
-        out.replace(dst)

@@ -3,7 +3,7 @@ and a head giving a crossing heatmap and a sub-cell offset per cell (``docs/dete
 
 from __future__ import annotations
 
-from typing import Annotated
+from typing import Annotated, Literal
 
 import torch
 import torch.nn.functional as F
@@ -17,22 +17,14 @@ NonNegativeInt = Annotated[int, Field(ge=0)]
 
 
 class ModelConfig(Strict):
-    """Architecture of the keypoint network (recorded in every checkpoint, so a file rebuilds its model).
+    """Architecture of the keypoint network (recorded in every checkpoint, so a file rebuilds its model)."""
 
-    ``channels`` are the widths at strides 2, 4, 8 and 16; ``blocks`` the depthwise-separable blocks at
-    strides 4, 8 and 16. The heatmap comes out at stride 4 with a sub-cell offset per cell.
-
-    ``ray_channels`` gives the network the viewing ray of each output cell ((u - cx) / fx, (v - cy) / fy),
-    so it knows where in the frame a cell is (lens effects, the perspective of the bars there); a
-    convolutional network cannot tell otherwise. ``global_context`` scales and shifts the stride-8
-    features by a vector pooled from the whole image (the frame's exposure, blur and how large the
-    grid appears). Both cost well under a millisecond a frame.
-    """
-
-    channels: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 32, 64, 128)
-    blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (1, 2, 4)
-    ray_channels: bool = True
-    global_context: bool = True
+    channels: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 32, 64, 128)  # strides 2 to 16
+    blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (1, 2, 4)  # separable, strides 4 to 16
+    ray_channels: Literal[True] = (
+        True  # each output cell's viewing ray ((u - cx) / fx, (v - cy) / fy) is an input
+    )
+    global_context: Literal[True] = True  # the stride-8 features scaled and shifted by a whole-image vector
 
 
 def conv_bn_relu(cin: int, cout: int, k: int = 3, stride: int = 1, groups: int = 1, dilation: int = 1):
@@ -59,17 +51,13 @@ class SeparableBlock(nn.Module):
 
 
 class KeypointNet(nn.Module):
-    """Image (N, 3, H, W), RGB values 0-255, H and W multiples of 16, and (with ``ray_channels``) the
-    viewing rays of the output cells' centres (N, 2, H/4, W/4) -> logits (N, 3, H/4, W/4).
+    """Image (N, 3, H, W), RGB values 0-255, H and W multiples of 16, and the viewing rays of the output
+    cells' centres (N, 2, H/4, W/4) -> (N, 3, H/4, W/4): the heatmap logit and the offset (x, y) of the
+    crossing from the cell's centre, in cells.
 
-    The rays enter the decoder at stride 8 as a learned embedding added to the features, where the
-    blocks that follow can combine them with what the encoder saw of the bars' perspective; feeding them
-    with the pixels instead would cost the most expensive layer (the stem) two more input channels. With
-    ``global_context`` the stride-16 features averaged over the whole image give a per-channel scale and
-    shift of the stride-8 features (FiLM), so every crossing's head knows the frame's perspective.
-
-    Channel 0 is the heatmap logit; channels 1 and 2 are the offset (x, y) of the crossing from the
-    cell's centre, in cells.
+    The rays enter the decoder at stride 8 as a learned embedding added to the features; the stride-16
+    features averaged over the image scale and shift the stride-8 ones (FiLM), so every crossing's head
+    knows the frame's perspective.
     """
 
     def __init__(self, cfg: ModelConfig | None = None):
@@ -89,7 +77,7 @@ class KeypointNet(nn.Module):
             *[SeparableBlock(c16, c16, dilation=1 + i % 2) for i in range(n16)],
         )
         self.lat16 = conv_bn_relu(c16, c8, 1)
-        self.ray_embed = nn.Conv2d(2, c8, 1) if self.cfg.ray_channels else None
+        self.ray_embed = nn.Conv2d(2, c8, 1)
         self.dec8 = SeparableBlock(c8, c8)
         self.lat8 = conv_bn_relu(c8, c4, 1)
         self.dec4 = SeparableBlock(c4, c4)
@@ -97,30 +85,19 @@ class KeypointNet(nn.Module):
         nn.init.constant_(self.head[-1].bias, 0.0)
         with torch.no_grad():
             self.head[-1].bias[0] = -4.6  # start near p = 0.01, as CenterNet does, so early losses are sane
-        self.context = (
-            nn.Sequential(nn.Linear(c16, c16), nn.ReLU(inplace=True), nn.Linear(c16, 2 * c8))
-            if self.cfg.global_context
-            else None
-        )
-        if self.context is not None:  # start as the identity: scale 1, shift 0
-            nn.init.zeros_(self.context[-1].weight)
-            nn.init.zeros_(self.context[-1].bias)
+        self.context = nn.Sequential(nn.Linear(c16, c16), nn.ReLU(inplace=True), nn.Linear(c16, 2 * c8))
+        nn.init.zeros_(self.context[-1].weight)  # start as the identity: scale 1, shift 0
+        nn.init.zeros_(self.context[-1].bias)
 
-    def forward(self, image: torch.Tensor, rays: torch.Tensor | None = None) -> torch.Tensor:
+    def forward(self, image: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
         x = self.stem(image * (1.0 / 64.0) - 2.0)
         f4 = self.enc4(x)
         f8 = self.enc8(f4)
         f16 = self.enc16(f8)
         f8 = f8 + F.interpolate(self.lat16(f16), scale_factor=2.0, mode="nearest")
-        if self.ray_embed is not None:
-            if rays is None:
-                raise ValueError("this network takes the output cells' viewing rays as a second input")
-            f8 = f8 + self.ray_embed(
-                F.avg_pool2d(rays, 2)
-            )  # the mean of 2x2 cell centres is the stride-8 centre
-        if self.context is not None:
-            scale, shift = self.context(f16.mean(dim=(2, 3))).unsqueeze(-1).unsqueeze(-1).chunk(2, dim=1)
-            f8 = f8 * (1.0 + scale) + shift
+        f8 = f8 + self.ray_embed(F.avg_pool2d(rays, 2))  # the mean of 2x2 cell centres: stride 8's
+        scale, shift = self.context(f16.mean(dim=(2, 3))).unsqueeze(-1).unsqueeze(-1).chunk(2, dim=1)
+        f8 = f8 * (1.0 + scale) + shift
         f8 = self.dec8(f8)
         f4 = self.dec4(f4 + F.interpolate(self.lat8(f8), scale_factor=2.0, mode="nearest"))
         return self.head(f4)

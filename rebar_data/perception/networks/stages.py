@@ -1,5 +1,6 @@
-"""The later stages' networks: the second stage (:class:`PatchNet`), the depth check (:class:`DepthNet`) and
-the crossing-point stage (:class:`CrossingNet`)."""
+"""The later stages' networks: 3x3 convolutions from full resolution, three halvings to P / 8, then two
+fully connected layers. The second stage (:class:`PatchNet`), the depth check (:class:`DepthNet`) and the
+crossing-point stage (:class:`CrossingNet`)."""
 
 from __future__ import annotations
 
@@ -9,19 +10,10 @@ from torch import nn
 from rebar_data.perception.networks.keypoint_net import conv_bn_relu
 
 
-def _conv(cin: int, cout: int, stride: int = 1) -> nn.Sequential:
-    return nn.Sequential(
-        nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.BatchNorm2d(cout), nn.ReLU(inplace=True)
-    )
-
-
 class PatchNet(nn.Module):
     """(N, 4, P, P) patches, values 0-255 (RGB and the mask of the pixels on the image) -> (N, 2) offset
     (x, y) of the crossing from the patch centre in pixels; with ``verify`` a third column, the logit that
-    the patch shows a crossing; with ``size`` a fourth, the log of the crossing's box side over the patch's.
-
-    3x3 convolutions from full resolution, three halvings with ``blocks`` more after each, then two fully
-    connected layers."""
+    the patch shows a crossing; with ``size`` a fourth, the log of its box side over the patch's."""
 
     def __init__(
         self,
@@ -38,9 +30,9 @@ class PatchNet(nn.Module):
         self.patch_px = patch_px
         self.verify = verify
         self.size = size
-        layers = [_conv(self.channels, a)]
+        layers = [conv_bn_relu(self.channels, a)]
         for cin, cout, n in ((a, b, blocks[0]), (b, c, blocks[1]), (c, d, blocks[2])):
-            layers += [_conv(cin, cout, 2), *[_conv(cout, cout) for _ in range(n)]]
+            layers += [conv_bn_relu(cin, cout, stride=2), *[conv_bn_relu(cout, cout) for _ in range(n)]]
         self.features = nn.Sequential(*layers)
         cells = -(-patch_px // 8)
         self.head = nn.Sequential(
@@ -57,9 +49,8 @@ class PatchNet(nn.Module):
 
 
 class DepthNet(nn.Module):
-    """(N, 2, P, P) encoded depth patches (:func:`~rebar_data.perception.inference.checks.encode`) -> (N,) logit
-    that the patch shows a crossing: a 3x3 convolution at full resolution, three halvings to P / 8, two
-    fully connected layers."""
+    """(N, 2, P, P) encoded depth patches (:func:`~rebar_data.perception.inference.checks.encode`) -> (N,)
+    logit that the patch shows a crossing."""
 
     def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
         super().__init__()
@@ -82,17 +73,19 @@ class DepthNet(nn.Module):
 
 class CrossingNet(nn.Module):
     """(N, 3, P, P) patches, values 0-255, and (N, 2) viewing rays -> (N, 2) offset (x, y) in pixels from
-    the patch centre's sight point to the projected 3D crossing point.
-
-    Plain 3x3 convolutions (as the second stage's), the first at full resolution, three halvings to P / 8,
-    then two fully connected layers over the features and the ray."""
+    the patch centre's sight point to the projected 3D crossing point."""
 
     def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
         super().__init__()
         a, b, c, d = widths
         self.patch_px = patch_px
         self.features = nn.Sequential(
-            _conv(3, a), _conv(a, b, 2), _conv(b, b), _conv(b, c, 2), _conv(c, c), _conv(c, d, 2)
+            conv_bn_relu(3, a),
+            conv_bn_relu(a, b, stride=2),
+            conv_bn_relu(b, b),
+            conv_bn_relu(b, c, stride=2),
+            conv_bn_relu(c, c),
+            conv_bn_relu(c, d, stride=2),
         )
         cells = -(-patch_px // 8)
         self.head = nn.Sequential(

@@ -1,12 +1,9 @@
 """The first stage's adapt epochs: after its best epoch, a few more at a low learning rate on its training
-images and another renderer's frames (the run's second-stage supplements, each listed
-``AdaptConfig.supplement_repeats`` times), its batch norms frozen. What they train is the first stage the
-run ships and the later stages train beside; ``best.pt`` keeps the best epoch they started from, so they
-train again from it when their settings, their data or that epoch change.
+images and another renderer's frames (the second-stage supplements, repeated), batch norms frozen. They
+train the first stage the run ships, again whenever their settings, data or that best epoch change.
 
-In the run folder: ``adapt_last.pt`` (after every epoch: weights, weight average, optimiser, random state,
-history and what they trained on, so an interrupted run resumes where it stopped) and ``adapted.pt`` (the
-weight average after the last epoch, in ``best.pt``'s format).
+In the run folder: ``adapt_last.pt`` (after every epoch, to resume) and ``adapted.pt`` (the weight average
+after the last epoch, in ``best.pt``'s format).
 """
 
 from __future__ import annotations
@@ -26,7 +23,13 @@ from rebar_data.perception.networks.files import (
     write_checkpoint,
 )
 from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
-from rebar_data.perception.training.epochs import WeightAverage, batch_stream, train_epoch
+from rebar_data.perception.training.epochs import (
+    WeightAverage,
+    batch_stream,
+    checkpoint_state,
+    restore,
+    train_epoch,
+)
 
 ADAPT_LAST = "adapt_last.pt"
 ADAPTED = "adapted.pt"
@@ -46,11 +49,10 @@ def adapt_first_stage(
     log=None,
     progress: bool = False,
 ) -> tuple[Path, list[dict[str, Any]]]:
-    """Train the adapt epochs from ``out/best.pt`` (the first stage's best epoch, ``base_epoch``) on
-    ``samples`` and ``extra`` (repeated), or take them from the run folder when they trained on the same
-    settings, data (``data``: what they are named by) and best epoch. Returns the first stage to ship
-    (``adapted.pt``; ``best.pt`` itself when there are no adapt epochs or no ``extra``) and the adapt
-    epochs' history."""
+    """Train the adapt epochs from ``out/best.pt`` (epoch ``base_epoch``) on ``samples`` and ``extra``
+    (repeated), or take them from the run folder when they trained on the same settings, ``data`` and best
+    epoch. Returns the first stage to ship (``best.pt`` without adapt epochs or ``extra``) and their
+    history."""
     a = cfg.adapt
     if a.epochs == 0 or not extra:
         for stale in (out / ADAPT_LAST, out / ADAPTED):
@@ -63,20 +65,19 @@ def adapt_first_stage(
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=cfg.weight_decay)
     state: dict[str, Any] = {"epoch": 0, "step": 0, "history": []}
     path = out / ADAPT_LAST
-    saved = _read(path)
+    saved = None
+    if path.exists():
+        try:
+            saved = read_checkpoint(path, fmt=FORMAT, what="adapt")
+        except ConfigError:  # unreadable: trained afresh
+            saved = None
     if saved is not None and saved["want"] == want:
-        net.load_state_dict(saved["state_dict"])
-        avg.net.load_state_dict(saved["average_state_dict"])
-        avg.updates = saved["average_updates"]
-        opt.load_state_dict(saved["optimizer"])
-        torch.set_rng_state(saved["torch_rng"])
-        state = saved["state"]
+        state = restore(saved, net, avg, opt)
         if state["epoch"] >= a.epochs and (out / ADAPTED).exists():
             return out / ADAPTED, state["history"]
     (out / ADAPTED).unlink(missing_ok=True)
     mix = samples + extra * a.supplement_repeats
-    # the same epoch machinery as the first epochs: a cosine decay from ``a.lr`` over the adapt epochs, no
-    # mosaic, generators of their own
+    # the first epochs' machinery: a cosine decay from a.lr over the adapt epochs, no mosaic, own batches
     run = cfg.model_copy(
         update={
             "epochs": a.epochs,
@@ -92,14 +93,15 @@ def adapt_first_stage(
             f"adapt epochs: {a.epochs} from the first stage's epoch {base_epoch}, {len(samples)} images and "
             f"{len(extra)} x {a.supplement_repeats} of {', '.join(data)}"
         )
+    first, focal_px = state["epoch"] + 1, meta.get("focal_px")  # other cameras' frames drawn at the model's
     batches = batch_stream(
         mix,
         run,
-        first=state["epoch"] + 1,
+        first=first,
         last=a.epochs,
         steps=steps,
         lower_mat_weight=a.lower_mat_weight,
-        focal_px=meta.get("focal_px"),  # another camera's frames drawn at the model's, as detect reads them
+        focal_px=focal_px,
     )
     for epoch in range(state["epoch"] + 1, a.epochs + 1):
         row = train_epoch(
@@ -109,38 +111,17 @@ def adapt_first_stage(
             log(f"adapt epoch {epoch}/{a.epochs}: loss {row['train_loss']:.4f}")
         state["history"].append({**row, "seconds": row["train_seconds"]})
         state["epoch"] = epoch
-        write_checkpoint(
-            path,
-            {
-                "format": FORMAT,
-                "want": want,
-                "state_dict": net.state_dict(),
-                "average_state_dict": avg.net.state_dict(),
-                "average_updates": avg.updates,
-                "optimizer": opt.state_dict(),
-                "torch_rng": torch.get_rng_state(),
-                "state": state,
-            },
-        )
+        payload = {"format": FORMAT, "want": want, "state_dict": net.state_dict()}
+        write_checkpoint(path, {**payload, **checkpoint_state(net, avg, opt, state)})
     batches = None  # stops the loader process
     save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
     return out / ADAPTED, state["history"]
 
 
 def adapt_settings(a: AdaptConfig) -> dict[str, Any]:
-    """What the adapt epochs train by: their settings, without a lower-mat weight of 1 (they train as they did
-    before it existed, so a checkpoint from then still counts)."""
+    """The adapt epochs' settings, without a lower-mat weight of 1 (so a checkpoint from before it still
+    counts)."""
     return a.model_dump(mode="json", exclude={"lower_mat_weight"} if a.lower_mat_weight == 1.0 else set())
-
-
-def _read(path: Path) -> dict[str, Any] | None:
-    """The adapt checkpoint's payload, or None (to train afresh) when there is none or it cannot be read."""
-    if not path.exists():
-        return None
-    try:
-        return read_checkpoint(path, fmt=FORMAT, what="adapt")
-    except ConfigError:
-        return None
 
 
 def adapt_model(
@@ -154,17 +135,11 @@ def adapt_model(
     log=None,
     progress: bool = False,
 ) -> Path:
-    """The adapt epochs from a model file: ``model``'s first stage (its ONNX file turned back into a network)
-    trains ``cfg.adapt``'s epochs on ``samples`` and ``extra`` in ``out`` (resumable), and
-    ``out/rebar_keypoint.onnx`` is written with it, keeping the model's later stages (copied beside it) and
-    score biases. ``cfg`` None trains with the settings the model trained with.
-
-    Raises:
-        ConfigError: the model is not an ONNX file from `rebar train`, or there are no ``extra`` frames.
-    """
+    """The adapt epochs from a model file: ``model``'s first stage trains ``cfg.adapt``'s epochs (``cfg``
+    None: the model's own settings) on ``samples`` and ``extra`` in ``out`` (resumable), and is written to
+    ``out/rebar_keypoint.onnx`` beside a copy of the model's later stages."""
     import shutil
 
-    from rebar_data.config import ConfigError
     from rebar_data.perception.inference.model_file import stage_files
     from rebar_data.perception.networks.files import export_onnx, network_from_onnx
 

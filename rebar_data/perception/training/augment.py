@@ -1,10 +1,8 @@
-"""Training crops with augmentation that moves keypoints exactly with the pixels.
+"""Training crops whose keypoints move exactly with the pixels.
 
-Geometry is one affine map per crop, ``crop_from_image`` (2x3, continuous pixel coordinates with COCO's
-corner origin), built from a random centre, scale, rotation and flips; pixels are resampled with the same
-map converted to OpenCV's pixel-index convention, so a keypoint and the pixels around it stay together
-to well under a tenth of a pixel. Mosaic fills the four quadrants of a crop from four images. Photometric
-changes (brightness, contrast, saturation, hue, white balance, gamma, blur, noise) touch pixels only.
+Each crop is one random similarity map ``crop_from_image`` (2x3, COCO's corner origin) that moves the
+keypoints and, converted to OpenCV's pixel-index convention, resamples the pixels; a mosaic fills the
+four quadrants of a crop from four images. Photometric changes touch pixels only.
 """
 
 from __future__ import annotations
@@ -23,28 +21,19 @@ SEAM_PX = 3.0  # crossings this close to a mosaic seam are cut in two: neither p
 
 @dataclass
 class Crop:
-    """One training crop.
+    """One training crop; points in crop pixels."""
 
-    Attributes:
-        image: (S, S, 3) uint8 RGB.
-        positives: (N, 2) visible crossings in crop pixels.
-        ignore: (M, 2) points to leave out of the loss (occluded crossings, crossings cut by a seam).
-        rays: (2, S / 4, S / 4) viewing ray ((u - cx) / fx, (v - cy) / fy) of each output cell's centre
-            in the virtual camera that films the crop (see :func:`crop_rays`).
-        hard: (K, 2) places that look like crossings and are none (the lower mat's), in crop pixels.
-    """
-
-    image: np.ndarray
-    positives: np.ndarray
-    ignore: np.ndarray
-    rays: np.ndarray
-    hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
+    image: np.ndarray  # (S, S, 3) uint8 RGB
+    positives: np.ndarray  # (N, 2) visible crossings
+    ignore: np.ndarray  # (M, 2) points left out of the loss (occluded, or cut by a mosaic seam)
+    rays: np.ndarray  # (2, S / 4, S / 4) each output cell's viewing ray (:func:`crop_rays`)
+    hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the lower mat's crossings
 
 
 @dataclass
 class Source:
-    """One image to crop from: pixels, crossings to learn, points to ignore, intrinsics (fx, fy, cx, cy) and
-    places that look like crossings and are none."""
+    """One image to crop from: pixels, crossings, points to ignore, intrinsics (fx, fy, cx, cy), hard
+    negatives."""
 
     image: np.ndarray
     positives: np.ndarray
@@ -52,16 +41,12 @@ class Source:
     camera: tuple[float, float, float, float]
     hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     distractors: np.ndarray | None = None  # (H, W) bool: the distractors' pixels, when known
-    # every crop's scale is multiplied by it: a frame from another focal length drawn at the model's
-    # (rebar_data.perception.inference.image, as the detector reads such a frame)
-    gain: float = 1.0
+    gain: float = 1.0  # every crop's scale times this: a frame of another focal length drawn at the model's
 
 
 def draw_gain(rng: np.random.Generator, cfg: AugmentConfig, distractors: np.ndarray | None) -> float | None:
-    """The factor :func:`distractor_gain` scales the distractors' pixels by this time (log-uniform in
-    ``cfg.distractor_gain``), or None for a ``1 - cfg.distractor_gain_probability`` share of calls. Draws
-    nothing when the share is 0 or the pixels are unknown, so runs without it get the random draws they
-    got before it existed."""
+    """The factor the distractors' pixels are scaled by this time (log-uniform in ``cfg.distractor_gain``),
+    or None; draws nothing when the share is 0 or the pixels are unknown."""
     if distractors is None or not cfg.scales_distractors:
         return None
     if rng.uniform() >= cfg.distractor_gain_probability:
@@ -71,8 +56,7 @@ def draw_gain(rng: np.random.Generator, cfg: AugmentConfig, distractors: np.ndar
 
 
 def scaled_where(image: np.ndarray, where: np.ndarray, gain: float | None) -> np.ndarray:
-    """``image`` (H, W, C >= 3) with its colour at the ``where`` pixels times ``gain`` (a new array), or
-    ``image`` itself when ``gain`` is None."""
+    """``image`` with its colour at the ``where`` pixels times ``gain`` (a copy); itself for None."""
     if gain is None:
         return image
     out = image.copy()
@@ -88,13 +72,6 @@ def distractor_gain(
     return scaled_where(image, distractors, draw_gain(rng, cfg, distractors))
 
 
-def index_matrix(crop_from_image: np.ndarray) -> np.ndarray:
-    """The same affine map for OpenCV, whose pixel (i, j) is the point (i + 0.5, j + 0.5) in COCO's origin."""
-    m = np.asarray(crop_from_image, float).copy()
-    m[:, 2] += m[:, :2] @ [0.5, 0.5] - 0.5
-    return m
-
-
 def apply_affine(points: np.ndarray, crop_from_image: np.ndarray) -> np.ndarray:
     """Map (N, 2) points with a 2x3 affine map."""
     p = np.asarray(points, float).reshape(-1, 2)
@@ -102,11 +79,13 @@ def apply_affine(points: np.ndarray, crop_from_image: np.ndarray) -> np.ndarray:
 
 
 def warp(image: np.ndarray, crop_from_image: np.ndarray, size: int, *, fill: float | None) -> np.ndarray:
-    """Resample ``image`` into a ``size`` x ``size`` crop (bilinear). Outside the image: the constant
-    ``fill``, or with None the image mirrored at its border (so no edge looks like a bar)."""
+    """Resample ``image`` into a ``size`` square (bilinear); outside it the constant ``fill``, or for None
+    the image mirrored (so no edge looks like a bar)."""
+    m = np.asarray(crop_from_image, float).copy()  # for OpenCV, whose pixel (i, j) is (i + 0.5, j + 0.5)
+    m[:, 2] += m[:, :2] @ [0.5, 0.5] - 0.5
     return cv2.warpAffine(
         image,
-        index_matrix(crop_from_image),
+        m,
         (size, size),
         flags=cv2.INTER_LINEAR,
         borderMode=cv2.BORDER_REFLECT if fill is None else cv2.BORDER_CONSTANT,
@@ -117,14 +96,9 @@ def warp(image: np.ndarray, crop_from_image: np.ndarray, size: int, *, fill: flo
 def crop_rays(
     crop_from_image: np.ndarray, size: int, camera: tuple[float, float, float, float], *, stride: int = STRIDE
 ) -> np.ndarray:
-    """(2, S / stride, S / stride) viewing rays of the crop's output-cell centres, as the virtual camera that
-    films the crop sees them.
-
-    A similarity crop (scale s, rotation, flips) of a pinhole image is the image of a pinhole camera with
-    focal length s f, turned (or mirrored) about its optical axis, with the principal point where the map
-    puts the source's. Its rays are the source rays of the same points turned and flipped with the pixels,
-    so what the rays say about the perspective at a cell holds in the crop as it does in a real frame.
-    """
+    """(2, S / stride, S / stride) viewing rays of the crop's output-cell centres in the virtual camera that
+    films the crop: the source rays of the same points, turned and flipped with the pixels (a similarity
+    crop of a pinhole image is a pinhole camera's image, turned about its optical axis)."""
     fx, fy, cx, cy = camera
     lin, t = crop_from_image[:, :2], crop_from_image[:, 2]
     inv = np.linalg.inv(lin)
@@ -145,8 +119,7 @@ def random_affine(
     cfg: AugmentConfig,
     gain: float = 1.0,
 ) -> np.ndarray:
-    """A random similarity (scale, rotation, flips) taking ``centre`` in the image to ``target`` in the crop;
-    its random scale multiplied by ``gain`` (the same draws whatever the gain)."""
+    """A random similarity (scale times ``gain``, rotation, flips) taking ``centre`` to ``target``."""
     lo, hi = cfg.scale
     s = gain * float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
     a = np.radians(rng.uniform(-cfg.rotation_deg, cfg.rotation_deg))
@@ -192,14 +165,7 @@ def single_crop(src: Source, rng: np.random.Generator, *, size: int, cfg: Augmen
 def mosaic_crop(
     pick: Callable[[], Source], rng: np.random.Generator, *, size: int, cfg: AugmentConfig
 ) -> Crop:
-    """Four images in the four quadrants of one crop, split at a random point.
-
-    Args:
-        pick: Returns a random source image each call.
-        rng: The generator.
-        size: Crop side in pixels.
-        cfg: Augmentation settings.
-    """
+    """Four images (``pick`` gives one a call) in the four quadrants of one crop, split at a random point."""
     xc, yc = rng.uniform(0.25, 0.75, 2) * size
     canvas = np.empty((size, size, 3), np.uint8)
     rays = np.empty((2, size // STRIDE, size // STRIDE), np.float32)
@@ -246,11 +212,8 @@ def photometric(image: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig)
 
 
 def photometric_batch(images: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:
-    """:func:`photometric` for (N, H, W, 3) uint8 images at once, each with its own random changes.
-
-    Each change is drawn for all N images before the next one, so one image (N = 1) gets the draws, and
-    the pixels, it would get alone; the per-image arithmetic keeps the single image's number types.
-    """
+    """:func:`photometric` for (N, H, W, 3) uint8 images, each with its own changes; each change is drawn
+    for all N before the next, in the single image's number types."""
     n = len(images)
     img = images.astype(np.float32)
     if cfg.hue_deg > 0 or cfg.saturation > 0 or cfg.hue_full_probability > 0:

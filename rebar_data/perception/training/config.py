@@ -8,7 +8,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any, Literal
 
-from pydantic import Field, field_validator, model_validator
+from pydantic import Field, ValidationError, field_validator, model_validator
 
 from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, format_validation_error
 from rebar_data.perception.networks.keypoint_net import ModelConfig
@@ -17,19 +17,21 @@ PositiveInt = Annotated[int, Field(gt=0)]
 NonNegativeInt = Annotated[int, Field(ge=0)]
 PatchPx = Annotated[int, Field(ge=16, multiple_of=8)]
 Power = Annotated[float, Field(gt=0.0, le=1.0)]
+Between = Annotated[float, Field(gt=0.0, lt=1.0)]
 Widths = tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt]
 
 
 def _without_retired(values: Any, retired: dict[str, Any], section: str) -> Any:
-    """``values`` without the settings the code no longer has, where they hold the one value it now always
-    uses (so a model file's recorded settings still load); ValueError for any other value."""
+    """``values`` without retired settings that hold the one value the code now always uses (so a model
+    file's recorded settings still load); ValueError for any other value."""
     if not isinstance(values, dict):
         return values
     for key, kept in retired.items():
         if key in values:
             if values[key] != kept:
                 raise ValueError(
-                    f"{section}.{key} = {values[key]!r} is no longer supported; accepted: {kept!r} or leaving it out"
+                    f"{section}.{key} = {values[key]!r} is no longer supported; accepted: {kept!r} or "
+                    "leaving it out"
                 )
             values = {k: v for k, v in values.items() if k != key}
     return values
@@ -78,11 +80,7 @@ class RefineConfig(Strict):
     enabled: bool = True  # train and ship the second stage
     patch_px: PatchPx = 32  # side of the patch it reads
     widths: Widths = (24, 32, 48, 64)  # convolution widths at full resolution and each halving
-    blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (
-        1,
-        1,
-        1,
-    )  # convolutions after each halving
+    blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (1, 1, 1)  # convolutions after halvings
     hidden: PositiveInt = 128  # width of the fully connected layer
     epochs: PositiveInt = 11  # training epochs
     batch_size: PositiveInt = 256  # patches a step
@@ -94,14 +92,12 @@ class RefineConfig(Strict):
     jitter_uniform_fraction: Fraction = 0.3  # that share
     scale: tuple[Positive, Positive] = (0.8, 1.25)  # random scale of the training patches
     iterations: PositiveInt = 2  # passes at inference (stored in the model file)
-    step: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5  # share of the way each later pass moves the point
+    step: Power = 0.5  # share of the way each later pass moves the point
     threads: PositiveInt = 2  # CPU threads while it trains
     quantize: Literal["later", "none"] = "later"  # later: the passes after the first read an int8 copy
     calibration_patches: PositiveInt = 2048  # patches that set the int8 copy's value ranges
     verify: bool = True  # also output the logit that the patch shows a crossing
-    negative_score: Annotated[float, Field(gt=0.0, lt=1.0)] = (
-        0.1  # lowest first-stage score mined as a negative
-    )
+    negative_score: Between = 0.1  # lowest first-stage score mined as a negative
     negative_gate_px: Positive = 6.0  # a mined negative lies farther than this from every crossing
     verify_weight: Positive = 1.0  # weight of the verification loss against the offset loss
     verify_power: Power = 1.0  # how hard the verification counts in a score without depth
@@ -132,7 +128,8 @@ class RefineConfig(Strict):
             )
         if self.shrink_above_px[0] > self.shrink_above_px[1]:
             raise ValueError(
-                f"shrink_above_px {self.shrink_above_px} is not accepted; accepted: two sizes, the smaller first"
+                f"shrink_above_px {self.shrink_above_px} is not accepted; accepted: two sizes, the smaller "
+                "first"
             )
         return self
 
@@ -170,9 +167,7 @@ class CrossingPointConfig(Strict):
 
     enabled: bool = True  # train and ship the crossing-point stage
     patch_px: PatchPx = 48  # side of the patch it reads
-    context_px: Annotated[int, Field(ge=16, multiple_of=2)] = (
-        72  # side of the square a training patch is cut from
-    )
+    context_px: Annotated[int, Field(ge=16, multiple_of=2)] = 72  # side of the square a patch is cut from
     scale: tuple[Positive, Positive] = (0.75, 1.35)  # random scale of the training patches
     widths: Widths = (16, 32, 48, 64)  # convolution widths at full resolution and each halving
     hidden: PositiveInt = 128  # width of the fully connected layer
@@ -233,9 +228,7 @@ class TrainConfig(Strict):
     patience: PositiveInt = 12  # epochs without a better validation AP before it stops
     heatmap_sigma_cells: Positive = 1.0  # the heatmap target's Gaussian sigma
     offset_weight: Positive = 1.0  # weight of the offset loss
-    occluded: Literal["ignore", "negative"] = (
-        "ignore"  # occluded crossings: left out of the loss, or negatives
-    )
+    occluded: Literal["ignore", "negative"] = "ignore"  # occluded crossings: out of the loss, or negatives
     val_every: PositiveInt = 2  # epochs between validations
     val_max_images: PositiveInt = 60  # validation images scored during training
     threads: PositiveInt = 1  # the network's CPU threads (the loader process takes another core)
@@ -244,9 +237,7 @@ class TrainConfig(Strict):
     loader_workers: Literal[0, 1] = 1  # 1: batches made in a second process (the same batches)
     model: ModelConfig = ModelConfig()  # the first stage's network
     augment: AugmentConfig = AugmentConfig()  # augmentation
-    other_renderer_repeats: NonNegativeInt = (
-        2  # times each second-stage supplement image joins the first epochs
-    )
+    other_renderer_repeats: NonNegativeInt = 2  # times each second-stage supplement joins the first epochs
     adapt: AdaptConfig = AdaptConfig()  # the adapt epochs
     refine: RefineConfig = RefineConfig()  # the second stage
     depth_check: DepthCheckConfig = DepthCheckConfig()  # the depth check
@@ -263,9 +254,5 @@ def resolve_config(
     base.update({k: v for k, v in overrides.items() if v is not None})
     try:
         return TrainConfig.model_validate(base)
-    except Exception as e:
-        from pydantic import ValidationError
-
-        if isinstance(e, ValidationError):
-            raise ConfigError(format_validation_error(e, source, base, TrainConfig)) from None
-        raise
+    except ValidationError as e:
+        raise ConfigError(format_validation_error(e, source, base, TrainConfig)) from None

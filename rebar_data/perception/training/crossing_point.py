@@ -1,19 +1,15 @@
-"""Training and model files of the detector's crossing-point stage (:mod:`rebar_data.perception.inference.refine`).
+"""Training and model files of the crossing-point stage (:mod:`rebar_data.perception.inference.refine`).
 
-It trains on its own, from the labels alone: for each visible crossing of the training images, the
-patch around its sight point (the label's u, v) and the offset to its projected 3D crossing point
-(:attr:`~rebar_data.perception.evaluation.data.Sample.crossings`). The patches are cut once, wider than the network's
-(``context_px``); each batch then draws its scale, quarter turns, flips and colour changes (seeded by
-(seed, epoch) alone, so a resumed run gets the batches it would have got).
+It trains from the labels alone: for each visible crossing of the training images, the patch around its
+sight point and the offset to its projected 3D crossing point. The patches are cut once, wider than the
+network's (``context_px``); each batch draws its scale, turns, flips and colour changes.
 """
 
 from __future__ import annotations
 
-import copy
+import itertools
 import sys
-import time
 from pathlib import Path
-from typing import Any
 
 import cv2
 import numpy as np
@@ -24,17 +20,11 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_image
 from rebar_data.perception.inference.refine import patch_rays, patches
-from rebar_data.perception.networks.files import export_onnx, read_checkpoint
+from rebar_data.perception.networks.files import export_onnx
 from rebar_data.perception.networks.stages import CrossingNet
 from rebar_data.perception.training.augment import photometric_batch
-from rebar_data.perception.training.checkpoints import fit_weights, resume_stage, save_stage
 from rebar_data.perception.training.config import AugmentConfig, CrossingPointConfig
-from rebar_data.perception.training.schedule import warmup_cosine
-
-FORMAT = "rebar-keypoint-crossing-point"
-FORMAT_VERSION = 1
-CHECKPOINT = "crossing_last.pt"
-EXPORT_ONLY = {"threads"}  # settings that leave training alone
+from rebar_data.perception.training.later_stages import StageFile, train_stage
 
 
 def build(cfg: CrossingPointConfig) -> CrossingNet:
@@ -42,23 +32,15 @@ def build(cfg: CrossingPointConfig) -> CrossingNet:
     return CrossingNet(cfg.patch_px, cfg.widths, cfg.hidden)
 
 
-def save(path: Path, net: CrossingNet, cfg: CrossingPointConfig, **extra: Any) -> None:
-    save_stage(
-        path,
-        fmt=FORMAT,
-        version=FORMAT_VERSION,
-        config_key="crossing_point_config",
-        cfg=cfg,
-        net=net,
-        **extra,
-    )
-
-
-def load(path: str | Path) -> tuple[CrossingNet, CrossingPointConfig, dict[str, Any]]:
-    """Rebuild the network from its ``.pt`` file: (network in eval mode, its settings, the whole payload)."""
-    payload = read_checkpoint(path, fmt=FORMAT, what="crossing-point")
-    cfg = CrossingPointConfig.model_validate(payload["crossing_point_config"])
-    return fit_weights(build(cfg), payload, path), cfg, payload
+FILE = StageFile(
+    "rebar-keypoint-crossing-point",
+    "crossing-point",
+    CrossingPointConfig,
+    "crossing_point_config",
+    build,
+    frozenset({"threads"}),
+)
+save, load = FILE.save, FILE.load
 
 
 class PatchSet:
@@ -150,67 +132,34 @@ def train_crossing_point(
     seed: int,
     progress: bool = False,
 ) -> tuple[CrossingNet, list[dict[str, float]]]:
-    """Train the crossing-point stage on the visible crossings of ``samples``; resumable per epoch.
-
-    ``out/crossing_last.pt`` holds the weights, optimiser and the epochs done after every epoch; a
-    finished one with the same settings is returned as it is.
-
-    Returns:
-        The trained network (eval mode) and one row per epoch (L1 loss in pixels, seconds).
-    """
-    last = out / CHECKPOINT
+    """Train the crossing-point stage on the visible crossings of ``samples``, resumable in
+    ``out/crossing_last.pt``; returns the network and one row per epoch (L1 loss in pixels, seconds)."""
     torch.manual_seed(seed)
-    net = build(cfg)
-    opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    payload = resume_stage(last, net, opt, load=load, settings=_settings, want=_settings(cfg))
-    history: list[dict[str, float]] = payload["history"] if payload else []
-    if len(history) >= cfg.epochs:
-        return net.eval(), history
-    threads_before = torch.get_num_threads()
-    torch.set_num_threads(cfg.threads)
-    try:
-        data = PatchSet(samples, cfg, seed=seed, progress=progress)
-        steps = -(-len(data) // cfg.batch_size)
-        total = cfg.epochs * steps
-        for epoch in range(len(history) + 1, cfg.epochs + 1):
-            net.train()
-            t0, loss_sum = time.perf_counter(), 0.0
-            bar = tqdm(
-                batches(data, cfg, aug, seed=seed, epoch=epoch),
-                total=steps,
-                desc=f"crossing point {epoch}/{cfg.epochs}",
-                unit="batch",
-                disable=not progress,
-                leave=False,
-                file=sys.stderr,
-            )
-            for b, (x, rays, y) in enumerate(bar):
-                for g in opt.param_groups:
-                    g["lr"] = warmup_cosine(
-                        (epoch - 1) * steps + b, peak=cfg.lr, warm=max(1, round(0.03 * total)), total=total
-                    )
-                loss = F.l1_loss(net(x, rays), y)
-                opt.zero_grad(set_to_none=True)
-                loss.backward()
-                opt.step()
-                loss_sum += loss.item()
-                bar.set_postfix(loss=f"{loss.item():.3f}")
-            row = {"epoch": epoch, "loss_px": loss_sum / steps, "seconds": time.perf_counter() - t0}
-            history.append(row)
-            if progress:
-                tqdm.write(
-                    f"crossing point epoch {epoch}/{cfg.epochs}: L1 {row['loss_px']:.3f} px "
-                    f"({len(data)} patches, {row['seconds']:.0f} s)",
-                    file=sys.stderr,
-                )
-            save(last, net, cfg, optimizer=opt.state_dict(), history=history)
-    finally:
-        torch.set_num_threads(threads_before)
-    return copy.deepcopy(net).eval(), history
+    found: list[PatchSet] = []
 
+    def prepare(payload, first):
+        found.append(PatchSet(samples, cfg, seed=seed, progress=progress))
+        epochs = range(first, cfg.epochs + 1)
+        each = (batches(found[0], cfg, aug, seed=seed, epoch=epoch) for epoch in epochs)
+        return itertools.chain.from_iterable(each), -(-len(found[0]) // cfg.batch_size), {}
 
-def _settings(cfg: CrossingPointConfig) -> dict[str, Any]:
-    return cfg.model_dump(mode="json", exclude=EXPORT_ONLY)
+    def loss(net, batch, tally):
+        x, rays, y = batch
+        return F.l1_loss(net(x, rays), y)
+
+    return train_stage(
+        FILE,
+        build(cfg),
+        cfg,
+        out / "crossing_last.pt",
+        name="crossing point",
+        data=None,
+        prepare=prepare,
+        loss=loss,
+        summary=lambda tally, steps: {"loss_px": tally["loss"] / steps},
+        describe=lambda row: f"L1 {row['loss_px']:.3f} px ({len(found[0])} patches, {row['seconds']:.0f} s)",
+        progress=progress,
+    )
 
 
 def attach(
@@ -226,6 +175,7 @@ def attach(
     """Train the crossing-point stage (resumable in ``out``) and put it beside ``model`` as
     ``<stem>.crossing.onnx``, named in the model file's metadata with its SHA-256; returns that file."""
     from rebar_data.dataset.writers.manifest import sha256_file
+    from rebar_data.outputs import replace_file
     from rebar_data.perception.inference.model_file import crossing_point_path
     from rebar_data.perception.networks.files import check_model_file, update_onnx_meta
 
@@ -234,10 +184,8 @@ def attach(
     net, history = train_crossing_point(samples, out, cfg, aug, seed=seed, progress=progress)
     save(out / "best.crossing.pt", net, cfg, history=history)
     stage = export_onnx(net, out / "best.crossing.onnx")
-    dst = crossing_point_path(model)
-    tmp = dst.with_name(dst.name + ".tmp")
-    tmp.write_bytes(stage.read_bytes())
-    tmp.replace(dst)  # the stage lands first, so the model never names a missing file
+    # the stage lands first, so the model never names a missing file
+    dst = replace_file(crossing_point_path(model), lambda tmp: tmp.write_bytes(stage.read_bytes()))
     entry = {"patch_px": cfg.patch_px, "sha256": sha256_file(dst)}
     update_onnx_meta(model, {"crossing_point": entry})
     return dst

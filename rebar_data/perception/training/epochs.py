@@ -1,8 +1,6 @@
-"""The first stage's training epochs: the augmented batches (the same ones in a loader process and after a
-resume), the learning-rate schedule, the step loop and the weights' moving average. The run
-(:mod:`~rebar_data.perception.training.train`) and its adapt epochs (:mod:`~rebar_data.perception.training.adapt`) share
-them.
-"""
+"""The first stage's training epochs, shared by the run and its adapt epochs: the augmented batches (the
+same in a loader process and after a resume), the learning-rate schedule, the step loop and the weights'
+moving average."""
 
 from __future__ import annotations
 
@@ -11,6 +9,7 @@ import math
 import sys
 import time
 from collections.abc import Iterator
+from dataclasses import dataclass
 from typing import Any
 
 import numpy as np
@@ -25,7 +24,6 @@ from rebar_data.perception.networks.keypoint_net import KeypointNet
 from rebar_data.perception.training.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.training.config import TrainConfig
 from rebar_data.perception.training.loss import detection_loss
-from rebar_data.perception.training.schedule import warmup_cosine
 from rebar_data.perception.training.targets import encode
 
 
@@ -50,9 +48,32 @@ class WeightAverage:
                 v.copy_(src[k])
 
 
+def restore(payload: dict[str, Any], net: torch.nn.Module, avg: WeightAverage, opt: torch.optim.Optimizer):
+    """Load a checkpoint's weights, weight average, optimiser and random state; returns its run state."""
+    net.load_state_dict(payload["state_dict"])
+    avg.net.load_state_dict(payload["average_state_dict"])
+    avg.updates = payload["average_updates"]
+    opt.load_state_dict(payload["optimizer"])
+    torch.set_rng_state(payload["torch_rng"])
+    return payload["state"]
+
+
+def checkpoint_state(
+    net: torch.nn.Module, avg: WeightAverage, opt: torch.optim.Optimizer, state: dict[str, Any]
+):
+    """What a checkpoint keeps beside ``net``'s weights so that :func:`restore` goes on where it stopped."""
+    return {
+        "average_state_dict": avg.net.state_dict(),
+        "average_updates": avg.updates,
+        "optimizer": opt.state_dict(),
+        "torch_rng": torch.get_rng_state(),
+        "state": state,
+    }
+
+
 class TrainingImages:
-    """The training split's images (decoded once when caching) and their crossings; with ``distractors``,
-    where each image's instance map shows the distractors (for ``AugmentConfig.distractor_gain``)."""
+    """The training images (decoded once per file when caching) and their crossings; with ``distractors``,
+    each image's distractor pixels (for ``AugmentConfig.distractor_gain``)."""
 
     def __init__(
         self,
@@ -66,14 +87,11 @@ class TrainingImages:
         focal_px: float | None = None,
     ):
         self.samples = samples
-        # each image's crops drawn at this focal length (None: as it comes), as the detector reads it
+        # each image's crops drawn at the focal length focal_px (None: as it comes), as the detector reads it
         self.gains = [1.0 if s.camera is None else focal_scale(focal_px, s.camera) for s in samples]
         self.ignore_occluded = occluded == "ignore"
-        # with ``lower_mat``, the crossings each image's lower mat shows (hard negatives), placed once
-        self.hard = lower_mat_of(samples) if lower_mat else None
-        # decoded once per file: a supplement listed many times (the adapt epochs') shares its arrays
-        load = "load images" if progress else None
-        self.images = read_images(samples, progress=load) if cache else None
+        self.hard = lower_mat_of(samples) if lower_mat else None  # the lower mat's crossings: hard negatives
+        self.images = read_images(samples, progress="load images" if progress else None) if cache else None
         self.distractors = distractors
         self.masks = per_file(samples, read_distractors) if distractors and cache else None
 
@@ -82,9 +100,9 @@ class TrainingImages:
         s = self.samples[k]
         image = self.images[k] if self.images is not None else read_image(s.path)
         hard = self.hard[k] if self.hard is not None else np.zeros((0, 2))
-        mask = None
-        if self.distractors:
-            mask = self.masks[k] if self.masks is not None else read_distractors(s)
+        mask = (
+            (self.masks[k] if self.masks is not None else read_distractors(s)) if self.distractors else None
+        )
         ignore = s.occluded if self.ignore_occluded else np.zeros((0, 2))
         return Source(image, s.visible, ignore, s.camera, hard, mask, self.gains[k])
 
@@ -102,54 +120,33 @@ def make_batch(
     ``lower_mat_weight`` in the heatmap loss."""
     size, aug = cfg.crop_px, cfg.augment
     cells = size // STRIDE
-    imgs, rays, heats, hws, offs, ows = [], [], [], [], [], []
+    rows = []
     for _ in range(cfg.batch_size):
         if mosaic and rng.uniform() < aug.mosaic_probability:
             crop = mosaic_crop(lambda: data.pick(rng), rng, size=size, cfg=aug)
         else:
             crop = single_crop(data.pick(rng), rng, size=size, cfg=aug)
-        heat, hw, off, ow = encode(
-            crop.positives,
-            crop.ignore,
-            cells,
-            cells,
-            sigma_cells=cfg.heatmap_sigma_cells,
-            hard=crop.hard,
-            hard_weight=lower_mat_weight,
+        sigma, weight = cfg.heatmap_sigma_cells, lower_mat_weight
+        targets = encode(
+            crop.positives, crop.ignore, cells, cells, sigma_cells=sigma, hard=crop.hard, hard_weight=weight
         )
-        imgs.append(photometric(crop.image, rng, aug))
-        rays.append(crop.rays)
-        heats.append(heat)
-        hws.append(hw)
-        offs.append(off)
-        ows.append(ow)
-    x = torch.from_numpy(np.stack(imgs)).permute(0, 3, 1, 2).float()
-    return (x, *(torch.from_numpy(np.stack(a)) for a in (rays, heats, hws, offs, ows)))
+        rows.append((photometric(crop.image, rng, aug), crop.rays, *targets))
+    images, *rest = (np.stack(a) for a in zip(*rows, strict=True))
+    return (torch.from_numpy(images).permute(0, 3, 1, 2).float(), *(torch.from_numpy(a) for a in rest))
 
 
+@dataclass
 class BatchStream(torch.utils.data.IterableDataset):
-    """Every batch of epochs ``first`` to ``last``, each epoch's drawn from a generator seeded by (seed,
-    epoch) alone: the same batches whether they are made here or in a loader process, and after a resume.
+    """Every batch of epochs ``first`` to ``last``, each epoch's from a generator seeded by (seed, epoch)
+    alone; it holds the samples' labels and paths, and reads the images where it runs."""
 
-    It holds only the samples' labels and paths; the images are read (and cached) where it runs, so a
-    loader process keeps the one copy.
-    """
-
-    def __init__(
-        self,
-        samples: list[Sample],
-        cfg: TrainConfig,
-        *,
-        first: int,
-        last: int,
-        steps: int,
-        lower_mat_weight: float = 1.0,
-        focal_px: float | None = None,
-    ):
-        super().__init__()
-        self.samples, self.cfg, self.first, self.last, self.steps = samples, cfg, first, last, steps
-        self.lower_mat_weight = lower_mat_weight
-        self.focal_px = focal_px
+    samples: list[Sample]
+    cfg: TrainConfig
+    first: int
+    last: int
+    steps: int
+    lower_mat_weight: float = 1.0
+    focal_px: float | None = None
 
     def __iter__(self):
         data = TrainingImages(
@@ -185,20 +182,10 @@ def batch_stream(
     lower_mat_weight: float = 1.0,
     focal_px: float | None = None,
 ):
-    """An iterator over the batches of epochs ``first`` to ``last`` (the lower mat's crossings weighing
-    ``lower_mat_weight``: :func:`make_batch`), each image's crops drawn at the focal length ``focal_px``
-    (the model's; None: as it comes). With ``loader_workers`` = 1 they are made in a second
-    process (started fresh, not forked: OpenCV's and OpenMP's thread pools do not survive a fork) while
-    the network trains on the previous ones."""
-    stream = BatchStream(
-        samples,
-        cfg,
-        first=first,
-        last=last,
-        steps=steps,
-        lower_mat_weight=lower_mat_weight,
-        focal_px=focal_px,
-    )
+    """An iterator over :class:`BatchStream`'s batches, each image's crops drawn at the focal length
+    ``focal_px`` (None: as it comes). With ``loader_workers`` = 1 they are made in a second process
+    (spawned: OpenCV's and OpenMP's thread pools do not survive a fork) while the network trains."""
+    stream = BatchStream(samples, cfg, first, last, steps, lower_mat_weight, focal_px)
     if cfg.loader_workers == 0:
         return iter(stream)
     return iter(
@@ -213,18 +200,12 @@ def batch_stream(
     )
 
 
-def learning_rate(step: int, *, steps_per_epoch: int, cfg: TrainConfig) -> float:
-    """Linear warm-up, then cosine decay to 2% of the peak at the last epoch."""
-    return warmup_cosine(
-        step, peak=cfg.lr, warm=cfg.warmup_epochs * steps_per_epoch, total=cfg.epochs * steps_per_epoch
-    )
-
-
-def freeze_norm(net: torch.nn.Module) -> None:
-    """Put ``net``'s batch norms in eval mode: they normalise by their running statistics and keep them."""
-    for m in net.modules():
-        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
-            m.eval()
+def warmup_cosine(step: int, *, peak: float, warm: float, total: float) -> float:
+    """Linear warm-up over the first ``warm`` steps, then cosine decay to 2% of ``peak`` at ``total``."""
+    if step < warm:
+        return peak * (step + 1) / warm
+    t = min(1.0, (step - warm) / max(1.0, total - warm))
+    return peak * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * t)))
 
 
 def train_epoch(
@@ -241,12 +222,13 @@ def train_epoch(
     frozen_norm: bool = False,
 ) -> dict[str, Any]:
     """One epoch of ``steps`` batches; ``state["step"]`` counts the steps (the learning rate's clock).
-    ``frozen_norm`` keeps the batch norms' statistics as they are (and normalising by them, as at
-    inference): for epochs that go on from trained weights with other data."""
+    ``frozen_norm`` keeps the batch norms in eval mode, normalising by their running statistics and keeping
+    them: for epochs that go on from trained weights with other data."""
     mosaic = epoch <= cfg.augment.mosaic_epochs
     net.train()
-    if frozen_norm:
-        freeze_norm(net)
+    for m in net.modules() if frozen_norm else ():
+        if isinstance(m, torch.nn.modules.batchnorm._BatchNorm):
+            m.eval()
     t0 = time.perf_counter()
     sums = np.zeros(3)
     bar = tqdm(
@@ -259,7 +241,9 @@ def train_epoch(
     )
     lr = cfg.lr
     for _ in bar:
-        lr = learning_rate(state["step"], steps_per_epoch=steps, cfg=cfg)
+        lr = warmup_cosine(
+            state["step"], peak=cfg.lr, warm=cfg.warmup_epochs * steps, total=cfg.epochs * steps
+        )
         for g in opt.param_groups:
             g["lr"] = lr
         x, rays, heat, hw, off, ow = next(batches)

@@ -1,11 +1,10 @@
 """Fitting the line check (:mod:`rebar_data.perception.inference.checks`) to a trained detector.
 
-The detector, without depth and without a line check, reads each fitting image as the check would
-(``Detector.line_inputs``); each checked candidate, where the second stage places it, within the 5 px gate
-of a visible crossing (one-to-one, as the scorer matches) is a positive, one matched to a crossing the labels ignore is left
-out, every other a negative. scikit-learn's logistic regression (L2, ``LineCheckConfig.regularization``)
-is fitted on their :data:`~rebar_data.perception.inference.checks.FEATURES`, and its bias then moved so that
-score 0.5 is the best F1 on the validation images, as the detector's other operating points are.
+The detector, without depth and line check, reads each fitting image as the check would
+(``Detector.line_inputs``); a checked candidate within the scorer's gate of a visible crossing (matched
+one-to-one) is a positive, one matched to an ignored crossing is left out, every other a negative. A
+logistic regression is fitted on their features, and its bias moved so that score 0.5 is the best F1 on
+the validation images.
 """
 
 from __future__ import annotations

@@ -13,15 +13,8 @@ import torch.nn.functional as F
 def heatmap_focal_loss(
     logit: torch.Tensor, target: torch.Tensor, weight: torch.Tensor, *, alpha: float = 2.0, beta: float = 4.0
 ) -> torch.Tensor:
-    """Sum of the focal loss over cells, divided by the number of positive cells (at least 1).
-
-    Args:
-        logit: (N, H, W) heatmap logits.
-        target: (N, H, W) targets, exactly 1 at crossings.
-        weight: (N, H, W) per-cell weights (0 = ignore).
-        alpha: Focusing exponent.
-        beta: Exponent of the penalty reduction near a crossing.
-    """
+    """The focal loss of (N, H, W) heatmap ``logit`` against ``target`` (exactly 1 at crossings), each cell
+    weighted by ``weight`` (0 = ignore), summed and divided by the number of positive cells (at least 1)."""
     pos = (target >= 1.0).float()
     p = torch.sigmoid(logit)
     log_p = F.logsigmoid(logit)

@@ -27,22 +27,11 @@ def encode(
     hard: np.ndarray | None = None,
     hard_weight: float = 1.0,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Targets for one crop.
-
-    Args:
-        positives: (N, 2) crossings to find, in input pixels.
-        ignore: (M, 2) points to leave out of the heatmap loss.
-        out_h: Output height in cells.
-        out_w: Output width in cells.
-        sigma_cells: Gaussian sigma of the heatmap target, in cells.
-        hard: (K, 2) places that look like crossings and are none, in input pixels: the 3x3 cells around
-            each weigh ``hard_weight`` in the heatmap loss (where no crossing's target reaches them and
-            they are not ignored).
-        hard_weight: Their cells' weight.
-
-    Returns:
-        heat (H, W) target in [0, 1] with exactly 1 at each crossing's cell; heat_weight (H, W), 0 where
-        ignored; offset (2, H, W) target in cells; offset_weight (H, W), 1 where an offset is learned.
+    """Targets for one crop of ``out_h`` x ``out_w`` cells: heat (H, W) in [0, 1], exactly 1 at each
+    crossing's cell; heat_weight (H, W), 0 around the ``ignore`` points; offset (2, H, W) in cells;
+    offset_weight (H, W), 1 where an offset is learned. ``positives`` and ``ignore`` are in input pixels;
+    the 3x3 cells around each ``hard`` place (one that looks like a crossing and is none) weigh
+    ``hard_weight`` where no crossing's target reaches them.
     """
     heat = np.zeros((out_h, out_w), np.float32)
     heat_weight = np.ones((out_h, out_w), np.float32)

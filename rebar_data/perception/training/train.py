@@ -13,8 +13,7 @@ A run folder holds everything about one run:
 - ``results.json``: the best model's metrics on the validation and test splits;
 - ``curves.png``, ``pr_curve.png``, ``predictions.png``.
 
-The weights evaluated and saved are an exponential moving average of the trained ones (as Ultralytics
-keeps), which is steadier from epoch to epoch than the raw weights.
+The weights evaluated and saved are an exponential moving average of the trained ones.
 """
 
 from __future__ import annotations
@@ -24,7 +23,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -35,7 +34,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset.writers.manifest import sha256_file
-from rebar_data.outputs import OutputLock, mark_output, output_folder
+from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_file
 from rebar_data.perception.evaluation.data import (
     Sample,
     check_dataset,
@@ -65,31 +64,14 @@ from rebar_data.perception.inference.model_file import int8_passes_path
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, quantize_onnx, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
-from rebar_data.perception.networks.stages import CrossingNet, DepthNet, PatchNet
+from rebar_data.perception.training import crossing_point, depth_check, epochs, refine
 from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage, adapt_settings
 from rebar_data.perception.training.config import TrainConfig, resolve_config
-from rebar_data.perception.training.crossing_point import save as save_crossing_point
-from rebar_data.perception.training.crossing_point import train_crossing_point
-from rebar_data.perception.training.depth_check import check_depth, train_depth_check
-from rebar_data.perception.training.depth_check import save as save_depth_check
-from rebar_data.perception.training.epochs import WeightAverage, batch_stream, train_epoch
 from rebar_data.perception.training.line_check import UnfitLineCheck, fit_line_check, fitted_on
-from rebar_data.perception.training.refine import (
-    calibrated_on,
-    calibration_patches,
-    first_stage_detections,
-    negatives_in,
-    train_refiner,
-    with_lower_mat,
-)
-from rebar_data.perception.training.refine import load as load_refiner
-from rebar_data.perception.training.refine import save as save_refiner
 
 COMMAND = "rebar train"
 EARLY_STOP_METRIC = "val_oks_ap"
-# settings newer than some run folders, at the value that trains as those runs did
-NEWER_FIELDS = {"other_renderer_repeats": 0}
-# settings a resumed run may change
+NEWER_FIELDS = {"other_renderer_repeats": 0}  # settings newer than some run folders, at their old value
 RESUMABLE_CHANGES = {
     "epochs",
     "patience",
@@ -100,20 +82,18 @@ RESUMABLE_CHANGES = {
     "crossing_point",
     "line_check",
 }
+STAGES = {
+    "refine": "refine",
+    "depth_check": "depth",
+    "crossing_point": "crossing",
+}  # their files: best.<name>.pt
+STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
 
 
 @dataclass
 class TrainResult:
-    """What a run produced.
-
-    Attributes:
-        out_dir: The run folder.
-        best_epoch: Epoch of the weights kept.
-        epochs_run: Epochs trained in total (over resumptions).
-        stopped_early: Whether early stopping ended the run.
-        history: One dict per epoch (the rows of metrics.csv).
-        results: Metrics of the best model per split.
-    """
+    """What a run produced: its folder, best and last epoch, whether it stopped early, one row per epoch
+    (metrics.csv) and the best model's metrics per split."""
 
     out_dir: Path
     best_epoch: int
@@ -123,14 +103,36 @@ class TrainResult:
     results: dict[str, dict[str, float]] = field(default_factory=dict)
 
 
+@dataclass
+class _Run:
+    """What one call of :func:`train` works on."""
+
+    cfg: TrainConfig
+    out: Path
+    sigma: float
+    dataset: dict[str, Any]  # what the run records of its data
+    train: list[Sample]
+    val: list[Sample]
+    test: list[Sample]
+    refine_extra: list[Sample]
+    line_extra: list[Sample]
+    line_supplements: list[dict[str, Any]]
+    progress: bool
+    started: float = 0.0  # when the first stage's epochs began
+    train_seconds: float = 0.0  # from then until the later stages were trained
+
+    def log(self, msg: str) -> None:
+        if self.progress:
+            tqdm.write(msg, file=sys.stderr)
+
+
 def is_run_folder(folder: Path) -> bool:
     """``folder`` has a run folder's layout (runs from before the mark): config.json and a checkpoint."""
     return (folder / "config.json").is_file() and any((folder / n).is_file() for n in ("last.pt", "best.pt"))
 
 
 def check_run_folder(out: str | Path) -> Path:
-    """``out`` as a run may be written there: new, empty, or an earlier run (which resumes, or with
-    ``resume`` off starts afresh); a folder holding anything else is refused (a ConfigError naming it)."""
+    """``out`` as a run may be written there: new, empty, or an earlier run; anything else is refused."""
     return output_folder(out, arg="--out", command=COMMAND, owned=is_run_folder)
 
 
@@ -151,25 +153,17 @@ def train(
 
     Args:
         dataset_path: A dataset folder (``ROOT/<name>/v<version>/``) with train, val and test splits.
-        out_dir: The run folder (created; an existing run there resumes when ``resume``). A folder that
-            holds other files is refused, and one run writes a folder at a time (its lock).
+        out_dir: The run folder: new, empty or an earlier run (which resumes when ``resume``).
         config: Settings; defaults are what ``make train`` uses.
         epochs: Overrides ``config.epochs``.
         batch_size: Overrides ``config.batch_size``.
-        supplements: Further datasets whose every image (all splits) joins the training images; the
-            epoch is still chosen on ``dataset_path``'s val split and scored on its test split.
-        refine_supplements: Further datasets (another renderer's frames) whose every image joins the
-            first stage's adapt epochs (``config.adapt``) and the second stage's training, and the first
-            epochs only with ``config.other_renderer_repeats``; without it they may change when a run
-            resumes, and those stages then train afresh from the first stage's best epoch kept.
-        line_supplements: Further datasets whose every image the line check is fitted on beside the val
-            split (``config.line_check``; fitted again whenever the run finishes).
-        resume: Continue from ``out_dir/last.pt`` if it exists (the settings must match, but for
-            epochs, patience and val_every); False starts afresh and overwrites the run.
+        supplements: Datasets whose every image joins the training images (val and test stay the first's).
+        refine_supplements: Datasets (another renderer's frames) whose every image trains the adapt epochs
+            and the second stage, and the first epochs with ``config.other_renderer_repeats``.
+        line_supplements: Datasets whose every image the line check is fitted on beside the val split.
+        resume: Continue from ``out_dir/last.pt`` if it exists (with the same settings but for
+            ``RESUMABLE_CHANGES``); False starts afresh.
         progress: Show a progress bar per epoch and a summary line after it (on stderr).
-
-    Returns:
-        The run's outcome; the files are in ``out_dir``.
     """
     cfg = resolve_config(config, {"epochs": epochs, "batch_size": batch_size})
     root = check_dataset(dataset_path)
@@ -184,9 +178,28 @@ def train(
     refine_extra, refine_meta = supplement_images(refine_supplements, trained_on=info.get("name"))
     line_extra, line_meta = supplement_images(line_supplements, trained_on=info.get("name"))
     if cfg.depth_check.enabled:  # fail now, not after the first two stages have trained
-        check_depth(train_samples)
-    val_samples = load_split(root, "val")
-    test_samples = load_split(root, "test")
+        depth_check.check_depth(train_samples)
+    dataset = {
+        "path": str(root),
+        "name": info.get("name"),
+        "version": info.get("version"),
+        "renderer": renderer_engine(info),
+        "supplements": supplement_meta,
+        "refine_supplements": refine_meta,
+    }
+    run = _Run(
+        cfg,
+        out,
+        sigma,
+        dataset,
+        train_samples,
+        load_split(root, "val"),
+        load_split(root, "test"),
+        refine_extra,
+        line_extra,
+        line_meta,
+        progress,
+    )
     threads_before = torch.get_num_threads()
     with OutputLock(out, command=COMMAND):
         check_run_folder(out)  # again under the lock: another run may have written there meanwhile
@@ -194,23 +207,20 @@ def train(
         mark_output(out, COMMAND)
         torch.set_num_threads(cfg.threads)
         try:
-            return _run(
-                cfg,
-                root,
+            state = _first_stage(run, resume)
+            # the first stage to ship: the best epoch, then its adapt epochs on the second-stage supplements
+            first_path, adapt_history = adapt_first_stage(
                 out,
-                info,
-                sigma,
-                train_samples,
-                val_samples,
-                test_samples,
-                supplements=supplement_meta,
-                refine_extra=refine_extra,
-                refine_supplements=refine_meta,
-                line_extra=line_extra,
-                line_supplements=line_meta,
-                resume=resume,
+                cfg,
+                run.train,
+                refine_extra,
+                base_epoch=state["best_epoch"],
+                data=_names(refine_meta),
+                log=run.log,
                 progress=progress,
             )
+            stages = _later_stages(run, state, first_path)
+            return _finish(run, state, first_path, {"adapt": (None, adapt_history), **stages})
         finally:
             torch.set_num_threads(threads_before)
 
@@ -218,8 +228,8 @@ def train(
 def supplement_images(
     supplements: Sequence[str | Path], *, trained_on: str | None
 ) -> tuple[list[Sample], list[dict[str, Any]]]:
-    """Every image of each supplement, and what the run records of them (path, name, version, images and
-    the engine that rendered them)."""
+    """Every image of each supplement, and what the run records of each (path, name, version, images,
+    renderer)."""
     images: list[Sample] = []
     meta: list[dict[str, Any]] = []
     for path in supplements:
@@ -246,18 +256,13 @@ def supplement_images(
     return images, meta
 
 
-def _log(msg: str, progress: bool) -> None:
-    if progress:
-        tqdm.write(msg, file=sys.stderr)
-
-
-def _val_subset(samples: list[Sample], n: int) -> list[Sample]:
-    if len(samples) <= n:
-        return samples
-    return [samples[i] for i in np.linspace(0, len(samples) - 1, n).round().astype(int)]
+def _names(supplements: list[dict[str, Any]]) -> list[str]:
+    """Supplements as a run compares them: name and version of each."""
+    return [f"{d.get('name')} v{d.get('version')}" for d in supplements]
 
 
 def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> None:
+    """ConfigError unless the run ``saved`` settings describe may resume with ``cfg``."""
     now = cfg.model_dump(mode="json")
     for k in sorted(set(saved) | set(now)):
         was = saved.get(k, NEWER_FIELDS.get(k))
@@ -268,127 +273,79 @@ def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> Non
             )
 
 
-def _names(supplements: list[dict[str, Any]]) -> list[str]:
-    """Supplements as a run compares them: name and version of each."""
-    return [f"{d.get('name')} v{d.get('version')}" for d in supplements]
+def _check_same_supplements(payload: dict[str, Any], run: _Run, path: Path) -> None:
+    """ConfigError unless the run in ``payload`` trained its first epochs on ``run``'s supplements."""
+    # the second-stage supplements count when they trained the first epochs too
+    for key in ("supplements", "refine_supplements")[: 1 + bool(run.cfg.other_renderer_repeats)]:
+        was, now_names = _names(payload["meta"]["dataset"].get(key, [])), _names(run.dataset[key])
+        if was != now_names:
+            raise ConfigError(
+                f"{path}: holds a run trained with supplements {was or 'none'}, not {now_names or 'none'}; "
+                "accepted: the same supplements to resume, or a fresh start (--fresh) or another run folder"
+            )
 
 
-def _check_same_supplements(saved: list[dict[str, Any]], now: list[dict[str, Any]], path: Path) -> None:
-    if _names(saved) != _names(now):
-        raise ConfigError(
-            f"{path}: holds a run trained with supplements {_names(saved) or 'none'}, not {_names(now) or 'none'}; "
-            "accepted: the same supplements to resume, or a fresh start (--fresh) or another run folder"
-        )
-
-
-def _run(
-    cfg: TrainConfig,
-    root: Path,
-    out: Path,
-    info: dict,
-    sigma: float,
-    train_samples: list[Sample],
-    val_samples: list[Sample],
-    test_samples: list[Sample],
-    *,
-    supplements: list[dict[str, Any]],
-    refine_extra: list[Sample],
-    refine_supplements: list[dict[str, Any]],
-    line_extra: list[Sample],
-    line_supplements: list[dict[str, Any]],
-    resume: bool,
-    progress: bool,
-) -> TrainResult:
+def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
+    """Train the first stage's epochs (resuming from ``last.pt``), keeping the best in ``best.pt``; returns
+    the run's state (epochs run, best epoch and score, whether it stopped early, history)."""
+    cfg, out = run.cfg, run.out
     torch.manual_seed(cfg.seed)
-    # channels-last: the depthwise convolutions train about 1.5 times faster on a CPU in that layout
+    # channels-last: the depthwise convolutions train faster on a CPU in that layout
     net = KeypointNet(cfg.model).to(memory_format=torch.channels_last)
-    avg = WeightAverage(net)
+    avg = epochs.WeightAverage(net)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    state: dict[str, Any] = {
-        "epoch": 0,
-        "step": 0,
-        "best": -1.0,
-        "best_epoch": 0,
-        "stopped": False,
-        "history": [],
-    }
+    state: dict[str, Any] = dict(epoch=0, step=0, best=-1.0, best_epoch=0, stopped=False, history=[])
     last = out / "last.pt"
     if resume and last.exists():
         _, _, payload = load_checkpoint(last)
         _check_resumable(payload["train_config"], cfg, last)
-        _check_same_supplements(payload["meta"]["dataset"].get("supplements", []), supplements, last)
-        if cfg.other_renderer_repeats:  # they trained the first epochs too
-            _check_same_supplements(
-                payload["meta"]["dataset"].get("refine_supplements", []), refine_supplements, last
-            )
-        net.load_state_dict(payload["state_dict"])
-        avg.net.load_state_dict(payload["average_state_dict"])
-        avg.updates = payload["average_updates"]
-        opt.load_state_dict(payload["optimizer"])
-        torch.set_rng_state(payload["torch_rng"])
-        state = payload["state"]
-        _log(f"resuming {out} after epoch {state['epoch']}", progress)
-    dataset_meta = {
-        "path": str(root),
-        "name": info.get("name"),
-        "version": info.get("version"),
-        "renderer": renderer_engine(info),
-        "supplements": supplements,
-        "refine_supplements": refine_supplements,
+        _check_same_supplements(payload, run, last)
+        state = epochs.restore(payload, net, avg, opt)
+        run.log(f"resuming {out} after epoch {state['epoch']}")
+    config = {
+        "train_config": cfg.model_dump(mode="json"),
+        "dataset": run.dataset,
+        "oks_sigma": run.sigma,
+        "parameters": count_parameters(net),
     }
-    (out / "config.json").write_text(
-        json.dumps(
-            {
-                "train_config": cfg.model_dump(mode="json"),
-                "dataset": dataset_meta,
-                "oks_sigma": sigma,
-                "parameters": count_parameters(net),
-            },
-            indent=2,
-            sort_keys=True,
-        )
-        + "\n"
-    )
-    val_sub = _val_subset(val_samples, cfg.val_max_images)
+    (out / "config.json").write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
+    val_sub = run.val
+    if len(val_sub) > cfg.val_max_images:
+        val_sub = [
+            val_sub[i] for i in np.linspace(0, len(val_sub) - 1, cfg.val_max_images).round().astype(int)
+        ]
     val_images = [read_image(s.path) for s in val_sub] if cfg.cache_images else None
     base_meta = {
-        "dataset": dataset_meta,
-        "oks_sigma": sigma,
+        "dataset": run.dataset,
+        "oks_sigma": run.sigma,
         "threshold": OPERATING_THRESHOLD,
-        "focal_per_width": float(np.median([s.camera[0] / s.width for s in train_samples])),
+        "focal_per_width": float(np.median([s.camera[0] / s.width for s in run.train])),
         # the focal length the first stage learns at: `Detector.detect` reads other cameras' frames at it
-        "focal_px": float(np.median([0.5 * (s.camera[0] + s.camera[1]) for s in train_samples])),
+        "focal_px": float(np.median([0.5 * (s.camera[0] + s.camera[1]) for s in run.train])),
         "train_config": cfg.model_dump(mode="json"),
     }
-    # the first epochs' images: the training images and, ``other_renderer_repeats`` times, the second-stage
-    # supplements' (another renderer's frames; the adapt epochs and later stages mix them as before)
-    first_samples = train_samples + refine_extra * cfg.other_renderer_repeats
-    steps_per_epoch = max(1, math.ceil(len(first_samples) * cfg.crops_per_image / cfg.batch_size))
-    started = time.perf_counter()
+    # the first epochs' images: the training images and, other_renderer_repeats times, the second-stage
+    # supplements'
+    first_samples = run.train + run.refine_extra * cfg.other_renderer_repeats
+    steps = max(1, math.ceil(len(first_samples) * cfg.crops_per_image / cfg.batch_size))
+    run.started = time.perf_counter()
     if not state["stopped"] and state["epoch"] < cfg.epochs:
-        batches = batch_stream(
-            first_samples,
-            cfg,
-            first=state["epoch"] + 1,
-            last=cfg.epochs,
-            steps=steps_per_epoch,
-            focal_px=base_meta["focal_px"],
+        first, focal_px = state["epoch"] + 1, base_meta["focal_px"]
+        batches = epochs.batch_stream(
+            first_samples, cfg, first=first, last=cfg.epochs, steps=steps, focal_px=focal_px
         )
     for epoch in range(state["epoch"] + 1, cfg.epochs + 1):
         if state["stopped"]:
             break
-        row = train_epoch(
-            net, avg, opt, batches, cfg, state, epoch=epoch, steps=steps_per_epoch, progress=progress
+        row = epochs.train_epoch(
+            net, avg, opt, batches, cfg, state, epoch=epoch, steps=steps, progress=run.progress
         )
+        line = f"epoch {epoch}/{cfg.epochs}: loss {row['train_loss']:.4f}"
         if val_sub and (epoch % cfg.val_every == 0 or epoch == cfg.epochs):
-            preds = predict(eager.detector(avg.net), val_sub, images=val_images)
-            m = score(val_sub, preds, sigma=sigma)
+            m = score(val_sub, predict(eager.detector(avg.net), val_sub, images=val_images), sigma=run.sigma)
             row.update({f"val_{k}": v for k, v in m.items() if k not in ("oks_sigma", "threshold")})
-            _log(
-                f"epoch {epoch}/{cfg.epochs}: loss {row['train_loss']:.4f}; val {format_summary(m)}", progress
-            )
-        else:
-            _log(f"epoch {epoch}/{cfg.epochs}: loss {row['train_loss']:.4f}", progress)
+            line += f"; val {format_summary(m)}"
+        run.log(line)
         state["history"].append(row)
         state["epoch"] = epoch
         meta = {**base_meta, "epoch": epoch}
@@ -400,295 +357,204 @@ def _run(
             save_checkpoint(out / "best.pt", avg.net, meta)
         elif key is not None and epoch - state["best_epoch"] >= cfg.patience:
             state["stopped"] = True
-            _log(f"early stop: no better {EARLY_STOP_METRIC} for {cfg.patience} epochs", progress)
-        save_checkpoint(
-            last,
-            net,
-            meta,
-            train_config=cfg.model_dump(mode="json"),
-            average_state_dict=avg.net.state_dict(),
-            average_updates=avg.updates,
-            optimizer=opt.state_dict(),
-            torch_rng=torch.get_rng_state(),
-            state=state,
-        )
+            run.log(f"early stop: no better {EARLY_STOP_METRIC} for {cfg.patience} epochs")
+        resumable = epochs.checkpoint_state(net, avg, opt, state)
+        save_checkpoint(last, net, meta, train_config=cfg.model_dump(mode="json"), **resumable)
         _write_history(out / "metrics.csv", state["history"])
     batches = None  # stops the loader process
     if not (out / "best.pt").exists():  # no epoch had a finite validation score: keep the latest weights
         save_checkpoint(out / "best.pt", avg.net, {**base_meta, "epoch": state["epoch"]})
+    return state
 
-    # the first stage to ship: the best epoch, then its adapt epochs on the second-stage supplements
-    first_path, adapt_history = adapt_first_stage(
-        out,
-        cfg,
-        train_samples,
-        refine_extra,
-        base_epoch=state["best_epoch"],
-        data=_names(refine_supplements),
-        log=lambda msg: _log(msg, progress),
-        progress=progress,
-    )
+
+def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[str, tuple[Any, list]]:
+    """Train the second stage, the depth check and the crossing-point stage, as the settings enable them;
+    returns each one's network (None when off) and history."""
+    cfg, out = run.cfg, run.out
     # what the later stages' negatives come from: a changed first stage trains them again
-    negatives_from = [f"first stage: epoch {state['best_epoch']}"] + (
-        [f"adapted: {json.dumps(adapt_settings(cfg.adapt), sort_keys=True)}"]
-        if first_path.name == ADAPTED
-        else []
-    )
-
-    found: dict[int, list[np.ndarray]] = {}  # the trained first stage's detections, run once a sample list
-
-    def found_on(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
-        if id(samples) not in found:
-            first, _, _ = load_checkpoint(first_path)
-            found[id(samples)] = first_stage_detections(
-                eager.detector(first), samples, cfg.refine, images=images, progress=progress
-            )
-        return found[id(samples)]
+    negatives_from = [f"first stage: epoch {state['best_epoch']}"]
+    if first_path.name == ADAPTED:
+        negatives_from.append(f"adapted: {json.dumps(adapt_settings(cfg.adapt), sort_keys=True)}")
+    found: dict[int, list[np.ndarray]] = {}  # the first stage's detections, run once a sample list
 
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
-        return negatives_in(found_on(samples, images), samples, cfg.refine)  # the first stage's misses
+        if id(samples) not in found:
+            first, _, _ = load_checkpoint(first_path)
+            found[id(samples)] = refine.first_stage_detections(
+                eager.detector(first), samples, cfg.refine, images=images, progress=run.progress
+            )
+        return refine.negatives_in(found[id(samples)], samples, cfg.refine)  # the first stage's misses
+
+    def depth_negatives() -> list[np.ndarray]:
+        """The second stage's mined negatives kept in its checkpoint, or mined now when it has none, with
+        the lower mat's crossings."""
+        mined = None
+        if (out / "refine_last.pt").exists():
+            mined = refine.load(out / "refine_last.pt")[2].get("negatives")
+        if mined is None or len(mined) != len(refine_samples) or not any(len(n) for n in mined):
+            mined = negatives_of(run.train, [read_image(s.path) for s in run.train])
+        mined = mined[: len(run.train)]  # the second stage's images begin with the first's
+        n = cfg.depth_check.lower_mat_negatives
+        return refine.with_lower_mat(
+            run.train, mined, n, gate_px=cfg.refine.negative_gate_px, seed=cfg.seed + 1
+        )
 
     # the second stage's images: the first's, then each second-stage supplement's, repeated
-    refine_samples = train_samples + refine_extra * cfg.refine.supplement_repeats
-    refiner, refine_history = None, []
+    refine_samples = run.train + run.refine_extra * cfg.refine.supplement_repeats
+    stages: dict[str, tuple[Any, list]] = {k: (None, []) for k in ("refine", "depth_check", "crossing_point")}
     if cfg.refine.enabled:
-        refiner, refine_history = train_refiner(
+        stages["refine"] = refine.train_refiner(
             refine_samples,
             out,
             cfg.refine,
             cfg.augment,
             seed=cfg.seed,
             negatives_of=negatives_of,
-            data=_names(refine_supplements) + negatives_from,
-            progress=progress,
+            data=_names(run.dataset["refine_supplements"]) + negatives_from,
+            progress=run.progress,
         )
-    depth_net, depth_history = None, []
     if cfg.depth_check.enabled:
-        n = cfg.depth_check.lower_mat_negatives  # the lower mat's crossings join its negatives
-        depth_net, depth_history = train_depth_check(
-            train_samples,
-            lambda: with_lower_mat(  # placed only when the depth check trains
-                train_samples,
-                _negatives(out, train_samples, len(refine_samples), negatives_of),
-                n,
-                gate_px=cfg.refine.negative_gate_px,
-                seed=cfg.seed + 1,
-            ),
+        n = cfg.depth_check.lower_mat_negatives
+        stages["depth_check"] = depth_check.train_depth_check(
+            run.train,
+            depth_negatives,
             out,
             cfg.depth_check,
             seed=cfg.seed,
             data=negatives_from + ([f"its own lower-mat negatives: {n}"] if n else []),
-            progress=progress,
+            progress=run.progress,
         )
-    crossing_net, crossing_history = None, []
     if cfg.crossing_point.enabled:
-        crossing_net, crossing_history = train_crossing_point(
-            train_samples, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=progress
+        stages["crossing_point"] = crossing_point.train_crossing_point(
+            run.train, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=run.progress
         )
-    train_s = time.perf_counter() - started
-    return _finish(
-        out,
-        cfg,
-        state,
-        sigma,
-        val_samples,
-        test_samples,
-        dataset_meta,
-        train_samples=train_samples,
-        first_path=first_path,
-        adapt_history=adapt_history,
-        refiner=refiner,
-        refine_history=refine_history,
-        depth_net=depth_net,
-        depth_history=depth_history,
-        crossing_net=crossing_net,
-        crossing_history=crossing_history,
-        line_extra=line_extra,
-        line_supplements=line_supplements,
-        train_s=train_s,
-        progress=progress,
-    )
-
-
-def _negatives(
-    out: Path,
-    train_samples: list[Sample],
-    refine_images: int,
-    negatives_of: Callable[[list[Sample], list[np.ndarray]], list[np.ndarray]],
-) -> list[np.ndarray]:
-    """The third stage's negatives: the second stage's mined ones, kept in its checkpoint (its
-    ``refine_images`` images begin with ``train_samples``), or mined now when it has none (a run without a
-    verifying second stage)."""
-    path = out / "refine_last.pt"
-    if path.exists():
-        _, _, payload = load_refiner(path)
-        found = payload.get("negatives")
-        if found is not None and len(found) == refine_images and any(len(n) for n in found):
-            return found[: len(train_samples)]
-    return negatives_of(train_samples, [read_image(s.path) for s in train_samples])
+    run.train_seconds = time.perf_counter() - run.started
+    return stages
 
 
 def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
     keys: list[str] = []
     for row in history:
         keys += [k for k in row if k not in keys]
-    tmp = path.with_name(path.name + ".tmp")
-    with tmp.open("w", newline="") as f:
-        w = csv.DictWriter(f, fieldnames=keys)
-        w.writeheader()
-        for row in history:
-            w.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()})
-    tmp.replace(path)
+
+    def write(tmp: Path) -> None:
+        with tmp.open("w", newline="") as f:
+            w = csv.DictWriter(f, fieldnames=keys)
+            w.writeheader()
+            w.writerows(
+                {k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in row.items()} for row in history
+            )
+
+    replace_file(path, write)
 
 
 def _finish(
-    out: Path,
-    cfg: TrainConfig,
-    state: dict[str, Any],
-    sigma: float,
-    val_samples: list[Sample],
-    test_samples: list[Sample],
-    dataset_meta: dict,
-    *,
-    train_samples: list[Sample],
-    first_path: Path,
-    adapt_history: list[dict[str, float]],
-    refiner: PatchNet | None,
-    refine_history: list[dict[str, float]],
-    depth_net: DepthNet | None,
-    depth_history: list[dict[str, float]],
-    crossing_net: CrossingNet | None,
-    crossing_history: list[dict[str, float]],
-    line_extra: list[Sample],
-    line_supplements: list[dict[str, Any]],
-    train_s: float,
-    progress: bool,
+    run: _Run, state: dict[str, Any], first_path: Path, stages: dict[str, tuple[Any, list]]
 ) -> TrainResult:
     """Export the first stage (``first_path``: the best epoch, or its adapted weights) and the later stages
     to ONNX, score them on val and test, draw the plots."""
     from rebar_data.perception.evaluation import plots
 
+    cfg, out, sigma, val_samples, test_samples = run.cfg, run.out, run.sigma, run.val, run.test
     net, meta, _ = load_checkpoint(first_path)
-    stale_keys = (
-        "score_bias",
-        "score_bias_without_depth",
-        "results",
-        "refiner",
-        "depth_check",
-        "crossing_point",
-        "line_check",
-    )
-    meta = {k: v for k, v in meta.items() if k not in stale_keys}
-    # the run as it finished: its later stages may have trained on other settings or second-stage data
-    # than the first stage's best epoch recorded
-    meta.update(dataset=dataset_meta, train_config=cfg.model_dump(mode="json"))
-    for stale in (
-        out / "best.refine.onnx",
-        out / "best.refine.pt",
-        int8_passes_path(out / "best.onnx"),
-        out / "best.depth.onnx",
-        out / "best.depth.pt",
-        out / "best.crossing.onnx",
-        out / "best.crossing.pt",
-    ):
-        stale.unlink(missing_ok=True)
-    if refiner is not None:
-        save_refiner(out / "best.refine.pt", refiner, cfg.refine)
-        onnx_path = export_onnx(refiner, out / "best.refine.onnx")
-        # int8: the file itself; later: an int8 copy beside it for the passes after the first
-        later = int8_passes_path(out / "best.onnx")
-        if cfg.refine.quantize == "later":
-            patches = calibration_patches(train_samples, cfg.refine, seed=cfg.seed)
-            quantize_onnx(onnx_path, later, patches)
-            _log(
-                f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)",
-                progress,
-            )
+    stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)
+    meta = {k: v for k, v in meta.items() if k not in stale}
+    # the run as it finished: its later stages may have trained on other settings or data than the first
+    # stage's best epoch recorded
+    meta.update(dataset=run.dataset, train_config=cfg.model_dump(mode="json"))
+    for name in STAGES.values():
+        for suffix in ("onnx", "pt"):
+            (out / f"best.{name}.{suffix}").unlink(missing_ok=True)
+    int8_passes_path(out / "best.onnx").unlink(missing_ok=True)
+    files = {}  # each later stage's ONNX file
+    for module, (key, name) in zip((refine, depth_check, crossing_point), STAGES.items(), strict=True):
+        if stages[key][0] is not None:
+            module.save(out / f"best.{name}.pt", stages[key][0], getattr(cfg, key))
+            files[key] = export_onnx(stages[key][0], out / f"best.{name}.onnx")
+    if "refine" in files:
+        r = cfg.refine
         meta["refiner"] = {
-            "patch_px": cfg.refine.patch_px,
-            "iterations": cfg.refine.iterations,
-            "step": cfg.refine.step,
-            "shrink_above_px": list(cfg.refine.shrink_above_px) if cfg.refine.size else None,
-            "quantize": cfg.refine.quantize,
-            "verify": refiner.verify,
-            "verify_power": cfg.refine.verify_power,
-            "verify_power_with_depth": cfg.refine.verify_power_with_depth,
-            "views": cfg.refine.views,
-            "first_pass_views": cfg.refine.first_pass_views,
-            "sha256": sha256_file(onnx_path),
+            "patch_px": r.patch_px,
+            "iterations": r.iterations,
+            "step": r.step,
+            "shrink_above_px": list(r.shrink_above_px) if r.size else None,
+            "quantize": r.quantize,
+            "verify": stages["refine"][0].verify,
+            "verify_power": r.verify_power,
+            "verify_power_with_depth": r.verify_power_with_depth,
+            "views": r.views,
+            "first_pass_views": r.first_pass_views,
+            "sha256": sha256_file(files["refine"]),
         }
-        if cfg.refine.quantize == "later":
+        if r.quantize == "later":  # an int8 copy beside it for the passes after the first
+            later = int8_passes_path(out / "best.onnx")
+            patches = refine.calibration_patches(run.train, r, seed=cfg.seed)
+            quantize_onnx(files["refine"], later, patches)
+            run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
             meta["refiner"]["int8_sha256"] = sha256_file(later)
             meta["refiner"]["int8_calibrated_on"] = {
-                "data": calibrated_on(dataset_meta.get("name"), dataset_meta.get("supplements", [])),
+                "data": refine.calibrated_on(run.dataset.get("name"), run.dataset.get("supplements", [])),
                 "patches": len(patches),
             }
-    if depth_net is not None:
-        save_depth_check(out / "best.depth.pt", depth_net, cfg.depth_check)
-        depth_path = export_onnx(depth_net, out / "best.depth.onnx")
-        meta["depth_check"] = {
-            "patch_px": cfg.depth_check.patch_px,
-            "scale_m": cfg.depth_check.scale_m,
-            "clip": cfg.depth_check.clip,
-            "power": cfg.depth_check.power,
-            "sha256": sha256_file(depth_path),
-        }
-    if crossing_net is not None:
-        save_crossing_point(out / "best.crossing.pt", crossing_net, cfg.crossing_point)
+    if "depth_check" in files:
+        d = cfg.depth_check
+        entry = {"patch_px": d.patch_px, "scale_m": d.scale_m, "clip": d.clip, "power": d.power}
+        meta["depth_check"] = entry | {"sha256": sha256_file(files["depth_check"])}
+    if "crossing_point" in files:
         meta["crossing_point"] = {
             "patch_px": cfg.crossing_point.patch_px,
-            "sha256": sha256_file(export_onnx(crossing_net, out / "best.crossing.onnx")),
+            "sha256": sha256_file(files["crossing_point"]),
         }
     detector = Detector.load(
         export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
     )
     if val_samples:  # the operating point, chosen on val with the raw scores
-        raw = predict(detector, val_samples, threshold=CALIBRATION_FLOOR, progress=progress)
+        raw = predict(detector, val_samples, threshold=CALIBRATION_FLOOR, progress=run.progress)
         if detector.depth_check is not None:  # and the RGB stages' own, for calls without depth
             rgb_only = predict(
-                detector, val_samples, threshold=CALIBRATION_FLOOR, depth=False, progress=progress
+                detector, val_samples, threshold=CALIBRATION_FLOOR, depth=False, progress=run.progress
             )
             meta["score_bias_without_depth"] = calibrate_score_bias(val_samples, rgb_only)
             detector.score_bias_without_depth = meta["score_bias_without_depth"]
-            _log(f"score bias without depth {meta['score_bias_without_depth']:+.3f}", progress)
+            run.log(f"score bias without depth {meta['score_bias_without_depth']:+.3f}")
         meta["score_bias"] = detector.score_bias = calibrate_score_bias(val_samples, raw)
-        _log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)", progress)
+        run.log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)")
     if cfg.line_check.enabled and val_samples:  # on the RGB stages as they now score
-        data = fitted_on(dataset_meta.get("name"), line_supplements)
+        data = fitted_on(run.dataset.get("name"), run.line_supplements)
         try:
             entry, detector.line_check = fit_line_check(
-                detector, val_samples + line_extra, val_samples, cfg.line_check, data=data, progress=progress
+                detector,
+                val_samples + run.line_extra,
+                val_samples,
+                cfg.line_check,
+                data=data,
+                progress=run.progress,
             )
         except UnfitLineCheck as e:  # a run too small to have false detections: the model goes without
-            _log(f"no line check: {e}", progress)
+            run.log(f"no line check: {e}")
         else:
             meta["line_check"] = entry
-            _log(
-                f"line check fitted on {entry['candidates']} candidates of {entry['images']} images", progress
-            )
+            run.log(f"line check fitted on {entry['candidates']} candidates of {entry['images']} images")
     results: dict[str, dict[str, float]] = {}
     curves = {}
     for split, samples in (("val", val_samples), ("test", test_samples)):
-        if not samples:
-            continue
-        preds = predict(detector, samples, progress=progress)
-        results[split] = score(samples, preds, sigma=sigma)
-        _log(
-            f"best model (epoch {state['best_epoch']}) on {split}: {format_summary(results[split])}", progress
-        )
-        curves[split] = (samples, preds)
+        if samples:
+            preds = predict(detector, samples, progress=run.progress)
+            results[split] = score(samples, preds, sigma=sigma)
+            run.log(f"best model (epoch {state['best_epoch']}) on {split}: {format_summary(results[split])}")
+            curves[split] = (samples, preds)
     first_stage: dict[str, dict[str, float]] = {}
     if detector.refiner is not None and test_samples:  # what the second stage adds, on the reported split
         with detector.first_stage_only():
             first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
-        _log(f"first stage alone on test: {format_summary(first_stage['test'])}", progress)
+        run.log(f"first stage alone on test: {format_summary(first_stage['test'])}")
     without_depth: dict[str, dict[str, float]] = {}
     against_points: dict[str, dict[str, float]] = {}
     wanted = (detector.depth_check is not None, detector.crossing_point is not None)
     rgb_only = predict(detector, test_samples, depth=False) if test_samples and any(wanted) else []
     if detector.depth_check is not None and test_samples:  # what the depth check adds
         without_depth["test"] = score(test_samples, rgb_only, sigma=sigma)
-        _log(f"without the depth check on test: {format_summary(without_depth['test'])}", progress)
+        run.log(f"without the depth check on test: {format_summary(without_depth['test'])}")
     if detector.crossing_point is not None and test_samples and test_samples[0].crossings is not None:
         # the 3D crossing points as truth, found from RGB alone: the sight points and the stage's output
         points = [replace(s, visible=s.crossings) for s in test_samples]
@@ -698,47 +564,38 @@ def _finish(
         }
         for name, preds in found.items():
             against_points[name] = score(points, preds, sigma=sigma)
-            _log(
+            run.log(
                 f"against the 3D crossing points on test, RGB only, {name}: "
-                f"{format_summary(against_points[name])}",
-                progress,
+                f"{format_summary(against_points[name])}"
             )
     meta = {**meta, "results": results}
     save_checkpoint(first_path, net, meta)
     export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
+    seconds = {k: float(sum(r.get("seconds", 0.0) for r in history)) for k, (_, history) in stages.items()}
     summary_doc = {
         "best_epoch": state["best_epoch"],
         "epochs_run": state["epoch"],
         "stopped_early": state["stopped"],
         "oks_sigma": sigma,
         "threshold": OPERATING_THRESHOLD,
-        "dataset": dataset_meta,
+        "dataset": run.dataset,
         "parameters": count_parameters(net),
-        "train_seconds_this_call": train_s,
+        "train_seconds_this_call": run.train_seconds,
         "train_seconds_total": float(
-            sum(r.get("train_seconds", 0.0) for r in state["history"])
-            + sum(r.get("seconds", 0.0) for r in adapt_history)
-            + sum(r.get("seconds", 0.0) for r in refine_history)
-            + sum(r.get("seconds", 0.0) for r in depth_history)
-            + sum(r.get("seconds", 0.0) for r in crossing_history)
+            sum(r.get("train_seconds", 0.0) for r in state["history"]) + sum(seconds.values())
         ),
-        "adapt_epochs": len(adapt_history),
-        "adapt_seconds": float(sum(r.get("seconds", 0.0) for r in adapt_history)),
-        "adapt_history": adapt_history,
-        "refiner_parameters": count_parameters(refiner) if refiner is not None else 0,
-        "refine_seconds": float(sum(r.get("seconds", 0.0) for r in refine_history)),
-        "refine_history": refine_history,
-        "depth_check_parameters": count_parameters(depth_net) if depth_net is not None else 0,
-        "depth_check_seconds": float(sum(r.get("seconds", 0.0) for r in depth_history)),
-        "depth_check_history": depth_history,
-        "crossing_point_parameters": count_parameters(crossing_net) if crossing_net is not None else 0,
-        "crossing_point_seconds": float(sum(r.get("seconds", 0.0) for r in crossing_history)),
-        "crossing_point_history": crossing_history,
+        "adapt_epochs": len(stages["adapt"][1]),
         "results": results,
         "results_against_crossing_points": against_points,
         "results_first_stage": first_stage,
         "results_without_depth": without_depth,
     }
+    for key, (stage_net, history) in stages.items():
+        if key != "adapt":
+            name = "refiner" if key == "refine" else key
+            summary_doc[f"{name}_parameters"] = count_parameters(stage_net) if stage_net is not None else 0
+        summary_doc[f"{key}_seconds"] = seconds[key]
+        summary_doc[f"{key}_history"] = history
     (out / "results.json").write_text(json.dumps(summary_doc, indent=2, sort_keys=True) + "\n")
     if state["history"]:
         plots.plot_history(state["history"], out / "curves.png", mosaic_epochs=cfg.augment.mosaic_epochs)
@@ -759,7 +616,7 @@ def _finish(
 def load_detector(path: str | Path | None = None, **kwargs: Any):
     """A detector from a model file: ``.onnx`` through :meth:`Detector.load` (``kwargs`` its arguments), a
     ``.pt`` checkpoint (with its later stages' ``.pt`` files beside it) run in eager PyTorch."""
-    from rebar_data.perception.inference.detector import Detector, resolve_model_path
+    from rebar_data.perception.inference.detector import resolve_model_path
     from rebar_data.perception.inference.model_file import (
         crossing_point_path,
         depth_check_path,
@@ -767,26 +624,18 @@ def load_detector(path: str | Path | None = None, **kwargs: Any):
         refiner_path,
         stage_file,
     )
-    from rebar_data.perception.networks import eager
-    from rebar_data.perception.networks.files import load_checkpoint
-    from rebar_data.perception.training import crossing_point, depth_check, refine
 
     p = resolve_model_path(path)
     if p.suffix == ".onnx":
         return Detector.load(p, **kwargs)
     net, meta, _ = load_checkpoint(p)
     det = eager.detector(net, meta=meta, path=p)
-    found = stage_file(p, det.meta, "refiner", refiner_path)
-    if found is not None:
+    if (found := stage_file(p, det.meta, "refiner", refiner_path)) is not None:
         det.refiner = eager.refiner(refine.load(found[0])[0], **refiner_passes(found[1]))
-    found = stage_file(p, det.meta, "depth_check", depth_check_path)
-    if found is not None:
-        entry = found[1]
-        det.depth_check = eager.depth_check(
-            depth_check.load(found[0])[0], scale_m=float(entry["scale_m"]), clip=float(entry["clip"])
-        )
-    found = stage_file(p, det.meta, "crossing_point", crossing_point_path)
-    if found is not None:
+    if (found := stage_file(p, det.meta, "depth_check", depth_check_path)) is not None:
+        scale_m, clip = float(found[1]["scale_m"]), float(found[1]["clip"])
+        det.depth_check = eager.depth_check(depth_check.load(found[0])[0], scale_m=scale_m, clip=clip)
+    if (found := stage_file(p, det.meta, "crossing_point", crossing_point_path)) is not None:
         det.crossing_point = eager.crossing_point(crossing_point.load(found[0])[0])
     det.attach_line_check(kwargs.get("line_check", True))
     det.reading = kwargs.get("reading", "mirrored")
