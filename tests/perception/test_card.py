@@ -127,12 +127,12 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     from rebar_data.perception.evaluation.card import FIGURES_DIR, write_figures
 
     figures = write_figures(trained_run.out_dir, tmp_path / "models", held_out, frame_from="drawn test")
-    assert sorted(figures.pr.values()) == [
+    assert sorted(figures["pr"].values()) == [
         f"{FIGURES_DIR}/pr-drawn-test.png",
         f"{FIGURES_DIR}/pr-other-v0-0-1-cycles-renderer.png",
         f"{FIGURES_DIR}/pr-own-v0-0-1.png",
     ]
-    assert all((tmp_path / "models" / link).is_file() for link in figures.pr.values())
+    assert all((tmp_path / "models" / link).is_file() for link in figures["pr"].values())
     rgb = rows["other v0.0.1, cycles renderer, RGB only"]
     vs_3d = rows["other v0.0.1, cycles renderer, RGB only, vs 3D crossing points"]
     assert rgb["n_gt"] == vs_3d["n_gt"] == rows["own v0.0.1 (all splits)"]["n_gt"] > 0

@@ -19,6 +19,7 @@ import numpy as np
 import yaml
 
 from rebar_data.config import ConfigError
+from rebar_data.outputs import replace_file
 from rebar_data.perception.evaluation import data, evaluate
 from rebar_data.perception.evaluation.bench import DetectorLatency, detector_latency, latency_frames
 from rebar_data.perception.evaluation.false_detections import false_detection_census, format_census
@@ -51,16 +52,6 @@ class HeldOut:
     modes: dict[str, list] = field(default_factory=dict)
 
 
-@dataclass
-class CardFigures:
-    """The card's PNGs as links relative to the card; ``pr``: held-out set -> its PR figure."""
-
-    frame: str | None = None
-    frame_caption: str = ""
-    training: str | None = None
-    pr: dict[str, str] = field(default_factory=dict)
-
-
 def pr_figure_name(set_name: str) -> str:
     """The file name of a held-out set's PR figure: its name before any parenthesis, as a slug."""
     return "pr-" + re.sub(r"[^a-z0-9]+", "-", set_name.split(" (")[0].lower()).strip("-") + ".png"
@@ -68,17 +59,18 @@ def pr_figure_name(set_name: str) -> str:
 
 def write_figures(
     run_dir: Path, card_dir: Path, held_out: dict[str, HeldOut], *, frame_from: str | None
-) -> CardFigures:
-    """Write the card's PNGs to ``card_dir / FIGURES_DIR`` (what was there before removed first): the training
-    curves, a PR figure per held-out set (a curve per input mode) and the frame of ``frame_from`` with the
-    most visible crossings, with its detections in its first mode."""
+) -> dict:
+    """Write the card's PNGs to ``card_dir / FIGURES_DIR`` (what was there before removed first) and return
+    their links, relative to the card: ``training``, the run's curves; ``pr``, held-out set -> a PR figure, a
+    curve per input mode; ``frame``, the frame of ``frame_from`` with the most visible crossings, with its
+    detections in its first mode (and what the caption says of it)."""
     from rebar_data.perception.evaluation.plots import plot_history, plot_pr_modes, read_history, write_frame
 
     folder = card_dir / FIGURES_DIR
     folder.mkdir(parents=True, exist_ok=True)
     for old in folder.glob("*.png"):
         old.unlink()
-    out = CardFigures()
+    out: dict = {"training": None, "pr": {}, "frame": None}
     if (run_dir / "metrics.csv").exists():
         res = json.loads((run_dir / "results.json").read_text())
         stages = {"second stage": "refine", "depth check": "depth_check", "crossing point": "crossing_point"}
@@ -89,7 +81,7 @@ def write_figures(
             adapt=res.get("adapt_history") or [],
             best_epoch=res.get("best_epoch"),
         )
-        out.training = f"{FIGURES_DIR}/{path.name}"
+        out["training"] = f"{FIGURES_DIR}/{path.name}"
     for name, h in held_out.items():
         if h.samples and h.modes:
             truths = [evaluate.truth_of(s) for s in h.samples]
@@ -99,7 +91,7 @@ def write_figures(
             }
             subtitle = f"{len(h.samples)} images, {sum(len(t.uv) for t in truths)} visible crossings, OKS 0.5"
             path = plot_pr_modes(curves, folder / pr_figure_name(name), title=name, subtitle=subtitle)
-            out.pr[name] = f"{FIGURES_DIR}/{path.name}"
+            out["pr"][name] = f"{FIGURES_DIR}/{path.name}"
     if frame_from in held_out and held_out[frame_from].samples:
         h = held_out[frame_from]
         mode, preds = next(iter(h.modes.items()))
@@ -108,11 +100,8 @@ def write_figures(
         rgb = data.read_image(s.path)
         path, scale = write_frame(rgb, p, folder / "frame.png", truth=s.visible, occluded=s.occluded)
         found = int((p[:, 2] >= OPERATING_THRESHOLD).sum())
-        out.frame = f"{FIGURES_DIR}/{path.name}"
-        out.frame_caption = (
-            f"{frame_from}, image `{s.image_id}` ({mode}): {len(s.visible)} visible crossings (green circles; "
-            f"occluded ones blue), {found} detections of score >= {OPERATING_THRESHOLD:g} (red crosses)"
-            + (f"; drawn at {scale:.2f} of its size." if scale != 1.0 else ".")
+        out["frame"] = dict(
+            link=f"{FIGURES_DIR}/{path.name}", set=frame_from, sample=s, mode=mode, found=found, scale=scale
         )
     return out
 
@@ -137,9 +126,12 @@ def renderers(ds: dict) -> tuple[str, str, int]:
 def stage_rows(model: Path, detector: Detector, res: dict) -> list[tuple[str, ...]]:
     """The card's table of the model's files: stage, file, size, parameters, and what the settings below
     do not say."""
-    rows = [("first stage", model, res.get("parameters"), "")]
+    rows = [("first stage", model, res.get("parameters"), "the heatmap network (`model` below)")]
     if detector.refiner is not None:
-        rows.append(("second stage", model_file.refiner_path(model), res.get("refiner_parameters"), ""))
+        path = model_file.refiner_path(model)
+        rows.append(
+            ("second stage", path, res.get("refiner_parameters"), "the patch network (`refine` below)")
+        )
         if detector.refiner.has_int8_passes:
             cal = detector.meta["refiner"].get("int8_calibrated_on", {})
             sets = ", ".join(f"`{d}`" for d in cal.get("data", [])) or "the training images"
@@ -147,7 +139,14 @@ def stage_rows(model: Path, detector: Detector, res: dict) -> list[tuple[str, ..
             rows.append(("second stage, int8 copy", model_file.int8_passes_path(model), "(the same)", int8))
     if detector.depth_check is not None:
         path = model_file.depth_check_path(model)
-        rows.append(("depth check", path, res.get("depth_check_parameters"), "read only with a depth image"))
+        rows.append(
+            (
+                "depth check",
+                path,
+                res.get("depth_check_parameters"),
+                "read with a depth image (`depth_check` below)",
+            )
+        )
     if detector.crossing_point is not None:
         path = model_file.crossing_point_path(model)
         rows.append(
@@ -253,22 +252,24 @@ def write_card(
     model: Path,
     detector: Detector,
     rows: dict[str, dict],
-    figures: CardFigures,
+    figures: dict,
     latency: DetectorLatency,
     latency_source: str,
     latency_runtime: str,
     load_average: float | None = None,
 ) -> Path:
-    """Render the model card (``card.md.j2``) to ``path`` from the run's records and ``rows``
-    (:func:`evaluation_rows`). ``detector`` is ``model`` loaded, as scored: its stages, score biases and
-    weights are what the card states; the latency was measured with ``latency_runtime``."""
+    """Render the model card (``card.md.j2``) to ``path`` from the run's records, ``rows``
+    (:func:`evaluation_rows`) and ``figures`` (:func:`write_figures`). ``detector`` is ``model`` loaded, as
+    scored: its stages, score biases and weights are what the card states."""
     res = json.loads((run_dir / "results.json").read_text())
     tc = json.loads((run_dir / "config.json").read_text())["train_config"]
     table = table_rows(rows, _default_input(detector))
     meta = model_index(table, res["dataset"], default_input=_default_input(detector))
     later = sum(res.get(f"{k}_seconds", 0.0) for k in ("adapt", "refine", "depth_check", "crossing_point"))
     load = (
-        f", load average {load_average:.1f} on this machine ({machine_description()})" if load_average is not None else ""
+        f", load average {load_average:.1f} on this machine ({machine_description()})"
+        if load_average is not None
+        else ""
     )
     path.write_text(
         _template().render(
@@ -360,7 +361,8 @@ def evaluation_rows(
             rows[f"{name} test, {FLATTENED}"] = score(test, flat, sigma=sigma)
     if random_split and built:
         samples, trained = evaluate.random_frames(root)
-        label = f"{name} random {evaluate.RANDOM_SPLIT_FRACTION:.0%} of frames ({trained} of {len(samples)} trained on)"
+        share = evaluate.RANDOM_SPLIT_FRACTION
+        label = f"{name} random {share:.0%} of frames ({trained} of {len(samples)} trained on)"
         rows[label] = score(samples, predict(detector, samples, progress=progress), sigma=sigma)
     for path in evaluate_on:
         path = data.check_dataset(path)
@@ -427,18 +429,13 @@ def ship(
         )
     for path in evaluate_on:
         data.check_dataset(path)  # a wrong path fails before anything is copied
-    models_dir.mkdir(parents=True, exist_ok=True)
     dst = models_dir / SHIPPED_MODEL.name
-    pairs = [(src, dst)]
-    for a, b in zip(model_file.stage_files(src), model_file.stage_files(dst), strict=True):
+    files = list(zip([src, *model_file.stage_files(src)], [dst, *model_file.stage_files(dst)], strict=True))
+    for a, b in reversed(files):  # the later stages land first, so the first never names a missing file
         if a.exists():
-            pairs.append((a, b))
+            replace_file(b, lambda tmp, a=a: shutil.copyfile(a, tmp))
         else:
             b.unlink(missing_ok=True)  # a model without that stage: no stale file beside it
-    for a, b in pairs:
-        shutil.copyfile(a, b.with_name(b.name + ".tmp"))
-    for _, b in reversed(pairs):  # the later stages land first, so the first never names a missing file
-        b.with_name(b.name + ".tmp").replace(b)
     detector = Detector.load(dst, runtime="onnxruntime")  # the card's figures: float32, as trained
     held_out: dict[str, HeldOut] = {}
     rows = evaluation_rows(detector, run_dir, evaluate_on=evaluate_on, progress=progress, held_out=held_out)

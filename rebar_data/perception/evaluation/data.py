@@ -113,7 +113,7 @@ def read_sample_image(sample: Sample) -> np.ndarray:
 
 
 def read_depth(path: str | Path) -> np.ndarray:
-    """A dataset's depth image (uint16 millimetres of camera-frame z, 0 = no measurement) as float32 metres."""
+    """A dataset's depth image (uint16 millimetres of camera z, 0 = no measurement) as float32 metres."""
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
         raise ConfigError(

@@ -220,7 +220,7 @@ def failures(measured: dict[str, dict[str, float]], ref: dict) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m rebar_data.perception.evaluation.gate",
-        description="Measure a model on the regression gate's set and write its reference figures (gate.json).",
+        description="Measure a model on the regression gate's set and write its reference (gate.json).",
     )
     parser.add_argument("--model", help="model file (default: the shipped model)")
     parser.add_argument("--out", help="JSON to write (default: gate.json beside the model)")

@@ -43,7 +43,7 @@ def oks_radius_px(sigma: float, box_size_px: float, oks: float = 0.5) -> float:
 
 
 def oks_matrix(pred_uv: np.ndarray, gt_uv: np.ndarray, box_size_px: np.ndarray, sigma: float) -> np.ndarray:
-    """OKS of every prediction (rows) against every ground-truth keypoint (columns), as COCOeval computes it."""
+    """OKS of every prediction (rows) against every ground-truth keypoint (columns), as COCOeval has it."""
     pred_uv = np.asarray(pred_uv, float).reshape(-1, 2)
     gt_uv = np.asarray(gt_uv, float).reshape(-1, 2)
     area = np.asarray(box_size_px, float).reshape(-1) ** 2
