@@ -128,30 +128,22 @@ def stage_rows(model: Path, detector: Detector, res: dict) -> list[tuple[str, ..
     do not say."""
     rows = [("first stage", model, res.get("parameters"), "the heatmap network (`model` below)")]
     if detector.refiner is not None:
-        path = model_file.refiner_path(model)
-        rows.append(
-            ("second stage", path, res.get("refiner_parameters"), "the patch network (`refine` below)")
-        )
+        second = "the patch network (`refine` below)"
+        rows.append(("second stage", model_file.refiner_path(model), res.get("refiner_parameters"), second))
         if detector.refiner.has_int8_passes:
             cal = detector.meta["refiner"].get("int8_calibrated_on", {})
             sets = ", ".join(f"`{d}`" for d in cal.get("data", [])) or "the training images"
             int8 = f"read by the later passes; calibrated on {cal.get('patches', '?')} patches of {sets}"
             rows.append(("second stage, int8 copy", model_file.int8_passes_path(model), "(the same)", int8))
     if detector.depth_check is not None:
-        path = model_file.depth_check_path(model)
+        depth = "read with a depth image (`depth_check` below)"
         rows.append(
-            (
-                "depth check",
-                path,
-                res.get("depth_check_parameters"),
-                "read with a depth image (`depth_check` below)",
-            )
+            ("depth check", model_file.depth_check_path(model), res.get("depth_check_parameters"), depth)
         )
     if detector.crossing_point is not None:
+        point = 'only with `point="crossing"` (`crossing_point` below)'
         path = model_file.crossing_point_path(model)
-        rows.append(
-            ("crossing point", path, res.get("crossing_point_parameters"), 'only with `point="crossing"`')
-        )
+        rows.append(("crossing point", path, res.get("crossing_point_parameters"), point))
     if detector.line_check is not None:
         e = detector.meta.get("line_check", {})
         fitted = ", ".join(f"`{d}`" for d in e.get("fitted_on", [])) or "its fitting images"
@@ -266,38 +258,32 @@ def write_card(
     table = table_rows(rows, _default_input(detector))
     meta = model_index(table, res["dataset"], default_input=_default_input(detector))
     later = sum(res.get(f"{k}_seconds", 0.0) for k in ("adapt", "refine", "depth_check", "crossing_point"))
-    load = (
-        f", load average {load_average:.1f} on this machine ({machine_description()})"
-        if load_average is not None
-        else ""
+    text = _template().render(
+        # the lists and maps of plain values on one line each
+        model_index=yaml.safe_dump(meta, sort_keys=False, width=110, default_flow_style=None).rstrip(),
+        detector=detector,
+        depth=detector.depth_check is not None,
+        verifies=bool(detector.refiner is not None and (tc.get("refine") or {}).get("verify")),
+        rgb_path=_rgb_path(detector),
+        stages=stage_rows(model, detector, res),
+        lone=_lone_crossing_scores(detector) if detector.line_check is not None else [],
+        ds=res["dataset"],
+        res=res,
+        tc=tc,
+        first_minutes=(res["train_seconds_total"] - later) / 60,
+        renderers=renderers(res["dataset"]),
+        oks_radius=lambda box: oks_radius_px(res["oks_sigma"], box),
+        rows=table,
+        has=lambda marker: any(marker in name for name in rows),
+        census={n: m["false_detections"] for n, m in rows.items() if m.get("false_detections")},
+        figures=figures,
+        latency=latency,
+        latency_source=latency_source,
+        latency_runtime=latency_runtime,
+        load_average=load_average,
+        machine=machine_description(),
     )
-    path.write_text(
-        _template().render(
-            # the lists and maps of plain values on one line each
-            model_index=yaml.safe_dump(meta, sort_keys=False, width=110, default_flow_style=None).rstrip(),
-            detector=detector,
-            depth=detector.depth_check is not None,
-            verifies=bool(detector.refiner is not None and (tc.get("refine") or {}).get("verify")),
-            rgb_path=_rgb_path(detector),
-            stages=stage_rows(model, detector, res),
-            lone=_lone_crossing_scores(detector) if detector.line_check is not None else [],
-            ds=res["dataset"],
-            res=res,
-            tc=tc,
-            first_minutes=(res["train_seconds_total"] - later) / 60,
-            renderers=renderers(res["dataset"]),
-            oks_radius=lambda box: oks_radius_px(res["oks_sigma"], box),
-            rows=table,
-            has=lambda marker: any(marker in name for name in rows),
-            census={n: m["false_detections"] for n, m in rows.items() if m.get("false_detections")},
-            figures=figures,
-            latency=latency,
-            latency_source=latency_source,
-            latency_runtime=latency_runtime,
-            load=load,
-        )
-    )
-    return path
+    return replace_file(path, lambda tmp: tmp.write_text(text))
 
 
 def _default_input(detector: Detector) -> str:
