@@ -167,6 +167,24 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     assert not any(
         "false_detections" in m for k, m in rows.items() if k != "other v0.0.1, cycles renderer, RGB only"
     )
+    from rebar_data.perception.evaluation.bench import DetectorLatency
+    from rebar_data.perception.evaluation.card import write_card
+    from rebar_data.perception.evaluation.false_detections import format_census
+
+    card = write_card(
+        trained_run.out_dir,
+        tmp_path / "card.md",
+        model=det.path,
+        detector=det,
+        rows=rows,
+        figures=figures,
+        latency=DetectorLatency(10.0, 12.0, 1, 40.0, 30.0),
+        latency_source="one frame",
+        latency_runtime="ONNX Runtime, float32",
+    ).read_text()
+    assert f"  - `other v0.0.1, cycles renderer, RGB only`: {format_census(census)}.\n" in card
+    assert "| other v0.0.1 | cycles renderer, RGB only, vs 3D crossing points |" in card
+    assert "- `cycles renderer`: sets rendered by Blender Cycles" in card
 
 
 def test_the_card_names_every_renderer_that_drew_training_images():
