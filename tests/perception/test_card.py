@@ -22,13 +22,13 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     # the test split again with its depth images and what lies behind flattened, and what that row means
     assert "| drawn test | with depth; what lies behind flattened (`--flatten-behind`) |" in card
     assert "- `what lies behind flattened (`--flatten-behind`)`: every pixel more than" in card
-    # the second stage's verification is described where the model and its training are
-    assert "sigmoid(first-stage logit + 1 log p; 0.5 log p beside the depth check)" in card
-    assert "farther than 6 px from every" in card
+    # how the stages' scores combine, and the verification's weight beside the depth check
+    assert "- Score: sigmoid(first-stage logit + b + 1 log p + 1 log q)." in card
+    assert "(0.5 log p beside the depth check)" in card and "| second stage, int8 copy |" in card
     # latency is timed on rendered frames like the training data's, not on the drawn worst case
     assert "over 8 rendered paper-tunnel frames" in card and "candidates" in card
     # its figures read each image as Detector.load does by default: the mirrored reading
-    assert "- Reading: the figures on this card read each image mirrored" in card
+    assert "- Reading: the figures on this card read each image mirrored;" in card
     det = Detector.load(model)
     assert det.meta["dataset"]["name"] == "drawn" and det.refiner is not None
     # training stores the focal length its frames had, and the card says frames of another are resampled
@@ -127,12 +127,12 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     from rebar_data.perception.evaluation.card import FIGURES_DIR, write_figures
 
     figures = write_figures(trained_run.out_dir, tmp_path / "models", held_out, frame_from="drawn test")
-    assert sorted(figures.pr.values()) == [
+    assert sorted(figures["pr"].values()) == [
         f"{FIGURES_DIR}/pr-drawn-test.png",
         f"{FIGURES_DIR}/pr-other-v0-0-1-cycles-renderer.png",
         f"{FIGURES_DIR}/pr-own-v0-0-1.png",
     ]
-    assert all((tmp_path / "models" / link).is_file() for link in figures.pr.values())
+    assert all((tmp_path / "models" / link).is_file() for link in figures["pr"].values())
     rgb = rows["other v0.0.1, cycles renderer, RGB only"]
     vs_3d = rows["other v0.0.1, cycles renderer, RGB only, vs 3D crossing points"]
     assert rgb["n_gt"] == vs_3d["n_gt"] == rows["own v0.0.1 (all splits)"]["n_gt"] > 0
@@ -160,36 +160,46 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     assert sum(m["n_gt"] for m in split.values()) == rgb["n_gt"] and split
     assert not any(k.startswith("own v0.0.1") and "scenes" in k for k in rows)
     # and where its confident false detections lie, which the card lists under its table
-    from rebar_data.perception.evaluation.card import _census_lines
-    from rebar_data.perception.evaluation.false_detections import PLACES, format_census
+    from rebar_data.perception.evaluation.false_detections import PLACES
 
     census = rgb["false_detections"]
     assert census["recall"] == 0.97 and census["false"] == sum(census[k] for k in PLACES)
     assert not any(
         "false_detections" in m for k, m in rows.items() if k != "other v0.0.1, cycles renderer, RGB only"
     )
-    lines = _census_lines(rows)
-    assert lines[0].startswith(
-        "- Where the confident false detections lie (above the score where recall reaches 0.97"
-    )
-    assert lines[1:] == [f"  - `other v0.0.1, cycles renderer, RGB only`: {format_census(census)}."]
-    assert _census_lines({"own": rows["own v0.0.1 (all splits)"]}) == []
+    from rebar_data.perception.evaluation.bench import DetectorLatency
+    from rebar_data.perception.evaluation.card import write_card
+    from rebar_data.perception.evaluation.false_detections import format_census
+
+    card = write_card(
+        trained_run.out_dir,
+        tmp_path / "card.md",
+        model=det.path,
+        detector=det,
+        rows=rows,
+        figures=figures,
+        latency=DetectorLatency(10.0, 12.0, 1, 40.0, 30.0),
+        latency_source="one frame",
+        latency_runtime="ONNX Runtime, float32",
+    ).read_text()
+    assert f"  - `other v0.0.1, cycles renderer, RGB only`: {format_census(census)}.\n" in card
+    assert "| other v0.0.1 | cycles renderer, RGB only, vs 3D crossing points |" in card
+    assert "- `cycles renderer`: sets rendered by Blender Cycles" in card
 
 
 def test_the_card_names_every_renderer_that_drew_training_images():
-    """The Limits line counts the frames another renderer drew (a dataset that names no renderer was built
+    """The Training data counts the frames another renderer drew (a dataset that names no renderer was built
     by Open3D, before datasets recorded it)."""
-    from rebar_data.perception.evaluation.card import _renderer_line
+    from rebar_data.perception.evaluation.card import renderers
 
     own = {"renderer": "open3d", "supplements": [{"name": "lower", "images": 720}]}
-    assert "all from one renderer (Open3D)" in _renderer_line(own)
+    assert renderers(own) == ("Open3D", "", 0)
     cycles = [
         {"name": "a", "images": 36, "renderer": "cycles"},
-        {"name": "b", "images": 48, "renderer": "cycles"},
+        {"name": "b", "images": 48},
     ]
-    line = _renderer_line({**own, "refine_supplements": cycles})
-    assert "from Open3D, and 84 frames from Blender Cycles" in line and "one renderer" not in line
-    assert "720" not in line  # the lower-mat supplement is Open3D's own
+    # the lower-mat supplement is Open3D's own, as is the one that names no renderer
+    assert renderers({**own, "refine_supplements": cycles}) == ("Open3D", "Blender Cycles", 36)
 
 
 def test_the_shipped_card_has_the_hubs_form_and_its_figures_ship_with_it():

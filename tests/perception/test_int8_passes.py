@@ -58,7 +58,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
 
 
 def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, tmp_path):
-    from rebar_data.perception.evaluation.card import _int8_passes_lines
+    from rebar_data.perception.evaluation.card import stage_rows
 
     model = shipped_model_copy(tmp_path)
     out = model_file.int8_passes_path(model)
@@ -66,7 +66,7 @@ def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, t
     assert onnx_meta(model)["refiner"]["quantize"] == "later"
     det = Detector.load(model, threads=1, reading="single")  # the first pass in float (the mirrored: int8)
     assert det.refiner.has_int8_passes
-    assert f"`{out.name}`" in " ".join(_int8_passes_lines(model, det))
+    assert ("second stage, int8 copy", f"`{out.name}`") in [row[:2] for row in stage_rows(model, det, {})]
     moved = []
     for s in load_split(drawn_dataset, "test"):
         rgb = read_sample_image(s)

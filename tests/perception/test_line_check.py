@@ -127,14 +127,14 @@ def checked_model(drawn_dataset, tmp_path_factory):
 
 
 def test_the_fitted_check_in_the_model_file_loads_with_it(checked_model):
-    from rebar_data.perception.evaluation.card import _line_check_lines
+    from rebar_data.perception.evaluation.card import stage_rows
 
     model, entry = checked_model
     assert entry["fitted_on"] == ["drawn"] and entry["candidates"] > entry["crossings"] > 0
     det = Detector.load(model, threads=1)
     assert det.line_check is not None
     np.testing.assert_allclose(det.line_check.weights, entry["weights"])
-    assert f"Fitted on {entry['candidates']} candidates of `drawn`" in " ".join(_line_check_lines(det))
+    assert f"fitted on {entry['candidates']} candidates of `drawn`" in stage_rows(model, det, {})[-1][-1]
 
 
 def test_with_a_line_check_the_detector_returns_the_same_at_any_threshold(checked_model, drawn_dataset):

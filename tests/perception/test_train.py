@@ -201,7 +201,7 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
         assert torch.equal(kept["state_dict"][k], v)  # a finished stage on the same data is kept
     ship(run, models_dir=tmp_path / "models", gate=False)
     card = (tmp_path / "models" / CARD_NAME).read_text()
-    assert "`drawn-second` v0.0.0 (6 images), each listed 3 times" in card
+    assert "`drawn-second` v0.0.0 (6 images)" in card and "; the second supplements 3 times |" in card
     shipped = Detector.load(tmp_path / "models" / "rebar_keypoint.onnx")
     assert shipped.refiner.has_int8_passes
     name = read_info(drawn_dataset)["name"]
@@ -260,13 +260,14 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     assert depth_data[-2].startswith("adapted:") and depth_data[-1] == "its own lower-mat negatives: 16"
     ship(run, models_dir=tmp_path / "models", gate=False)
     card = (tmp_path / "models" / CARD_NAME).read_text()
-    assert "- Adapt epochs: 2 more after the best epoch" in card and "only in its adapt epochs" in card
-    assert "hold up to 16 of the crossings each image's lower mat shows" in card  # the depth check's
+    assert "| adapt epochs | 2 |" in card and "second supplements 3 times; batch norms frozen" in card
+    assert "the second ones" not in card  # the first epochs did not see them
+    assert '"lower_mat_negatives": 16' in card  # the depth check's, in the settings
     # the latency names what ran it (the default runtime), the figures the runtime training fits on
     from rebar_data.perception.inference.model_file import runtime_description
 
     assert f"2 CPU threads, {runtime_description('auto')}, end to end" in card
-    assert "above are ONNX Runtime's in float32" in card
+    assert "The figures are ONNX Runtime's in float32" in card
     stamp = (run / ADAPT_LAST).stat().st_mtime_ns
     train(drawn_dataset, run, config=cfg, refine_supplements=[extra], progress=False)
     assert (run / ADAPT_LAST).stat().st_mtime_ns == stamp  # finished on the same data: kept
@@ -306,7 +307,7 @@ def test_other_renderer_repeats_put_the_second_stage_supplements_in_the_first_ep
     assert [h["steps"] for h in result.history] == [math.ceil((n_train + 2 * 6) / cfg["batch_size"])]
     ship(run, models_dir=tmp_path / "models", gate=False)
     card = (tmp_path / "models" / CARD_NAME).read_text()
-    assert "the first stage saw them listed 2 times in its first epochs." in card
+    assert "the train split, the second ones 2 times |" in card  # in the first stage's epochs
     with pytest.raises(ConfigError, match="drawn-late"):  # they trained the first epochs: kept to resume
         train(drawn_dataset, run, config=cfg, refine_supplements=[other], progress=False)
     plain = train(

@@ -1,18 +1,13 @@
-"""Detector latency (``rebar bench``): 640x480 frames, batch 1, two CPU threads, end to end, against the same
-network in eager PyTorch timed in the same run.
-
-The frames are paper-tunnel's mesh rendered from its pipeline's camera trajectories, each under a scene drawn
-from its settings (:func:`rendered_frames`).
-"""
+"""Detector latency (``rebar bench``): 640x480 frames of paper-tunnel's mesh rendered from its pipeline's
+camera trajectories, batch 1, two CPU threads, end to end, against the same network in eager PyTorch timed in
+the same run."""
 
 from __future__ import annotations
 
 import os
-import tempfile
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -80,9 +75,8 @@ class DetectorLatency:
 
     @property
     def second_stage_us_per_candidate(self) -> float | None:
-        if self.first_stage_ms is None:
-            return None
-        return 1e3 * (self.median_ms - self.first_stage_ms) / max(self.candidates, 1.0)
+        if self.first_stage_ms is not None:
+            return 1e3 * (self.median_ms - self.first_stage_ms) / max(self.candidates, 1.0)
 
 
 def detector_latency(det, frames: list[Frame], *, repeats: int) -> DetectorLatency:
@@ -113,21 +107,11 @@ def detector_latency(det, frames: list[Frame], *, repeats: int) -> DetectorLaten
     )
 
 
-def _stages(lat: DetectorLatency) -> list[str]:
-    if lat.first_stage_ms is None:
-        return []
-    return [
-        f"perception:   of which the first stage {lat.first_stage_ms:.1f} ms and the later ones ({lat.candidates:.0f} "
-        f"candidates a frame) {lat.median_ms - lat.first_stage_ms:.1f} ms, "
-        f"{lat.second_stage_us_per_candidate:.0f} us a candidate"
-    ]
-
-
 def run(repeats: int = 100) -> list[str]:
-    """Lines to print: the shipped (or an untrained) detector's latency, and its network's in eager PyTorch."""
+    """Lines to print: the shipped detector's latency and its network's in eager PyTorch."""
     import torch
 
-    from rebar_data.perception.inference.detector import SHIPPED_MODEL, Detector, ray_grid
+    from rebar_data.perception.inference.detector import Detector, ray_grid
     from rebar_data.perception.inference.model_file import runtime_description
     from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
 
@@ -135,32 +119,29 @@ def run(repeats: int = 100) -> list[str]:
     torch.set_num_threads(THREADS)
     try:
         frames, described = latency_frames()
-        load = os.getloadavg()
-        lines = [
-            f"perception: load average {load[0]:.2f} / {load[1]:.2f} / {load[2]:.2f} on {os.cpu_count()} cores"
-        ]
-        if SHIPPED_MODEL.exists():
-            det, what = Detector.load(None, threads=THREADS), "shipped detector"
-        else:
-            from rebar_data.perception.networks.files import export_onnx
-
-            tmp = Path(tempfile.mkdtemp())
-            torch.manual_seed(0)
-            export_onnx(KeypointNet(ModelConfig()), tmp / "untrained.onnx", {})
-            det, what = Detector.load(tmp / "untrained.onnx", threads=THREADS), "untrained detector"
+        load = " / ".join(f"{x:.2f}" for x in os.getloadavg())
+        lines = [f"perception: load average {load} on {os.cpu_count()} cores"]
+        det = Detector.load(None, threads=THREADS)
         lat = detector_latency(det, frames, repeats=repeats)
         med = lat.median_ms
         lines.append(
-            f"perception: {what}, {runtime_description('auto')}, {det.reading} reading, {THREADS} threads, "
-            f"640x480, end to end over {described}: median {med:.1f} ms, p90 {lat.p90_ms:.1f} ms "
-            f"({lat.crossings:.0f} crossings a frame; budget {BUDGET_MS:g} ms: {'met' if med <= BUDGET_MS else 'MISSED'})"
+            f"perception: shipped detector, {runtime_description('auto')}, {det.reading} reading, "
+            f"{THREADS} threads, 640x480, end to end over {described}: median {med:.1f} ms, "
+            f"p90 {lat.p90_ms:.1f} ms "
+            f"({lat.crossings:.0f} crossings a frame; budget {BUDGET_MS:g} ms: "
+            f"{'met' if med <= BUDGET_MS else 'MISSED'})"
         )
-        lines += _stages(lat)
+        if lat.first_stage_ms is not None:
+            lines.append(
+                f"perception:   of which the first stage {lat.first_stage_ms:.1f} ms and the later ones "
+                f"({lat.candidates:.0f} candidates a frame) {med - lat.first_stage_ms:.1f} ms, "
+                f"{lat.second_stage_us_per_candidate:.0f} us a candidate"
+            )
         if det.depth_check is not None:
             rgb_only = detector_latency(det, [(rgb, None) for rgb, _ in frames], repeats=repeats)
             lines.append(
-                f"perception:   without depth: median {rgb_only.median_ms:.1f} ms, p90 {rgb_only.p90_ms:.1f} ms "
-                f"({rgb_only.median_ms / med:.2f}x the call with depth)"
+                f"perception:   without depth: median {rgb_only.median_ms:.1f} ms, p90 "
+                f"{rgb_only.p90_ms:.1f} ms ({rgb_only.median_ms / med:.2f}x the call with depth)"
             )
         net = KeypointNet(ModelConfig()).eval()
         x = torch.from_numpy(frames[0][0]).permute(2, 0, 1)[None].float()

@@ -1,9 +1,7 @@
-"""Reads a dataset in the project's layout (the contract in DESIGN.md) into per-image keypoint records.
-
-Only the tables, images and depth images are read: ``tables/samples.parquet`` for the images of a split and
-``tables/keypoints.parquet`` for the crossings, with ``meta/info.json`` for the OKS sigma when it
-records one. Visible crossings (visibility 2) are what the detector learns and is scored on; occluded
-ones (visibility 1) are kept apart so training can leave them out of the loss.
+"""Reads a dataset in the project's layout (the contract in DESIGN.md) into per-image keypoint records: the
+images of a split from ``tables/samples.parquet``, their crossings from ``tables/keypoints.parquet`` and the
+OKS sigma from ``meta/info.json``. Visible crossings (visibility 2) are what the detector learns and is
+scored on; occluded ones (visibility 1) are kept apart so training can leave them out of the loss.
 """
 
 from __future__ import annotations
@@ -29,36 +27,19 @@ T = TypeVar("T")
 SPLITS = ("train", "val", "test")
 _SAMPLE_COLUMNS = ("image_id", "split", "file_name", "width", "height", "fx", "fy", "cx", "cy")
 _KEYPOINT_COLUMNS = ("image_id", "u", "v", "visibility", "box_size_px")
-# what a crossing's pixel is taken to be: ``sight``, the dataset's own u, v (where the image shows the two
-# bars crossing: the projected centerlines' crossing), or ``crossing``, the projection of the 3D crossing
-# point (the midpoint of the centerlines' closest points, inside the steel), which lies a few pixels away
-# under an oblique view; the second is how labels made from the 3D point alone score a detector
+# a crossing's pixel: ``sight``, the dataset's u, v (where the image shows the bars cross), or ``crossing``,
+# the projected 3D crossing point (inside the steel), as labels made from the 3D point alone place it
 TRUTHS = ("sight", "crossing")
 _CROSSING_COLUMNS = ("x_crossing", "y_crossing", "z_crossing")
 
 
 @dataclass
 class Sample:
-    """One image and its crossings, in pixels with COCO's corner origin.
-
-    Attributes:
-        image_id: The dataset's id of the image.
-        path: The image file.
-        width: Image width in pixels.
-        height: Image height in pixels.
-        visible: (N, 2) u, v of visible crossings.
-        box_size_px: (N,) detection-box side of each visible crossing (its OKS scale).
-        occluded: (M, 2) u, v of crossings inside the image but hidden.
-        occluded_box_size_px: (M,) their box sides.
-        camera: Intrinsics (fx, fy, cx, cy) in pixels, COCO corner origin.
-        depth_path: The registered depth image (uint16 millimetres), None when the dataset has none.
-        crossings: (N, 2) projected 3D crossing point of each visible crossing (the centerlines'
-            midpoint, row for row with ``visible``; NaN where the dataset does not record it), None
-            when the dataset's tables lack the 3D points.
-        dataset: The dataset folder the image belongs to.
-        instance_path: The image's instance map (uint16 id + ``INSTANCE_OFFSET``), None when the
-            dataset has none.
-    """
+    """One image and its crossings, in pixels with COCO's corner origin: (N, 2) visible ones with each one's
+    detection-box side (its OKS scale), (M, 2) occluded ones (inside the image but hidden), the intrinsics
+    (fx, fy, cx, cy), the registered depth image and instance map (None where the dataset has none), and
+    ``crossings``, the projected 3D crossing point of each visible one (NaN where not recorded; None when the
+    dataset's tables lack the 3D points)."""
 
     image_id: str
     path: Path
@@ -84,7 +65,7 @@ def read_image(path: str | Path) -> np.ndarray:
 
 
 def read_uint16(path: str | Path, what: str) -> np.ndarray:
-    """A 16-bit PNG (a depth image, an instance map) as it is stored; ``what`` names what was expected."""
+    """A 16-bit PNG as it is stored; ``what`` names what was expected."""
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise ConfigError(f"{path}: cannot be read; accepted: {what}")
@@ -103,8 +84,8 @@ def read_distractors(sample: Sample) -> np.ndarray | None:
 
 
 def per_file(samples: list[Sample], read: Callable[[Sample], T], *, progress: str | None = None) -> list[T]:
-    """``read`` of each sample, called once per file: a sample listed more than once (a repeated
-    supplement) shares the first one's result. ``progress`` names a progress bar over the files."""
+    """``read`` of each sample, called once per file (a sample listed more than once shares the first one's
+    result); ``progress`` names a progress bar over the files."""
     first: dict[str, Sample] = {}
     for s in samples:
         first.setdefault(str(s.path), s)
@@ -114,8 +95,7 @@ def per_file(samples: list[Sample], read: Callable[[Sample], T], *, progress: st
 
 
 def per_file_lazily(samples: list[Sample], read: Callable[[Sample], T]) -> Callable[[int], T]:
-    """``read`` of sample ``i``, called when first asked for and once per file (a sample listed more than
-    once shares the first one's result): :func:`per_file` for a reader that may never need some."""
+    """:func:`per_file` called when first asked for: ``read`` of sample ``i``, once per file."""
     done: dict[str, T] = {}
 
     def of(i: int) -> T:
@@ -133,7 +113,7 @@ def read_sample_image(sample: Sample) -> np.ndarray:
 
 
 def read_depth(path: str | Path) -> np.ndarray:
-    """A dataset's depth image (uint16 millimetres of camera-frame z, 0 = no measurement) as float32 metres."""
+    """A dataset's depth image (uint16 millimetres of camera z, 0 = no measurement) as float32 metres."""
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
         raise ConfigError(
@@ -143,8 +123,7 @@ def read_depth(path: str | Path) -> np.ndarray:
 
 
 def read_images(samples: list[Sample], *, progress: str | None = None) -> list[np.ndarray]:
-    """Each sample's image, decoded once per file: a sample listed more than once (a repeated supplement)
-    shares one array. ``progress`` names a progress bar over the files."""
+    """Each sample's image, decoded once per file (:func:`per_file`)."""
     return per_file(samples, read_sample_image, progress=progress)
 
 
@@ -155,8 +134,7 @@ def read_info(root: str | Path) -> dict:
 
 
 def renderer_engine(info: dict) -> str:
-    """The engine that rendered a dataset, from its info.json; datasets before schema 2.1 name none and
-    were Open3D's."""
+    """The engine that rendered a dataset, from its info.json (none named before schema 2.1: Open3D)."""
     return (info.get("renderer") or {}).get("engine", "open3d")
 
 
@@ -168,17 +146,12 @@ def stated_oks_sigma(root: str | Path) -> float:
 def check_dataset(root: str | Path) -> Path:
     """Return ``root`` as a Path if it holds the two tables the detector reads, else raise ConfigError."""
     root = Path(root)
+    accepted = "accepted: a dataset folder written by `rebar dataset build` (ROOT/<name>/v<version>/)"
     if not root.is_dir():
-        raise ConfigError(
-            f"{root}: no such dataset folder; accepted: a folder written by `rebar dataset build` "
-            "(ROOT/<name>/v<version>/)"
-        )
+        raise ConfigError(f"{root}: no such dataset folder; {accepted}")
     for t in ("tables/samples.parquet", "tables/keypoints.parquet"):
         if not (root / t).exists():
-            raise ConfigError(
-                f"{root}: has no {t}; accepted: a dataset folder written by `rebar dataset build` "
-                "(ROOT/<name>/v<version>/)"
-            )
+            raise ConfigError(f"{root}: has no {t}; {accepted}")
     return root
 
 

@@ -1,4 +1,5 @@
-"""Run a detector over a dataset split and score it: the shared step of validation, `rebar detect` and reports."""
+"""Run a detector over a dataset's images and score it: the shared step of validation, `rebar detect` and the
+model card."""
 
 from __future__ import annotations
 
@@ -10,14 +11,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from rebar_data.perception.evaluation.data import (
-    SPLITS,
-    Sample,
-    load_split,
-    read_depth,
-    read_image,
-    stated_oks_sigma,
-)
+from rebar_data.perception.evaluation.data import SPLITS, Sample, load_split, read_depth, read_image
 from rebar_data.perception.evaluation.metrics import Truth, pixel_metrics, summary
 from rebar_data.perception.inference.detector import Detector
 
@@ -25,7 +19,7 @@ LOW_THRESHOLD = 0.05  # predictions kept for scoring: enough of the tail for AP 
 RANDOM_SPLIT_FRACTION = 0.2  # the paper's frame-level 80:20 split
 CALIBRATION_FLOOR = 0.01  # lowest raw score looked at when choosing the operating point
 MAX_SCORE_BIAS = 4.0
-BORDER_BAND_PX = 8.0  # the breakdown's band along the image border (5% of paper-tunnel's test crossings)
+BORDER_BAND_PX = 8.0  # the breakdown's band along the image border
 LOWER_MAT_COLUMN = "surr_lower_layer"  # samples table: a second mat lies beneath the labelled bars
 
 
@@ -46,10 +40,9 @@ def predict(
     progress: bool = False,
     point: str = "sight",
 ) -> list[np.ndarray]:
-    """Detections (N, 3) for each sample's image, read from disk unless ``images`` are given; with
-    ``depth`` each sample's depth image too, when it has one and the detector has a depth check;
-    ``point`` says what each detection's u, v stands for (:meth:`~rebar_data.perception.inference.detector.Detector.
-    detect`)."""
+    """Detections (N, 3) for each sample's image, read from disk unless ``images`` are given; with ``depth``
+    each sample's depth image too, when it has one and the detector has a depth check; ``point`` as
+    :meth:`Detector.detect` takes it."""
     out = []
     use_depth = depth and detector.depth_check is not None
     for k, s in enumerate(tqdm(samples, desc="detect", unit="img", disable=not progress, leave=False)):
@@ -62,9 +55,8 @@ def predict(
 def at_crossing_points(
     detector: Detector, samples: Sequence[Sample], predictions: Sequence[np.ndarray]
 ) -> list[np.ndarray]:
-    """``predictions`` of the sight points (as :func:`predict` gives them) with each u, v moved to where
-    the crossing-point stage puts its 3D crossing point: what ``predict(..., point="crossing")`` gives,
-    without running the other stages again."""
+    """``predictions`` of the sight points with each u, v moved to where the crossing-point stage puts its 3D
+    crossing point: ``predict(..., point="crossing")`` without running the other stages again."""
     out = []
     for s, p in zip(samples, predictions, strict=True):
         moved = np.array(p, dtype=np.float64, copy=True).reshape(-1, 3)
@@ -83,26 +75,15 @@ def score(
     ignore_occluded: bool = False,
 ) -> dict[str, float]:
     """The headline metrics of predictions against the samples' visible crossings."""
-    truths = [truth_of(s, ignore_occluded=ignore_occluded) for s in samples]
-    return summary(truths, predictions, sigma=sigma)
+    return summary([truth_of(s, ignore_occluded=ignore_occluded) for s in samples], predictions, sigma=sigma)
 
 
 def write_predictions(path: str | Path, image_ids: Sequence[str], predictions: Sequence[np.ndarray]) -> Path:
     """One row per prediction: image_id, u, v, score (pixels, COCO corner origin)."""
     ids = [i for i, p in zip(image_ids, predictions, strict=True) for _ in range(len(p))]
-    allp = (
-        np.concatenate([np.asarray(p, float).reshape(-1, 3) for p in predictions])
-        if predictions
-        else np.zeros((0, 3))
-    )
-    table = pa.table(
-        {
-            "image_id": pa.array(ids, pa.string()),
-            "u": pa.array(allp[:, 0], pa.float64()),
-            "v": pa.array(allp[:, 1], pa.float64()),
-            "score": pa.array(allp[:, 2], pa.float64()),
-        }
-    )
+    allp = np.concatenate([np.asarray(p, float).reshape(-1, 3) for p in predictions] or [np.zeros((0, 3))])
+    columns = {k: pa.array(allp[:, i], pa.float64()) for i, k in enumerate(("u", "v", "score"))}
+    table = pa.table({"image_id": pa.array(ids, pa.string()), **columns})
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     pq.write_table(table, path)
@@ -111,13 +92,13 @@ def write_predictions(path: str | Path, image_ids: Sequence[str], predictions: S
 
 def load_splits(root: str | Path, splits: Sequence[str] = SPLITS, *, truth: str = "sight") -> list[Sample]:
     """Every image of the given splits, split by split in the samples table's order (``truth``: see
-    :data:`rebar_data.perception.evaluation.data.TRUTHS`)."""
+    :data:`~.data.TRUTHS`)."""
     return [s for split in splits for s in load_split(root, split, truth=truth)]
 
 
 def random_frames(root: str | Path, *, seed: int = 0) -> tuple[list[Sample], int]:
-    """A test set as a random frame-level split draws one: ``RANDOM_SPLIT_FRACTION`` of all the dataset's frames, whatever
-    their scene, and how many of them are in the train split (what a random split leaks)."""
+    """A test set as a random frame-level split draws one: ``RANDOM_SPLIT_FRACTION`` of all the dataset's
+    frames, whatever their scene, and how many of them are in the train split (what a random split leaks)."""
     everything = load_splits(root)
     rng = np.random.default_rng(seed)
     n = max(1, round(RANDOM_SPLIT_FRACTION * len(everything)))
@@ -127,34 +108,16 @@ def random_frames(root: str | Path, *, seed: int = 0) -> tuple[list[Sample], int
     return drawn, sum(s.image_id in train_ids for s in drawn)
 
 
-def score_dataset(
-    detector: Detector,
-    root: str | Path,
-    *,
-    splits: Sequence[str] = SPLITS,
-    progress: bool = False,
-) -> dict[str, float]:
-    """The headline metrics of ``detector`` over the given splits of a dataset, at the dataset's OKS sigma."""
-    samples = load_splits(root, splits)
-    return score(samples, predict(detector, samples, progress=progress), sigma=stated_oks_sigma(root))
-
-
 def set_border_aside(
     samples: Sequence[Sample], predictions: Sequence[np.ndarray], band_px: float
 ) -> tuple[list[Truth], list[np.ndarray]]:
-    """Truths and predictions for scoring the inside of each frame: visible crossings within ``band_px``
-    of the image border become ignore regions (a detection on one is neither right nor wrong) and
-    predictions within the band are dropped (a detection there of a crossing just outside the frame is
-    not counted false)."""
+    """Truths and predictions for scoring the inside of each frame: visible crossings within ``band_px`` of
+    the image border become ignore regions and predictions within the band are dropped (a detection there of
+    a crossing just outside the frame is not counted false)."""
 
     def inside(uv: np.ndarray, s: Sample) -> np.ndarray:
         uv = np.asarray(uv, float).reshape(-1, 2)
-        return (
-            (uv[:, 0] >= band_px)
-            & (uv[:, 1] >= band_px)
-            & (uv[:, 0] <= s.width - band_px)
-            & (uv[:, 1] <= s.height - band_px)
-        )
+        return ((uv >= band_px) & (uv <= [s.width - band_px, s.height - band_px])).all(axis=1)
 
     truths, kept = [], []
     for s, p in zip(samples, predictions, strict=True):
@@ -168,14 +131,9 @@ def set_border_aside(
 def breakdown(
     root: str | Path, samples: Sequence[Sample], predictions: Sequence[np.ndarray], *, sigma: float
 ) -> dict[str, dict[str, float]]:
-    """Where a split's misses and false detections lie: the metrics of the frames' inside (crossings at
-    least ``BORDER_BAND_PX`` from the border, :func:`set_border_aside`), and of the scenes with and without
-    a second mat beneath the bars (when the samples table has ``LOWER_MAT_COLUMN``).
-
-    Returns:
-        Row name -> metrics (as :func:`~rebar_data.perception.evaluation.metrics.summary` gives them); a group with no
-        image is left out.
-    """
+    """Where a split's misses and false detections lie, row name -> metrics: the frames' inside (crossings
+    at least ``BORDER_BAND_PX`` from the border), and the scenes with and without a second mat beneath the
+    bars (when the samples table has ``LOWER_MAT_COLUMN``; a group with no image left out)."""
     rows = {
         f"crossings >= {BORDER_BAND_PX:g} px inside the frame": summary(
             *set_border_aside(samples, predictions, BORDER_BAND_PX), sigma=sigma

@@ -1,9 +1,8 @@
-"""Where a detector's confident false detections lie: those scoring above the score at which recall
-reaches a level (0.97 by default), each put in the first place it lies in: ``top_over_lower`` (where a top
-bar passes in front of a lower bar), ``lower_mat`` (a lower-mat crossing), ``border`` (within ``BORDER_PX``
-of the edge), ``beside_crossing`` (within ``BESIDE_PX`` of a visible crossing) or ``elsewhere``.
-
-False means unmatched by the metrics' one-to-one matching within the 5 px gate."""
+"""Where a detector's confident false detections (unmatched within the metrics' 5 px gate) lie: those scoring
+above the score at which recall reaches ``RECALL``, each put in the first place it lies in:
+``top_over_lower`` (where a top bar passes in front of a lower bar), ``lower_mat`` (a lower-mat crossing),
+``border`` (within ``BORDER_PX`` of the edge), ``beside_crossing`` (within ``BESIDE_PX`` of a visible
+crossing) or ``elsewhere``."""
 
 from __future__ import annotations
 
@@ -51,21 +50,14 @@ def false_detection_census(
     *,
     recall: float = RECALL,
 ) -> dict:
-    """The false detections scoring at least the score where recall reaches ``recall``, by place, and
-    what recall at precision 0.99 would be without each place's false detections (whatever their score):
-    how much a detector that told that place from a crossing would gain.
-
-    Args:
-        root: The dataset the samples come from (its tables place the lower mat).
-        samples: Its images, as :func:`~rebar_data.perception.evaluation.evaluate.load_splits` gives them.
-        predictions: Per sample, (N, 3) u, v, score.
-        recall: The recall whose score is the cut; when the predictions never reach it, every prediction
-            counts and ``reached`` is False.
+    """The false detections of ``samples`` of the dataset at ``root`` (whose tables place the lower mat)
+    scoring at least the score where recall reaches ``recall``, by place, and what recall at precision 0.99
+    would be without each place's false detections, whatever their score.
 
     Returns:
-        ``recall``, ``reached``, ``score`` (the cut), ``false`` (how many lie above it), ``true`` (the
-        true detections above it), one count per place in ``PLACES``, ``recall_at_p99`` and
-        ``recall_at_p99_without``: place -> recall at precision 0.99 without that place's false detections.
+        ``recall``, ``reached`` (False: recall never reaches it, and every prediction counts), ``score`` (the
+        cut), ``false`` and ``true`` (the detections above it), one count per place in ``PLACES``,
+        ``recall_at_p99`` and ``recall_at_p99_without`` (place -> recall at precision 0.99).
     """
     if not 0.0 < recall <= 1.0:
         raise ValueError(f"recall = {recall} is not accepted; accepted: a number in (0, 1]")

@@ -1,9 +1,9 @@
-"""The detector's regression gate: the shipped model scored on a fixed held-out set (``pipelines/detector-gate.yaml``,
-built by :func:`build_gate_set`) against its own reference (``gate.json``, :func:`write_reference`).
+"""The detector's regression gate: the shipped model scored on a fixed held-out set
+(``pipelines/detector-gate.yaml``) against its own reference (``gate.json``, :func:`write_reference`).
 
 AP@0.5, PCK@2px and recall@P0.99, with RGB alone and with depth, pass when at least the reference minus
-``K_SE`` bootstrap standard errors over the set's scenes. Why the set, the figures and the margins are what
-they are: ``docs/detector/design.md``, "The regression gate".
+``K_SE`` bootstrap standard errors over the set's scenes (why: ``docs/detector/design.md``, "The regression
+gate").
 """
 
 from __future__ import annotations
@@ -81,20 +81,15 @@ def gate_predictions(detector: Detector, samples: Sequence[Sample]) -> dict[str,
     return {mode: predict(detector, samples, depth=depth) for mode, depth in MODES.items()}
 
 
-def figures_of(
-    samples: Sequence[Sample], predictions: Sequence[np.ndarray], *, sigma: float
-) -> dict[str, float]:
-    """The gate's figures (``FIGURES``) of predictions against the samples' visible crossings."""
-    m = summary([truth_of(s) for s in samples], predictions, sigma=sigma)
-    return {f: m[f] for f in FIGURES}
-
-
 def measure(detector: Detector, root: str | Path) -> dict[str, dict[str, float]]:
-    """Mode -> the gate's figures of ``detector`` on the built set at ``root``."""
+    """Mode -> the gate's figures (``FIGURES``) of ``detector`` on the built set at ``root``."""
     samples, _ = load_gate_set(root)
-    sigma = stated_oks_sigma(root)
-    preds = gate_predictions(detector, samples)
-    return {mode: figures_of(samples, p, sigma=sigma) for mode, p in preds.items()}
+    truths, sigma = [truth_of(s) for s in samples], stated_oks_sigma(root)
+    out = {}
+    for mode, preds in gate_predictions(detector, samples).items():
+        m = summary(truths, preds, sigma=sigma)
+        out[mode] = {f: m[f] for f in FIGURES}
+    return out
 
 
 def bootstrap_se(
@@ -107,11 +102,7 @@ def bootstrap_se(
     seed: int = BOOTSTRAP_SEED,
 ) -> dict[str, float]:
     """Standard error of each of ``FIGURES``: the standard deviation of the figure over ``replicates`` sets
-    drawn from ``groups`` (one label per sample, e.g. its scene) with replacement, whole groups at a time.
-
-    Each drawn set is scored with :func:`~rebar_data.perception.evaluation.metrics.keypoint_ap` (at OKS 0.5 alone, which
-    gives the same AP@0.5 as all ten thresholds) and :func:`~rebar_data.perception.evaluation.metrics.pixel_metrics`.
-    """
+    drawn from ``groups`` (one label per sample, e.g. its scene) with replacement, whole groups at a time."""
     truths = [truth_of(s) for s in samples]
     names = sorted(set(groups))
     members = [np.flatnonzero(np.asarray(groups) == g) for g in names]
@@ -121,7 +112,7 @@ def bootstrap_se(
         pick = np.concatenate([members[i] for i in rng.integers(0, len(names), len(names))])
         t = [truths[i] for i in pick]
         p = [predictions[i] for i in pick]
-        px = pixel_metrics(t, p)
+        px = pixel_metrics(t, p)  # and AP@0.5 from OKS 0.5 alone: the same as from all ten thresholds
         drawn["oks_ap50"][r] = keypoint_ap(t, p, sigma=sigma, thresholds=np.array([0.5])).ap50
         drawn["pck2"][r] = px.pck[2.0]
         drawn["recall_at_p99"][r] = px.recall_at_p99
@@ -136,8 +127,8 @@ def reference(
     seed: int = BOOTSTRAP_SEED,
 ) -> dict:
     """What ``gate.json`` holds for ``detector`` on the built set at ``root``: per mode the figures, their
-    bootstrap SEs, the margins (``K_SE`` SEs), the floors (figure - margin) and every headline figure
-    (:func:`~rebar_data.perception.evaluation.metrics.summary`), and where they come from."""
+    bootstrap SEs, the margins (``K_SE`` SEs), the floors (figure - margin) and every headline figure, and
+    where they come from."""
     from rebar_data.dataset.writers.manifest import sha256_file
 
     samples, scenes = load_gate_set(root)
@@ -149,19 +140,18 @@ def reference(
         fig = {f: m[f] for f in FIGURES}
         se = bootstrap_se(samples, preds, scenes, sigma=sigma, replicates=replicates, seed=seed)
         margin = {f: K_SE * se[f] for f in FIGURES}
+        floor = {f: fig[f] - margin[f] for f in FIGURES}
         modes[mode] = {
             "depth": MODES[mode],
             "figures": fig,
             "se": se,
             "margin": margin,
-            "floor": {f: fig[f] - margin[f] for f in FIGURES},
+            "floor": floor,
             "summary": m,
         }
+    path = detector.path
     return {
-        "model": {
-            "file": detector.path.name if detector.path else None,
-            "sha256": sha256_file(detector.path) if detector.path else None,
-        },
+        "model": {"file": path.name if path else None, "sha256": sha256_file(path) if path else None},
         "runtime": detector.backend,
         "reading": detector.reading,
         "set": {
@@ -192,18 +182,8 @@ def write_reference(
     data_root: str | Path | None = None,
     replicates: int = BOOTSTRAP_REPLICATES,
 ) -> Path:
-    """Measure ``model`` (None: the shipped one) on the gate set and write :func:`reference` to ``out``
-    (default: ``gate.json`` beside the model).
-
-    Args:
-        model: A model file.
-        out: The JSON file to write.
-        data_root: Where the gate set is (or is built, when missing); None builds it in a temporary folder.
-        replicates: Bootstrap replicates per mode.
-
-    Returns:
-        The file written.
-    """
+    """Measure ``model`` (None: the shipped one) on the gate set, found or built in ``data_root`` (None: a
+    temporary folder), and write :func:`reference` to ``out`` (None: ``gate.json`` beside the model)."""
     detector = load_detector(model)
     out = Path(out) if out is not None else detector.path.with_name(GATE_NAME)
     with tempfile.TemporaryDirectory(prefix="rebar-gate-") as tmp:
@@ -213,7 +193,6 @@ def write_reference(
 
 
 def read_reference(path: str | Path = GATE_FILE) -> dict:
-    """The reference a :func:`write_reference` call wrote."""
     return json.loads(Path(path).read_text())
 
 
@@ -241,7 +220,7 @@ def failures(measured: dict[str, dict[str, float]], ref: dict) -> list[str]:
 def main(argv: Sequence[str] | None = None) -> None:
     parser = argparse.ArgumentParser(
         prog="python -m rebar_data.perception.evaluation.gate",
-        description="Measure a model on the regression gate's set and write its reference figures (gate.json).",
+        description="Measure a model on the regression gate's set and write its reference (gate.json).",
     )
     parser.add_argument("--model", help="model file (default: the shipped model)")
     parser.add_argument("--out", help="JSON to write (default: gate.json beside the model)")

@@ -28,18 +28,11 @@ from rebar_data.scene.mat_surface import MatSurface
 # a crossing shows where the depth image is this close to the nearer bar's centerline there (its surface
 # lies up to 10 mm in front of it); anything else lies 100 mm or more in front of a lower bar
 DEPTH_TOLERANCE_M = 0.02
-# the lower mat shows within this many pixels, beyond the widest top bar's half-width (10 mm), of one
-REACH_PX = 2.0
-# the two kinds of place, in the order lower_mat_crossings lists them: a top bar in front of a lower bar of the
-# other direction, and the lower mat's own crossings
+REACH_PX = 2.0  # the lower mat shows within this many pixels, beyond the widest top bar's half-width (10 mm)
+# a top bar in front of a lower bar of the other direction, and the lower mat's own crossings
 KINDS = ("top_over_lower", "own")
 CHORD_M = 0.05  # the bars are cut into chords this long (a bowed or curved bar's chord errs by under 1 mm)
-_COLUMNS = (
-    "surr_lower_layer",
-    "surr_lower_layer_depth_m",
-    "surr_lower_layer_shift_a_m",
-    "surr_lower_layer_shift_b_m",
-)
+_COLUMNS = ("surr_lower_layer", *(f"surr_lower_layer_{c}" for c in ("depth_m", "shift_a_m", "shift_b_m")))
 
 
 @dataclass(frozen=True)
@@ -62,20 +55,18 @@ class _Chords:
 def lower_mat_crossings(root: str | Path, samples: list[Sample]) -> list[np.ndarray]:
     """(M, 2) u, v (COCO corner origin) of the crossings that each sample's lower mat shows (its own, and
     those of top bars with lower bars); empty for a scene without a lower mat, and for every sample of a
-    dataset whose samples table records no lower mat (one built before it could draw one)."""
+    dataset whose samples table records none."""
     return [np.concatenate([k[name] for name in KINDS]) for k in lower_mat_places(root, samples)]
 
 
 def lower_mat_places(root: str | Path, samples: list[Sample]) -> list[dict[str, np.ndarray]]:
-    """:func:`lower_mat_crossings` by kind: for each sample, ``KINDS`` -> (M, 2) u, v, where a top bar
-    passes in front of a lower bar (``top_over_lower``) and the lower mat's own crossings (``own``)."""
+    """:func:`lower_mat_crossings` by kind: for each sample, ``KINDS`` -> (M, 2) u, v."""
     root = Path(root)
     table = pq.read_table(root / "tables/samples.parquet")
     empty = [{name: np.zeros((0, 2)) for name in KINDS} for _ in samples]
     if not all(c in table.column_names for c in _COLUMNS) or not samples:
         return empty
-    names = ["image_id", "world_from_camera", *_COLUMNS]
-    cols = table.select(names).to_pydict()
+    cols = table.select(["image_id", "world_from_camera", *_COLUMNS]).to_pydict()
     row = {iid: i for i, iid in enumerate(cols["image_id"])}
     if not any(cols["surr_lower_layer"][row[s.image_id]] for s in samples if s.image_id in row):
         return empty
@@ -185,14 +176,8 @@ def _chords(root: Path) -> _Chords:
         ends.append(np.stack([pts[:-1], pts[1:]], axis=1))
         direction.append(np.full(len(pts) - 1, bar.direction))
     e = np.concatenate(ends)
-    flat = e.reshape(-1, 3)
-    return _Chords(
-        surf,
-        e,
-        surf.to_ab(flat).reshape(-1, 2, 2),
-        surf.height(flat).reshape(-1, 2),
-        np.concatenate(direction),
-    )
+    ab, height = surf.to_ab(e.reshape(-1, 3)).reshape(-1, 2, 2), surf.height(e.reshape(-1, 3)).reshape(-1, 2)
+    return _Chords(surf, e, ab, height, np.concatenate(direction))
 
 
 def _seen(s: Sample, uv: np.ndarray, z: np.ndarray) -> np.ndarray:

@@ -1,4 +1,4 @@
-"""Keypoint metrics over the visible crossings of a split (in full: ``docs/detector/experiments.md``).
+"""Keypoint metrics over the visible crossings of a set of images.
 
 - OKS keypoint AP as pycocotools' ``COCOeval(iouType="keypoints")`` computes it, one keypoint per object, a
   stated sigma and the crossing's square box as the object area.
@@ -28,14 +28,8 @@ PCK_PX = (1.0, 2.0, 5.0)
 
 @dataclass
 class Truth:
-    """The ground truth of one image.
-
-    Attributes:
-        uv: (N, 2) visible crossings, pixels, COCO corner origin.
-        box_size_px: (N,) side of each one's square detection box (the OKS scale).
-        ignore_uv: (M, 2) crossings that neither count as found nor make a prediction on them wrong.
-        ignore_box_size_px: (M,) their box sides.
-    """
+    """One image's visible crossings (pixels, COCO corner origin) and each one's box side (the OKS scale),
+    and the crossings that neither count as found nor make a prediction on them wrong (``ignore_``)."""
 
     uv: np.ndarray
     box_size_px: np.ndarray
@@ -49,7 +43,7 @@ def oks_radius_px(sigma: float, box_size_px: float, oks: float = 0.5) -> float:
 
 
 def oks_matrix(pred_uv: np.ndarray, gt_uv: np.ndarray, box_size_px: np.ndarray, sigma: float) -> np.ndarray:
-    """OKS of every prediction (rows) against every ground-truth keypoint (columns), as COCOeval computes it."""
+    """OKS of every prediction (rows) against every ground-truth keypoint (columns), as COCOeval has it."""
     pred_uv = np.asarray(pred_uv, float).reshape(-1, 2)
     gt_uv = np.asarray(gt_uv, float).reshape(-1, 2)
     area = np.asarray(box_size_px, float).reshape(-1) ** 2
@@ -60,8 +54,8 @@ def oks_matrix(pred_uv: np.ndarray, gt_uv: np.ndarray, box_size_px: np.ndarray, 
 def _match_image(
     oks: np.ndarray, gt_ignore: np.ndarray, thresholds: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
-    """COCOeval.evaluateImg for one image: predictions already sorted by score, ground truth with the
-    ignored ones last. Returns (matched, ignored) flags of shape (thresholds, predictions)."""
+    """COCOeval.evaluateImg for one image, predictions sorted by score and the ignored ground truth last:
+    (matched, ignored) flags of shape (thresholds, predictions)."""
     n_dt, n_gt = oks.shape
     n_real = int((~gt_ignore).sum())  # the ignored ones come last
     matched = np.zeros((len(thresholds), n_dt), bool)
@@ -87,16 +81,9 @@ def _match_image(
 
 @dataclass
 class APResult:
-    """OKS keypoint AP and the curves behind it.
-
-    Attributes:
-        ap: Mean of the 101-point interpolated precision over OKS 0.50:0.05:0.95.
-        ap50: The same at OKS 0.5.
-        ap75: The same at OKS 0.75.
-        precision: (thresholds, 101) interpolated precision at each recall threshold.
-        recall: (thresholds,) recall reached with every prediction.
-        sigma: The OKS sigma used.
-    """
+    """OKS keypoint AP (the mean 101-point interpolated precision over OKS 0.50:0.05:0.95; at 0.5; at 0.75),
+    the (thresholds, 101) precision curves behind it, the recall reached with every prediction per threshold
+    and the sigma."""
 
     ap: float
     ap50: float
@@ -111,32 +98,17 @@ def keypoint_ap(
     predictions: Sequence[np.ndarray],
     *,
     sigma: float = DEFAULT_OKS_SIGMA,
-    max_detections: int | None = None,
     thresholds: np.ndarray = OKS_THRESHOLDS,
 ) -> APResult:
-    """OKS keypoint AP over images, equal to COCOeval's for one keypoint and the same sigma.
-
-    Args:
-        truths: Ground truth per image.
-        predictions: Per image, an (N, 3) array of u, v, score.
-        sigma: OKS sigma of the crossing keypoint.
-        max_detections: Keep only the best-scoring predictions per image (COCOeval's maxDets); None keeps
-            all (COCO's keypoint default of 20 would cap recall on frames with many crossings).
-        thresholds: OKS thresholds.
-
-    Returns:
-        The AP figures and the precision curves behind them.
-    """
+    """OKS keypoint AP of per-image (N, 3) u, v, score predictions, equal to COCOeval's for one keypoint and
+    the same sigma with every prediction kept (COCO's keypoint maxDets of 20 would cap recall)."""
     if len(truths) != len(predictions):
         raise ValueError(f"{len(truths)} truths but {len(predictions)} prediction arrays")
     scores_all, matched_all, ignored_all = [], [], []
     n_gt = 0
     for truth, pred in zip(truths, predictions, strict=True):
         pred = np.asarray(pred, float).reshape(-1, 3)
-        order = np.argsort(-pred[:, 2], kind="mergesort")
-        if max_detections is not None:
-            order = order[:max_detections]
-        pred = pred[order]
+        pred = pred[np.argsort(-pred[:, 2], kind="mergesort")]
         gt_uv = np.r_[
             np.asarray(truth.uv, float).reshape(-1, 2), np.asarray(truth.ignore_uv, float).reshape(-1, 2)
         ]
@@ -174,35 +146,16 @@ def keypoint_ap(
             precision[ti, ok] = pr[idx[ok]]
     per_t = precision.mean(axis=1)
     at = {round(float(t), 2): float(per_t[i]) for i, t in enumerate(thresholds)}
-    return APResult(
-        ap=float(per_t.mean()),
-        ap50=at.get(0.5, float("nan")),
-        ap75=at.get(0.75, float("nan")),
-        precision=precision,
-        recall=recall,
-        sigma=sigma,
-    )
+    nan = float("nan")
+    return APResult(float(per_t.mean()), at.get(0.5, nan), at.get(0.75, nan), precision, recall, sigma)
 
 
 @dataclass
 class PixelResult:
-    """Pixel-error metrics at a 5 px Hungarian gate.
-
-    Attributes:
-        n_gt: Visible crossings.
-        pck: PCK at each of ``PCK_PX`` (share of visible crossings within k px by a prediction of score
-            at least the operating threshold).
-        mean_px: Mean error of those matches.
-        median_px: Median error of those matches.
-        precision: Matched predictions over predictions, at the operating threshold.
-        recall: Matched crossings over crossings, at the operating threshold.
-        recall_at_p99: Best recall along the score-sorted predictions while precision >= 0.99.
-        threshold: The operating threshold.
-        curve_precision: Precision along the score-sorted predictions.
-        curve_recall: Recall along them.
-        curve_score: Their scores.
-        errors_px: Error of every match at the operating threshold.
-    """
+    """Pixel-error metrics at a Hungarian gate: PCK at each of ``PCK_PX`` (the share of visible crossings
+    matched within k px by a prediction scoring at least the threshold), those matches' mean and median
+    error, precision and recall at the threshold, the best recall while precision >= 0.99, the precision
+    and recall along the score-sorted predictions with their scores, and every match's error."""
 
     n_gt: int
     pck: dict[float, float]
@@ -252,31 +205,18 @@ def pixel_metrics(
     threshold: float = OPERATING_THRESHOLD,
     gate_px: float = GATE_PX,
 ) -> PixelResult:
-    """PCK, pixel errors, precision and recall with Hungarian matching inside a pixel gate.
-
-    Matching uses every prediction whatever its score, as the project's scorer does; a prediction
-    matched to an ``ignore`` crossing is dropped from the counts.
-
-    Args:
-        truths: Ground truth per image.
-        predictions: Per image, an (N, 3) array of u, v, score.
-        threshold: The operating threshold on the score.
-        gate_px: The largest distance of a match.
-
-    Returns:
-        The figures, the precision-recall curve along the scores, and the errors.
-    """
+    """PCK, pixel errors, precision and recall of per-image (N, 3) u, v, score predictions, with Hungarian
+    matching of every prediction, whatever its score, within ``gate_px``; one matched to an ``ignore``
+    crossing is dropped from the counts."""
     n_gt = 0
     scores, hits, errors = [], [], []
     for truth, pred in zip(truths, predictions, strict=True):
         pred = np.asarray(pred, float).reshape(-1, 3)
         gt = np.asarray(truth.uv, float).reshape(-1, 2)
         n_gt += len(gt)
-        ign = np.asarray(truth.ignore_uv, float).reshape(-1, 2)
-        both = np.r_[gt, ign]
+        both = np.r_[gt, np.asarray(truth.ignore_uv, float).reshape(-1, 2)]
         p_idx, g_idx, dist = match(both, pred[:, :2], gate_px)
-        hit = np.zeros(len(pred), bool)
-        drop = np.zeros(len(pred), bool)
+        hit, drop = np.zeros(len(pred), bool), np.zeros(len(pred), bool)
         real = g_idx < len(gt)
         hit[p_idx[real]] = True
         drop[p_idx[~real]] = True
@@ -289,8 +229,7 @@ def pixel_metrics(
     e = np.concatenate(errors) if errors else np.zeros(0)
     s, h, prec, rec = score_curve(s, h, n_gt)
     above = s >= threshold
-    n_above = int(above.sum())
-    tp_above = int(h[above].sum())
+    n_above, tp_above = int(above.sum()), int(h[above].sum())
     return PixelResult(
         n_gt=n_gt,
         pck={k: float((e <= k).sum() / max(n_gt, 1)) for k in PCK_PX},
@@ -349,7 +288,7 @@ def summary(
 
 
 def format_summary(m: dict[str, float]) -> str:
-    """One line with the headline figures (a summary written before AP@0.5's ceiling was: without it)."""
+    """One line with the headline figures (an older summary has no AP@0.5 ceiling)."""
     ceiling = (
         f"; recall at OKS 0.5 {m['oks_recall50']:.4f}, so AP@0.5 at most {m['oks_ap50_ceiling']:.4f}"
         if "oks_ap50_ceiling" in m
