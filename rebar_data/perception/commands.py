@@ -182,6 +182,12 @@ def run_detect(args: argparse.Namespace) -> int:
     (outputs.input_folder if target.is_dir() else outputs.input_file)(target, arg="input", what=accepted)
     dataset = (target / "tables/samples.parquet").exists()
     if dataset:
+        from rebar_data.perception.evaluation.data import DEPTH_SOURCES
+
+        if args.depth_from not in DEPTH_SOURCES:
+            raise ConfigError(
+                f"--depth-from {args.depth_from}: not a depth source; accepted: one of {', '.join(DEPTH_SOURCES)}"
+            )
         if args.flatten_behind and args.no_depth:
             raise ConfigError(
                 "--flatten-behind reads the depth images, which --no-depth leaves out; accepted: one of the "
@@ -293,7 +299,15 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
             held.enter_context(outputs.OutputLock(metrics_path, command=DETECT, arg="--metrics"))
         _dataset_outputs(root, args)  # again under the locks: another writer may have finished meanwhile
         depth, progress = not args.no_depth, not args.quiet
-        preds = predict(detector, samples, threshold=threshold, depth=depth, progress=progress, point=point)
+        preds = predict(
+            detector,
+            samples,
+            threshold=threshold,
+            depth=depth,
+            depth_from=args.depth_from,
+            progress=progress,
+            point=point,
+        )
         _write_marked_predictions(out, [s.image_id for s in samples], preds)
         sigma = args.oks_sigma if args.oks_sigma is not None else stated_oks_sigma(root)
         metrics = score(samples, preds, sigma=sigma)
@@ -468,6 +482,11 @@ def register(sub: argparse._SubParsersAction) -> None:
     d.add_argument("--threshold", type=THRESHOLD, help=low)
     d.add_argument("--metrics", help="dataset: also write the split's metrics to this JSON file")
     d.add_argument("--no-depth", action="store_true", help="leave the dataset's depth images out")
+    depth_from = (
+        "dataset: the depth read: sensor, the dataset's depth sensor (default; its exact depth before 2.3.0), "
+        "exact, or structured_light, active_stereo or time_of_flight, that model's image of the exact depth"
+    )
+    d.add_argument("--depth-from", default="sensor", metavar="SOURCE", help=depth_from)
     behind = "dataset: take what lies far behind the front bars (lower mat, ground) out of each image"
     d.add_argument("--flatten-behind", action="store_true", help=behind)
     d.add_argument("--oks-sigma", type=float, help="dataset: score OKS AP at this sigma (above 0)")

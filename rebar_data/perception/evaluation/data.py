@@ -7,8 +7,9 @@ scored on; occluded ones (visibility 1) are kept apart so training can leave the
 from __future__ import annotations
 
 import json
+import zlib
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import TypeVar
 
@@ -37,7 +38,8 @@ _CROSSING_COLUMNS = ("x_crossing", "y_crossing", "z_crossing")
 class Sample:
     """One image and its crossings, in pixels with COCO's corner origin: (N, 2) visible ones with each one's
     detection-box side (its OKS scale), (M, 2) occluded ones (inside the image but hidden), the intrinsics
-    (fx, fy, cx, cy), the registered depth image and instance map (None where the dataset has none), and
+    (fx, fy, cx, cy), the registered exact depth image, the depth sensor's image (datasets from 2.3.0) and
+    the instance map (None where the dataset has none), and
     ``crossings``, the projected 3D crossing point of each visible one (NaN where not recorded; None when the
     dataset's tables lack the 3D points)."""
 
@@ -51,6 +53,7 @@ class Sample:
     occluded_box_size_px: np.ndarray = field(default_factory=lambda: np.zeros(0))
     camera: tuple[float, float, float, float] | None = None
     depth_path: Path | None = None
+    sensor_depth_path: Path | None = None
     crossings: np.ndarray | None = None
     dataset: Path | None = None
     instance_path: Path | None = None
@@ -110,6 +113,33 @@ def per_file_lazily(samples: list[Sample], read: Callable[[Sample], T]) -> Calla
 def read_sample_image(sample: Sample) -> np.ndarray:
     """The sample's RGB image (:func:`read_image` of its path)."""
     return read_image(sample.path)
+
+
+# the depth a detector reads: the dataset's sensor depth (its exact depth where it has none), the exact
+# depth, or a depth sensor model's image made from the exact depth (its nominal parameters, 1 px off the colour)
+DEPTH_SOURCES = ("sensor", "exact", "structured_light", "active_stereo", "time_of_flight")
+
+
+def sample_depth(s: Sample, source: str = "sensor") -> np.ndarray | None:
+    """The depth image (float32 metres, 0 = none) that ``source`` (see :data:`DEPTH_SOURCES`) gives for ``s``;
+    None when the dataset has no depth. A sensor model's noise is drawn from the image id alone."""
+    if source not in DEPTH_SOURCES:
+        raise ConfigError(
+            f"depth source {source!r} is not accepted; accepted: one of {', '.join(DEPTH_SOURCES)}"
+        )
+    if source == "sensor" and s.sensor_depth_path is not None:
+        return read_depth(s.sensor_depth_path)
+    if s.depth_path is None:
+        return None
+    exact = read_depth(s.depth_path)
+    if source in ("sensor", "exact"):
+        return exact
+    from rebar_data.render.depth_sensor import sense_depth
+    from rebar_data.scene.sample import nominal_depth_sensor
+
+    sensor = replace(nominal_depth_sensor(source), shift_x_px=1.0)
+    rng = np.random.default_rng(zlib.crc32(s.image_id.encode()))
+    return sense_depth(exact, sensor, rng, fx=s.camera[0])
 
 
 def read_depth(path: str | Path) -> np.ndarray:
@@ -185,6 +215,7 @@ def load_split(root: str | Path, split: str, *, truth: str = "sight") -> list[Sa
         rows = order[lo:hi]
         v = vis[rows]
         depth = root / layout.depth_path(split, iid)
+        sensor = root / layout.sensor_depth_path(split, iid)
         instances = root / layout.instance_path(split, iid)
         out.append(
             Sample(
@@ -198,6 +229,7 @@ def load_split(root: str | Path, split: str, *, truth: str = "sight") -> list[Sa
                 occluded_box_size_px=box[rows][v == 1],
                 camera=tuple(float(samples[k][i]) for k in ("fx", "fy", "cx", "cy")),
                 depth_path=depth if depth.exists() else None,
+                sensor_depth_path=sensor if sensor.exists() else None,
                 crossings=points[rows][v == 2] if points is not None else None,
                 dataset=root,
                 instance_path=instances if instances.exists() else None,

@@ -11,7 +11,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 from tqdm import tqdm
 
-from rebar_data.perception.evaluation.data import SPLITS, Sample, load_split, read_depth, read_image
+from rebar_data.perception.evaluation.data import SPLITS, Sample, load_split, read_image, sample_depth
 from rebar_data.perception.evaluation.metrics import Truth, pixel_metrics, summary
 from rebar_data.perception.inference.detector import Detector
 
@@ -37,17 +37,18 @@ def predict(
     threshold: float = LOW_THRESHOLD,
     images: Sequence[np.ndarray] | None = None,
     depth: bool = True,
+    depth_from: str = "sensor",
     progress: bool = False,
     point: str = "sight",
 ) -> list[np.ndarray]:
     """Detections (N, 3) for each sample's image, read from disk unless ``images`` are given; with ``depth``
-    each sample's depth image too, when it has one and the detector has a depth check; ``point`` as
-    :meth:`Detector.detect` takes it."""
+    each sample's depth image too (``depth_from``: :data:`~rebar_data.perception.evaluation.data.DEPTH_SOURCES`),
+    when it has one and the detector has a depth check; ``point`` as :meth:`Detector.detect` takes it."""
     out = []
     use_depth = depth and detector.depth_check is not None
     for k, s in enumerate(tqdm(samples, desc="detect", unit="img", disable=not progress, leave=False)):
         rgb = images[k] if images is not None else read_image(s.path)
-        d = read_depth(s.depth_path) if use_depth and s.depth_path is not None else None
+        d = sample_depth(s, depth_from) if use_depth else None
         out.append(detector.detect(rgb, threshold=threshold, camera=s.camera, depth=d, point=point))
     return out
 

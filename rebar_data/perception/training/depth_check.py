@@ -15,7 +15,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.evaluation.data import Sample, read_depth
+from rebar_data.perception.evaluation.data import Sample, sample_depth
 from rebar_data.perception.inference.checks import MM_PER_M, encode
 from rebar_data.perception.networks.stages import DepthNet
 from rebar_data.perception.training.config import DepthCheckConfig
@@ -107,8 +107,8 @@ def train_depth_check(
     data: list[str] | None = None,
     progress: bool = False,
 ) -> tuple[DepthNet, list[dict[str, float]]]:
-    """Train the depth check on the depth images of ``samples``, resumable in ``out/depth_last.pt``; returns
-    it and one row per epoch. ``negatives`` (each sample's (M, 2) points) may be a function that gives
+    """Train the depth check on the sensor depth images of ``samples`` (their exact depth where a dataset has
+    none), resumable in ``out/depth_last.pt``; returns it and one row per epoch. ``negatives`` (each sample's (M, 2) points) may be a function that gives
     them, called only when there is training to do; ``data`` names what they came from."""
     check_depth(samples)
     torch.manual_seed(seed)
@@ -116,7 +116,7 @@ def train_depth_check(
     def prepare(payload, first):
         found = negatives() if callable(negatives) else negatives
         depths = [
-            PaddedDepth(read_depth(s.depth_path), cfg.patch_px)
+            PaddedDepth(sample_depth(s, "sensor"), cfg.patch_px)
             for s in tqdm(samples, desc="depth images", disable=not progress, leave=False, file=sys.stderr)
         ]
         batches = patch_batches(depths, samples, found, cfg, seed=seed, first=first)

@@ -421,7 +421,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
             out,
             cfg.depth_check,
             seed=cfg.seed,
-            data=negatives_from + ([f"its own lower-mat negatives: {n}"] if n else []),
+            data=negatives_from + ([f"its own lower-mat negatives: {n}"] if n else []) + ["sensor depth"],
             progress=run.progress,
         )
     if cfg.crossing_point.enabled:
