@@ -70,9 +70,9 @@ def test_onnx_crossing_point_gives_what_pytorch_gives(tmp_path):
     image = np.random.default_rng(1).integers(0, 256, (60, 80, 3)).astype(np.uint8)
     uv = np.array([[10.2, 12.7], [40.0, 30.0], [79.5, 59.5]])
     camera = (70.0, 70.0, 40.0, 30.0)
-    in_torch = eager.crossing_point(net).offsets(image, uv, camera)
+    in_torch = eager.crossing_point(net).points(image, uv, camera)
     onnx = model_file.read_crossing_point(export_onnx(net, tmp_path / "c.onnx"), threads=1)
-    np.testing.assert_allclose(onnx.offsets(image, uv, camera), in_torch, atol=1e-4)
+    np.testing.assert_allclose(onnx.points(image, uv, camera), in_torch, atol=1e-4)
     assert in_torch.shape == (3, 2) and np.isfinite(in_torch).all()
 
 
@@ -91,7 +91,7 @@ def test_a_trained_run_ships_the_stage_and_detect_gives_the_crossing_points(
     crossing = det.detect(rgb, threshold=1e-3, camera=s.camera, point="crossing")
     assert len(sight) and len(crossing) == len(sight)
     np.testing.assert_allclose(crossing[:, 2], sight[:, 2])  # the same detections, moved
-    expected = sight[:, :2] + det.crossing_point.offsets(rgb, sight[:, :2], s.camera)
+    expected = det.crossing_point.points(rgb, sight[:, :2], s.camera)
     np.testing.assert_allclose(crossing[:, :2], expected, atol=1e-6)
     with pytest.raises(ConfigError, match="point = 'middle' is not accepted"):
         det.detect(rgb, point="middle")

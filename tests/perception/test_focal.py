@@ -10,13 +10,7 @@ import pytest
 from rebar_data.perception.evaluation.metrics import Truth, match, pixel_metrics
 from rebar_data.perception.inference import detector as infer
 from rebar_data.perception.inference.detector import Detector
-from rebar_data.perception.inference.image import (
-    TOLERANCE,
-    focal_scale,
-    resample,
-    resampled_size,
-    scaled_camera,
-)
+from rebar_data.perception.inference.image import TOLERANCE, focal_scale, resample, scaled_camera
 
 CAMERA = (525.0, 525.0, 320.0, 240.0)
 
@@ -47,7 +41,6 @@ def test_the_scale_brings_the_focal_length_to_the_trained_one():
     assert focal_scale(525.0, (589.4, 589.4, 320.0, 240.0)) == 1.0  # the servo suites' Kinect: as it comes
     assert focal_scale(525.0, (700.0, 700.0, 320.0, 240.0)) == 0.75
     assert focal_scale(None, (1050.0, 1050.0, 640.0, 480.0)) == 1.0  # a file that does not say
-    assert resampled_size(480, 640, 0.75) == (360, 480)
     assert scaled_camera((600.0, 610.0, 320.0, 240.0), 0.5, 0.25) == (300.0, 152.5, 160.0, 60.0)
     depth = np.array([[1.0, 0.0], [0.0, 2.0]], np.float32)
     assert set(np.unique(resample(depth, (4, 4), nearest=True))) == {0.0, 1.0, 2.0}  # no blend across edges

@@ -119,11 +119,11 @@ def test_a_model_file_without_first_pass_views_reads_every_pass_in_its_views():
         pytest.skip("no model shipped yet (make train ships one)")
     meta = Detector.load(threads=1).meta
     entry = {k: v for k, v in meta["refiner"].items() if k != "first_pass_views"} | {"views": 4}
-    old = model_file.load_refiner(infer.SHIPPED_MODEL, {**meta, "refiner": entry}, 1, "onnxruntime")
+    old = model_file.load_stages(infer.SHIPPED_MODEL, {**meta, "refiner": entry}, 1, "onnxruntime")[0]
     assert old.views == old.first_pass_views == 4
-    stored = model_file.load_refiner(
+    stored = model_file.load_stages(
         infer.SHIPPED_MODEL, {**meta, "refiner": {**entry, "first_pass_views": 1}}, 1, "onnxruntime"
-    )
+    )[0]
     assert stored.views == 4 and stored.first_pass_views == 1
 
 

@@ -41,7 +41,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
         step=0.5,
         int8_run=_network(2.0, -9.0, calls, "int8"),
     )
-    assert refiner.has_int8_passes and refiner.use_int8_passes
+    assert refiner.has_int8_passes
     image = np.zeros((64, 64, 3), np.uint8)
     uv, logit = refiner.refine_and_verify(image, np.array([[20.0, 30.0]]))
     assert calls == ["float", "int8", "int8"]
@@ -50,7 +50,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
     # + 2 (u: 20 -> 21 -> 22)
     np.testing.assert_allclose(uv, [[22.0, 30.0]])
     calls.clear()
-    refiner.use_int8_passes = False  # the float file for every pass, as a model without the copy
+    refiner.int8_run = None  # the float file for every pass, as a model without the copy
     uv, _ = refiner.refine_and_verify(image, np.array([[20.0, 30.0]]))
     assert calls == ["float"] * 3
     np.testing.assert_allclose(uv, [[20.0, 30.0]])
@@ -71,9 +71,9 @@ def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, t
     for s in load_split(drawn_dataset, "test"):
         rgb = read_sample_image(s)
         with_int8 = det.detect(rgb, camera=s.camera, threshold=0.05)
-        det.refiner.use_int8_passes = False
+        int8_run, det.refiner.int8_run = det.refiner.int8_run, None
         in_float = det.detect(rgb, camera=s.camera, threshold=0.05)
-        det.refiner.use_int8_passes = True
+        det.refiner.int8_run = int8_run
         # the same detections, scored alike (the float file verifies them), placed nearly alike
         np.testing.assert_array_equal(with_int8[:, 2], in_float[:, 2])
         moved.append(np.abs(with_int8[:, :2] - in_float[:, :2]).max(initial=0.0))
@@ -86,16 +86,6 @@ def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, t
     out.unlink()
     with pytest.raises(ConfigError, match="refine.int8.onnx is missing"):
         Detector.load(model)
-
-
-def test_an_int8_copy_of_another_network_is_refused():
-    if not infer.SHIPPED_MODEL.exists():
-        pytest.skip("no model shipped yet (make train ships one)")
-    model = infer.SHIPPED_MODEL
-    with pytest.raises(ConfigError, match="takes or gives other shapes than rebar_keypoint.refine.onnx"):
-        model_file.read_refiner(
-            model_file.refiner_path(model), threads=1, int8_path=model_file.depth_check_path(model)
-        )
 
 
 def test_the_shipped_files_stay_within_five_megabytes():

@@ -118,7 +118,8 @@ def checked_model(drawn_dataset, tmp_path_factory):
     trained in a test finds too few crossings to fit one)."""
     model = shipped_model_copy(tmp_path_factory.mktemp("checked"))
     val = load_split(drawn_dataset, "val")
-    detector = Detector.load(model, threads=2, line_check=False, runtime="onnxruntime")
+    detector = Detector.load(model, threads=2, runtime="onnxruntime")
+    detector.line_check = None
     entry, _ = fit_line_check(
         detector, val + load_split(drawn_dataset, "train"), val, LineCheckConfig(), data=["drawn"]
     )

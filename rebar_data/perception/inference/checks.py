@@ -1,9 +1,6 @@
-"""The checks that score each detection again.
-
-:class:`DepthCheck`, a small network, gives the logit that the depth patch around a detection shows a crossing.
-:class:`LineCheck` (without depth) follows each detection's two bars from candidate to candidate and gives its
-new score by a logistic regression on the scores found along them (:data:`FEATURES`) and its own.
-"""
+"""The checks that score each detection again: :class:`DepthCheck`, a small network reading the depth patch
+around it, and (without depth) :class:`LineCheck`, a logistic regression on the scores of the candidates
+along its two bars (:data:`FEATURES`) and its own."""
 
 from __future__ import annotations
 
@@ -46,10 +43,9 @@ def as_depth_m(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def encode(
     depth_patches: np.ndarray, *, scale_m: float, clip: float, gain: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(N, 2, P, P) float32 network input for (N, P, P) depth patches in metres (0 = none), and (N,) whether
-    each patch's centre holds a measurement. Channel 0: the depth relative to the median of the central
-    :data:`CENTRE_PX` square, over ``scale_m`` (times ``gain`` per patch), clipped to +-``clip``, 0 where
-    unmeasured; channel 1: 1 where measured."""
+    """(N, 2, P, P) float32 network input for (N, P, P) depth patches in metres (0 = none): the depth relative
+    to the median of the central :data:`CENTRE_PX` square over ``scale_m`` (times ``gain``), clipped to
+    +-``clip``, and 1 where measured; and (N,) whether each patch's centre holds a measurement."""
     p = np.asarray(depth_patches, np.float32)
     n, size = p.shape[0], p.shape[1]
     lo = size // 2 - CENTRE_PX // 2
@@ -80,17 +76,10 @@ class DepthCheck:
     (+inf where the patch's centre holds no measurement)."""
 
     def __init__(
-        self,
-        run: Callable[[np.ndarray], np.ndarray],
-        *,
-        patch_px: int,
-        scale_m: float,
-        clip: float,
+        self, run: Callable[[np.ndarray], np.ndarray], *, patch_px: int, scale_m: float, clip: float
     ):
         self._run = run
-        self.patch_px = patch_px
-        self.scale_m = scale_m
-        self.clip = clip
+        self.patch_px, self.scale_m, self.clip = patch_px, scale_m, clip
 
     def logits(self, depth_m: np.ndarray, uv: np.ndarray) -> np.ndarray:
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
@@ -105,30 +94,22 @@ class DepthCheck:
 
 FLOOR = 0.05  # candidates the first stage scores this or more are evidence
 CHECKED_FROM = 0.3  # those it scores this or more are verified and checked
-RADIUS_PX = 40  # the bar directions are read within this many pixels of a candidate
-BINS = 60  # edge orientations, 3 degrees a bin over 180
-MIN_APART_DEG = 25.0  # the second bar direction is this far from the first at least
-CONE_DEG = 4.0
-LATERAL_PX = 2.0
-MAX_STEP_PX = 260.0
-MIN_STEP_PX = 5.0
-STEPS = 6  # along each bar, each way
-HIGH = 0.8
+# how the bars are read: a fitted check's weights depend on it, and a file fitted with another is refused
+READING = {
+    "radius_px": 40,  # the bar directions are read within this many pixels of a candidate
+    "bins": 60,  # edge orientations, 3 degrees a bin over 180
+    "min_apart_deg": 25.0,  # the second bar direction is this far from the first at least
+    "cone_deg": 4.0,
+    "lateral_px": 2.0,
+    "max_step_px": 260.0,
+    "min_step_px": 5.0,
+    "steps": 6,  # along each bar, each way
+    "high": 0.8,
+}
+RADIUS_PX, BINS, MIN_APART_DEG, CONE_DEG, LATERAL_PX, MAX_STEP_PX, MIN_STEP_PX, STEPS, HIGH = READING.values()
 _SUMMARY = ("count", "mean", "upper_quartile", "best", "share_high", "share_above_own", "best_two")
 FEATURES = ("own_logit", *(f"{bar}_{s}" for bar in ("better_bar", "other_bar") for s in _SUMMARY))
 _LOGIT_CLIP = 1e-3
-# what a fitted check's weights depend on beyond its features' names: a file fitted with others is refused
-READING = {
-    "radius_px": RADIUS_PX,
-    "bins": BINS,
-    "min_apart_deg": MIN_APART_DEG,
-    "cone_deg": CONE_DEG,
-    "lateral_px": LATERAL_PX,
-    "max_step_px": MAX_STEP_PX,
-    "min_step_px": MIN_STEP_PX,
-    "steps": STEPS,
-    "high": HIGH,
-}
 _TAN = float(np.tan(np.deg2rad(CONE_DEG)))
 _MODULO = (np.arange(256) % BINS).astype(np.uint8)  # orientation bins past 180 degrees folded back
 _EVERY_OTHER = np.arange(0, RADIUS_PX, 2)  # the pixels of a half-resolution window read, along each side
@@ -177,8 +158,8 @@ def bar_directions(image: np.ndarray, uv: np.ndarray) -> np.ndarray:
 
 
 def bar_members(uv: np.ndarray, directions: np.ndarray, which: np.ndarray | None = None) -> np.ndarray:
-    """(K, 2, 2 * STEPS) the candidates of ``uv`` met following both ways the two bars (angles
-    ``directions``, K x 2) of each candidate ``which`` names (None: all), -1 past a bar's last one."""
+    """(K, 2, 2 * STEPS) the candidates of ``uv`` met following both ways the two bars (angles ``directions``,
+    K x 2) of each candidate ``which`` names (None: all), -1 past a bar's last one."""
     uv = np.asarray(uv, np.float64).reshape(-1, 2)
     which = np.arange(len(uv)) if which is None else np.asarray(which, np.int64)
     k = len(which)
@@ -255,14 +236,14 @@ def features(score: np.ndarray, members: np.ndarray, which: np.ndarray | None = 
 
 
 def line_features(image: np.ndarray, uv: np.ndarray, evidence: np.ndarray, which: np.ndarray) -> np.ndarray:
-    """:func:`features` of the candidates ``which`` among ``uv`` scored ``evidence``, bars read from ``image``."""
+    """:func:`features` of the candidates ``which`` among ``uv`` scored ``evidence``, read in ``image``."""
     return features(evidence, bar_members(uv, bar_directions(image, uv[which]), which), which)
 
 
 @dataclass(frozen=True)
 class LineCheck:
-    """A fitted line check: its logistic regression's ``weights`` (per :data:`FEATURES`) and ``bias``, and
-    the first-stage scores it was fitted with (``floor``, ``checked_from``)."""
+    """A fitted line check: its logistic regression's ``weights`` (per :data:`FEATURES`) and ``bias``, and the
+    first-stage scores it was fitted with (``floor``, ``checked_from``)."""
 
     weights: np.ndarray
     bias: float
@@ -284,20 +265,14 @@ class LineCheck:
         evidence = np.asarray(evidence, np.float64)
         checked = np.asarray(checked, np.int64)
         out = np.zeros(len(checked))
-        reach = self.best_logit(evidence[checked]) >= np.log(threshold / (1 - threshold))
+        w = self.weights[0]  # the highest logit the check can give: the lowest own score's when w < 0
+        own = logit(evidence[checked] if w >= 0 else np.zeros(len(checked)))
+        reach = w * own + self._most_from_bars + self.bias >= np.log(threshold / (1 - threshold))
         which = checked[reach]
         if len(which):
             x = line_features(image, uv, evidence, which)
             out[reach] = 1.0 / (1.0 + np.exp(-(x @ self.weights + self.bias)))
         return out
-
-    def best_logit(self, score: np.ndarray) -> np.ndarray:
-        """(N,) the highest logit the check can give a candidate scored ``score``."""
-        w = self.weights[0]
-        own = logit(score)
-        if w < 0:  # a lower own score would do better: bound by the lowest own logit
-            own = np.full(len(own), logit(np.array([0.0]))[0])
-        return w * own + self._most_from_bars + self.bias
 
     @cached_property
     def _most_from_bars(self) -> float:
@@ -318,7 +293,7 @@ class LineCheck:
 
     @classmethod
     def from_meta(cls, entry: dict[str, Any], source: str) -> LineCheck:
-        if list(entry.get("features", [])) != list(FEATURES) or len(entry.get("weights", [])) != len(
+        if list(entry.get("features", [])) != list(FEATURES) or len(entry.get("weights", ())) != len(
             FEATURES
         ):
             raise ConfigError(
@@ -327,8 +302,8 @@ class LineCheck:
             )
         if entry.get("reading") != READING:
             raise ConfigError(
-                f"{source}: its line check was fitted reading the bars with {entry.get('reading')}; accepted: "
-                f"one fitted with this version's {READING}, as `rebar train` fits it"
+                f"{source}: its line check was fitted reading the bars with {entry.get('reading')}; "
+                f"accepted: one fitted with this version's {READING}, as `rebar train` fits it"
             )
         return cls(
             np.asarray(entry["weights"], np.float64),

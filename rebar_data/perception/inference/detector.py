@@ -1,9 +1,7 @@
-"""The detector: ``Detector.load(path).detect(rgb) -> (N, 3)`` u, v, score, best first.
+"""The detector: ``Detector.load(path).detect(rgb) -> (N, 3)`` u, v, score, best first (COCO's corner origin).
 
-The first stage, a heatmap network at stride 4 with a sub-pixel offset per cell, gives the candidates; the
-second stage (:mod:`~rebar_data.perception.inference.refine`) moves and verifies them, the checks
-(:mod:`~rebar_data.perception.inference.checks`) score them again. Pixels use COCO's corner origin.
-"""
+A heatmap network at stride 4 gives the candidates, the second stage (:mod:`.refine`) moves and verifies them,
+the checks (:mod:`.checks`) score them again."""
 
 from __future__ import annotations
 
@@ -19,37 +17,24 @@ import numpy as np
 
 from rebar_data.errors import ConfigError
 from rebar_data.perception.inference.checks import DepthCheck, LineCheck, as_depth_m
-from rebar_data.perception.inference.image import (
-    flatten_behind,
-    focal_scale,
-    resample,
-    resampled_size,
-    scaled_camera,
-)
-from rebar_data.perception.inference.model_file import (
-    META_KEY,
-    load_crossing_point,
-    load_depth_check,
-    load_refiner,
-    onnx_session,
-    resolve_runtime,
-)
-from rebar_data.perception.inference.refine import CrossingPoint, Refiner, _accepted, check_point
+from rebar_data.perception.inference.image import Camera, flatten_behind, focal_scale, resample, scaled_camera
+from rebar_data.perception.inference.model_file import META_KEY, load_stages, onnx_session, resolve_runtime
+from rebar_data.perception.inference.refine import CrossingPoint, Refiner, accepted
 
 STRIDE = 4
 INPUT_MULTIPLE = 16  # the encoder halves the size four times
 OPERATING_THRESHOLD = 0.5  # the score ``detect`` returns from by default, and the metrics' operating point
 # "mirrored": the first stage also reads the mirror image and takes the mean, the second stage reads its int8
-# copy in every pass; "single": each reads the image once
+# copy in every pass and its later passes in one view; "single": each reads the image once
 Reading = Literal["mirrored", "single"]
 READINGS: tuple[str, ...] = get_args(Reading)
-MIRRORED_LATER_VIEWS = 1  # the views of the second stage's later passes in the mirrored reading
+POINTS = ("sight", "crossing")  # what a detection's pixel stands for
 DEFAULT_FOCAL_PER_WIDTH = 525.0 / 640.0  # Kinect v1 colour camera, when neither caller nor model says
 MODELS_DIR = Path(__file__).parent.parent / "models"
 SHIPPED_MODEL = MODELS_DIR / "rebar_keypoint.onnx"
 RUN_FILES = ("best.onnx", "best.pt", "last.pt")
 DUPLICATE_PX = 3.0  # two detections placed nearer than this are one crossing
-Camera = tuple[float, float, float, float]  # fx, fy, cx, cy in pixels
+Run = Callable[[np.ndarray, np.ndarray], np.ndarray]  # the first stage: images and rays to its output
 
 
 def ray_grid(height: int, width: int, camera: Camera) -> np.ndarray:
@@ -78,17 +63,6 @@ def decode(
     return np.c_[u, v, 1.0 / (1.0 + np.exp(-logit))]
 
 
-def check_reading(reading: str) -> str:
-    _accepted("reading", reading, READINGS)
-    return reading
-
-
-def mirrored_camera(camera: Camera, width: int) -> Camera:
-    """The intrinsics of an image ``width`` pixels wide turned left for right."""
-    fx, fy, cx, cy = camera
-    return fx, fy, width - cx, cy
-
-
 def resolve_model_path(path: str | Path | None) -> Path:
     """The model file meant by ``path``: None is the shipped model, a training run folder its best model."""
     if path is None:
@@ -114,48 +88,31 @@ def resolve_model_path(path: str | Path | None) -> Path:
 
 
 class Detector:
-    """A loaded keypoint detector; a stage set to None is left out.
+    """A loaded keypoint detector: its model file's ``meta``, the ``backend`` running the first stage
+    (onnxruntime, openvino or torch) and its later stages (None: left out). ``reading`` is one of
+    :data:`READINGS`; ``resample`` reads a frame resized to the trained ``focal_px``; ``flatten_behind``,
+    given depth, takes what lies far behind the front bars out of the image first."""
 
-    Attributes:
-        meta: What the model file says about itself (training data, settings, scores).
-        backend: What runs the first stage: ``onnxruntime``, ``openvino`` or ``torch``.
-        score_bias, score_bias_without_depth: Heatmap logit shifts that put the operating point at 0.5,
-            with and without a depth image.
-        refiner, depth_check, crossing_point, line_check: The later stages.
-        verify_power, verify_power_with_depth, depth_power: How hard the verification and the depth check count.
-        reading: "mirrored" or "single" (:data:`READINGS`).
-        focal_px: The focal length the first stage trained at (None: unknown).
-        resample: Read a frame resized to ``focal_px`` when its own differs.
-        flatten_behind: Given depth, take what lies far behind the front bars out of the image first.
-    """
-
-    def __init__(
-        self,
-        run: Callable[[np.ndarray, np.ndarray], np.ndarray],
-        *,
-        meta: dict[str, Any],
-        backend: str,
-        path: Path | None,
-    ):
+    def __init__(self, run: Run, *, meta: dict[str, Any], backend: str, path: Path | None):
         self._run = run
-        self._run_pair: Callable[[np.ndarray, np.ndarray], np.ndarray] | None = None  # a batch of two
+        self._run_pair: Run | None = None  # reads a batch of two
         self.meta = meta
+        self.backend = backend
+        self.path = path
         self.reading: str = "single"
+        # heatmap logit shifts that put the operating point at 0.5, with and without a depth image
         self.score_bias = float(meta.get("score_bias", 0.0))
         self.score_bias_without_depth = float(meta.get("score_bias_without_depth", self.score_bias))
+        # how hard the verification and the depth check count in a score
         refiner = meta.get("refiner") or {}
         self.verify_power = float(refiner.get("verify_power", 1.0))
         self.verify_power_with_depth = float(refiner.get("verify_power_with_depth", self.verify_power))
-        self.backend = backend
-        self.path = path
-        self._rays: dict[tuple, np.ndarray] = {}
+        self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
         self.refiner: Refiner | None = None
         self.depth_check: DepthCheck | None = None
-        self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
         self.crossing_point: CrossingPoint | None = None
         self.line_check: LineCheck | None = None
-        focal = meta.get("focal_px")
-        self.focal_px: float | None = float(focal) if focal else None
+        self.focal_px: float | None = float(meta["focal_px"]) if meta.get("focal_px") else None
         self.resample = True
         self.flatten_behind = False
 
@@ -165,16 +122,12 @@ class Detector:
         path: str | Path | None = None,
         *,
         threads: int = 2,
-        line_check: bool = True,
         runtime: str = "auto",
         reading: str = "mirrored",
     ) -> Detector:
-        """Load a ``.onnx`` model file with its later stages (None: the shipped model; a run folder: its best).
-
-        ``line_check`` False leaves the line check out; ``runtime`` is "auto", "onnxruntime" or "openvino"
-        (:mod:`~rebar_data.perception.inference.model_file`).
-        """
-        check_reading(reading)
+        """Load a ``.onnx`` model file with its later stages (None: the shipped model; a run folder: its
+        best); ``runtime``: "auto", "onnxruntime" or "openvino" (:mod:`.model_file`)."""
+        accepted("reading", reading, READINGS)
         p = resolve_model_path(path)
         if p.suffix != ".onnx":
             raise ConfigError(
@@ -188,7 +141,7 @@ class Detector:
 
         def run_batch(images: np.ndarray, rays: np.ndarray) -> np.ndarray:
             feed = {names[0]: images}
-            if len(names) > 1:
+            if len(names) > 1:  # a first stage with ray channels
                 feed[names[1]] = rays
             return sess.run(None, feed)[0]
 
@@ -199,29 +152,25 @@ class Detector:
             path=p,
         )
         det._run_pair = run_batch if runtime == "openvino" else None  # compiled for two; ONNX Runtime: one
-        det.refiner = load_refiner(p, det.meta, threads, runtime)
-        det.depth_check = load_depth_check(p, det.meta, threads, runtime)
-        det.crossing_point = load_crossing_point(p, det.meta, threads, runtime)
-        det.attach_line_check(line_check)
+        det.refiner, det.depth_check, det.crossing_point = load_stages(p, det.meta, threads, runtime)
+        det.attach_line_check()
         det.reading = reading
         return det
 
     def attach_line_check(self, wanted: bool = True) -> None:
         """Load the line check the model's meta names (``wanted``: False leaves it out)."""
-        entry = self.meta.get("line_check")
-        if wanted and entry:
-            self.line_check = LineCheck.from_meta(entry, str(self.path))
+        if wanted and self.meta.get("line_check"):
+            self.line_check = LineCheck.from_meta(self.meta["line_check"], str(self.path))
 
     @contextmanager
     def first_stage_only(self) -> Iterator[Detector]:
         """Within the block, ``detect`` gives the first stage's detections alone."""
-        refiner, self.refiner = self.refiner, None
-        depth_check, self.depth_check = self.depth_check, None
-        line_check, self.line_check = self.line_check, None
+        stages = self.refiner, self.depth_check, self.line_check
+        self.refiner = self.depth_check = self.line_check = None
         try:
             yield self
         finally:
-            self.refiner, self.depth_check, self.line_check = refiner, depth_check, line_check
+            self.refiner, self.depth_check, self.line_check = stages
 
     @contextmanager
     def flattening(self) -> Iterator[Detector]:
@@ -238,40 +187,32 @@ class Detector:
         return f, f, width / 2.0, height / 2.0
 
     def _camera(self, image: np.ndarray, camera: Camera | None) -> Camera:
-        return (
-            tuple(float(c) for c in camera) if camera is not None else self.default_camera(*image.shape[:2])
-        )
-
-    def _ray_grid(self, height: int, width: int, camera: Camera) -> np.ndarray:
-        key = (height, width, *camera)
-        if key not in self._rays:
-            if len(self._rays) > 8:
-                self._rays.clear()
-            self._rays[key] = ray_grid(height, width, camera)
-        return self._rays[key]
+        if camera is None:
+            return self.default_camera(*image.shape[:2])
+        return tuple(float(c) for c in camera)
 
     def raw(self, rgb: np.ndarray, *, camera: Camera | None = None) -> np.ndarray:
         """The first stage's (3, ceil(H/4), ceil(W/4)) output: heatmap logit and offsets (mirrored reading:
         the mean of the image's and its mirror image's, turned back)."""
+        accepted("reading", self.reading, READINGS)
         image = _check_image(rgb)
         h, w = image.shape[:2]
-        camera = self._camera(image, camera)
+        fx, fy, cx, cy = camera = self._camera(image, camera)
         ph, pw = -h % INPUT_MULTIPLE, -w % INPUT_MULTIPLE
         if ph or pw:
             image = np.pad(image, ((0, ph), (0, pw), (0, 0)))
-        rays = self._ray_grid(h + ph, w + pw, camera)
-        if check_reading(self.reading) == "mirrored":
+        rays = ray_grid(h + ph, w + pw, camera)
+        if self.reading == "mirrored":
             mirror = cv2.flip(image, 1)
-            mirror_rays = self._ray_grid(h + ph, w + pw, mirrored_camera(camera, w + pw))
+            mirror_rays = ray_grid(h + ph, w + pw, (fx, fy, w + pw - cx, cy))
             if self._run_pair is not None:
                 out, mirrored = self._run_pair(np.stack([image, mirror]), np.stack([rays, mirror_rays]))
             else:
                 out, mirrored = self._run(image, rays), self._run(mirror, mirror_rays)
             mirrored = mirrored[:, :, ::-1]
             mean = 0.5 * (out + mirrored)
-            mean[1] = 0.5 * (
-                out[1] - mirrored[1]
-            )  # a column offset read in the mirror image points the other way
+            # a column offset read in the mirror image points the other way
+            mean[1] = 0.5 * (out[1] - mirrored[1])
             out = mean
         else:
             out = self._run(image, rays)
@@ -284,28 +225,17 @@ class Detector:
         threshold: float = OPERATING_THRESHOLD,
         camera: Camera | None = None,
         depth: np.ndarray | None = None,
-        max_detections: int = 1000,
         point: str = "sight",
     ) -> np.ndarray:
-        """Crossings in an RGB image.
-
-        Args:
-            rgb: (H, W, 3) uint8 RGB image, any size.
-            threshold: Lowest score returned.
-            camera: Intrinsics (fx, fy, cx, cy); None: :meth:`default_camera`. A frame whose focal length is
-                not the trained one is read resized to it (``resample``).
-            depth: The registered depth image, (H, W) float metres or uint16 millimetres (0 = none), for the
-                depth check; None: the RGB stages and the line check.
-            max_detections: Most crossings returned.
-            point: ``"sight"``, where the image shows the bars cross (the labels), or ``"crossing"``, where
-                the 3D crossing point projects (the crossing-point stage).
-
-        Returns:
-            (N, 3) float64 u, v, score, best first, in the image's pixels.
-        """
+        """(N, 3) float64 u, v, score of the crossings in an (H, W, 3) uint8 RGB image, best first, scoring
+        ``threshold`` or more. ``camera``: (fx, fy, cx, cy), None: :meth:`default_camera`. ``depth``: the
+        registered depth image, (H, W) float metres or uint16 millimetres (0 = none), for the depth check;
+        None: the line check. ``point``: "sight", where the image shows the bars cross, or "crossing", where
+        the 3D crossing point projects."""
         if not 0.0 < threshold < 1.0:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
-        if check_point(point) == "crossing" and self.crossing_point is None:
+        accepted("point", point, POINTS)
+        if point == "crossing" and self.crossing_point is None:
             raise ConfigError(
                 f"{self.path or 'this detector'}: has no crossing-point stage; accepted: point='sight', or a "
                 "model trained with one (crossing_point: {enabled: true}, as `make train` ships)"
@@ -314,50 +244,32 @@ class Detector:
         h, w = image.shape[:2]
         camera = self._camera(image, camera)
         depth_m = as_depth_m(depth, (h, w)) if depth is not None else None
-        scale = focal_scale(self.focal_px, camera) if self.resample else 1.0
-        if scale == 1.0:
-            return self._detect_as_is(image, camera, depth_m, threshold, max_detections, point)
-        size = resampled_size(h, w, scale)
-        sx, sy = size[1] / w, size[0] / h
-        det = self._detect_as_is(
-            resample(image, size),
-            scaled_camera(camera, sx, sy),
-            None if depth_m is None else resample(depth_m, size, nearest=True),
-            threshold,
-            max_detections,
-            point,
-        )
-        det[:, 0] /= sx
-        det[:, 1] /= sy
-        return det
-
-    def _detect_as_is(
-        self,
-        image: np.ndarray,
-        camera: Camera,
-        depth_m: np.ndarray | None,
-        threshold: float,
-        max_detections: int,
-        point: str,
-    ) -> np.ndarray:
-        h, w = image.shape[:2]
-        checked = depth_m is not None and self.depth_check is not None
+        sx = sy = 1.0
+        if (
+            self.resample and (scale := focal_scale(self.focal_px, camera)) != 1.0
+        ):  # read at the trained scale
+            h, w = max(1, round(h * scale)), max(1, round(w * scale))
+            sx, sy = w / image.shape[1], h / image.shape[0]
+            image, camera = resample(image, (h, w)), scaled_camera(camera, sx, sy)
+            depth_m = None if depth_m is None else resample(depth_m, (h, w), nearest=True)
         as_it_comes = image  # what the crossing-point stage trained on
         if depth_m is not None and self.flatten_behind:
             image = flatten_behind(image, depth_m)
         out = self.raw(image, camera=camera)
-        if self.line_check is not None and not checked:
+        if self.line_check is not None and (depth_m is None or self.depth_check is None):
             lc = self.line_check
-            seen = self._line_pass(image, out, lc.floor, lc.checked_from, lc, threshold, max_detections)
+            seen = self._line_pass(image, out, lc.floor, lc.checked_from, lc, threshold)
             det = np.c_[seen.placed, seen.scores]
         else:
-            det = self._rgb_and_depth(image, out, depth_m, threshold, max_detections)
+            det = self._rgb_and_depth(image, out, depth_m, threshold)
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
         det = drop_duplicates(det[inside], DUPLICATE_PX)
         if point == "crossing" and len(det):
             det[:, :2] = self.crossing_point.points(as_it_comes, det[:, :2], camera)
+        det[:, 0] /= sx
+        det[:, 1] /= sy
         return det
 
     def _rgb_and_depth(
@@ -366,20 +278,19 @@ class Detector:
         out: np.ndarray,
         depth_m: np.ndarray | None,
         threshold: float,
-        max_detections: int,
     ) -> np.ndarray:
         """(N, 3) u, v, score from the first stage's output ``out``, the second stage and, given ``depth_m``,
         the depth check; unsorted, some under ``threshold``."""
         checked = depth_m is not None and self.depth_check is not None
         bias = self.score_bias if checked else self.score_bias_without_depth
-        det = decode(out[0] + bias, out[1:], threshold=threshold, max_detections=max_detections)
+        det = decode(out[0] + bias, out[1:], threshold=threshold)
         log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing
         if self.refiner is not None and len(det):
             det[:, :2], verify = self.refiner.refine_and_verify(
                 image,
                 det[:, :2],
                 keep=lambda logit: self._may_reach(det[:, 2], logit, threshold, checked=checked, bias=bias),
-                **self._refiner_reading(),
+                mirrored=self.reading == "mirrored",
             )
             if verify is not None:
                 log_p = log_probability(verify)
@@ -397,10 +308,10 @@ class Detector:
     def line_inputs(
         self, rgb: np.ndarray, floor: float, checked_from: float, *, camera: Camera | None = None
     ) -> LineInputs:
-        """What a line check with these first-stage scores reads in an image without depth (for fitting one)."""
+        """What a line check with these first-stage scores reads in an image without depth (to fit one)."""
         image = _check_image(rgb)
         out = self.raw(image, camera=self._camera(image, camera))
-        return self._line_pass(image, out, floor, checked_from, None, floor, 1000)
+        return self._line_pass(image, out, floor, checked_from, None, floor)
 
     def _line_pass(
         self,
@@ -410,14 +321,11 @@ class Detector:
         checked_from: float,
         check: LineCheck | None,
         threshold: float,
-        max_detections: int,
     ) -> LineInputs:
         """The RGB stages and the line check ``check`` (None: none) on the first stage's output ``out``: the
         candidates scoring ``floor`` or more inside the frame are evidence, those scoring ``checked_from`` or
         more are verified and checked; the later passes move those the check scores ``threshold`` or more."""
-        det = decode(
-            out[0] + self.score_bias_without_depth, out[1:], threshold=floor, max_detections=max_detections
-        )
+        det = decode(out[0] + self.score_bias_without_depth, out[1:], threshold=floor)
         h, w = image.shape[:2]
         det = det[(det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)]
         evidence = det[:, 2].copy()
@@ -439,7 +347,7 @@ class Detector:
         if self.refiner is not None and len(checked):
             keep = None if check is None else (lambda logit: read(logit) >= threshold)
             placed, verify = self.refiner.refine_and_verify(
-                image, placed, keep=keep, **self._refiner_reading()
+                image, placed, keep=keep, mirrored=self.reading == "mirrored"
             )
             if not scores:
                 read(verify)
@@ -447,16 +355,11 @@ class Detector:
             read(None)
         return LineInputs(det[:, :2], evidence, checked, placed, scores[-1])
 
-    def _refiner_reading(self) -> dict[str, Any]:
-        if check_reading(self.reading) == "mirrored":
-            return {"later_views": MIRRORED_LATER_VIEWS, "int8_first_pass": True}
-        return {}
-
     def _may_reach(
         self, score: np.ndarray, verify_logit: np.ndarray, threshold: float, *, checked: bool, bias: float
     ) -> np.ndarray:
-        """Which first-stage detections (``score``, read with ``bias``) can still reach ``threshold`` once the
-        verification ``verify_logit`` counts, whatever the depth check says: the later passes move only these."""
+        """Which first-stage detections (``score``, read with ``bias``) can reach ``threshold`` once the
+        verification ``verify_logit`` counts, whatever the depth check says: the later passes move them."""
         log_p = log_probability(verify_logit)
         best = self.verify_power * log_p
         if checked:
@@ -464,9 +367,8 @@ class Detector:
                 self.verify_power_with_depth * log_p,
                 self.score_bias_without_depth - bias + self.verify_power * log_p,
             )
-        return (
-            shifted_score(score, best + 1e-6) >= threshold
-        )  # a hair above: rounding spares none that reach it
+        # a hair above: rounding spares none that reach it
+        return shifted_score(score, best + 1e-6) >= threshold
 
 
 @dataclass(frozen=True)
@@ -507,7 +409,7 @@ def shifted_score(score: np.ndarray, shift: float | np.ndarray) -> np.ndarray:
 
 
 def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:
-    """sigmoid(logit(score) + power * log p), p = sigmoid(``verify_logit``): a score lowered by a verification."""
+    """sigmoid(logit(score) + power * log sigmoid(``verify_logit``)): a score lowered by a verification."""
     return shifted_score(score, power * log_probability(verify_logit))
 
 

@@ -6,11 +6,11 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-# a frame whose focal length is within this share of the trained one is read as it comes
-TOLERANCE = 0.15
+TOLERANCE = 0.15  # a frame whose focal length is within this share of the trained one is read as it comes
+Camera = tuple[float, float, float, float]  # fx, fy, cx, cy in pixels
 
 
-def focal_scale(trained_focal_px: float | None, camera: tuple[float, float, float, float]) -> float:
+def focal_scale(trained_focal_px: float | None, camera: Camera) -> float:
     """The factor that brings ``camera``'s focal length to ``trained_focal_px``; 1 when that is unknown or
     within :data:`TOLERANCE`."""
     if not trained_focal_px:
@@ -22,11 +22,6 @@ def focal_scale(trained_focal_px: float | None, camera: tuple[float, float, floa
     return 1.0 if abs(scale - 1.0) <= TOLERANCE else scale
 
 
-def resampled_size(height: int, width: int, scale: float) -> tuple[int, int]:
-    """(height, width) of a frame resized by ``scale``, at least one pixel each way."""
-    return max(1, round(height * scale)), max(1, round(width * scale))
-
-
 def resample(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False) -> np.ndarray:
     """``image`` resized to ``size`` (height, width): area averaging to shrink, bilinear to grow, the
     nearest pixel with ``nearest`` (depth)."""
@@ -35,9 +30,7 @@ def resample(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False)
     return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_NEAREST if nearest else smooth)
 
 
-def scaled_camera(
-    camera: tuple[float, float, float, float], sx: float, sy: float
-) -> tuple[float, float, float, float]:
+def scaled_camera(camera: Camera, sx: float, sy: float) -> Camera:
     """The intrinsics of a frame resized by ``sx`` across and ``sy`` down."""
     fx, fy, cx, cy = camera
     return fx * sx, fy * sy, cx * sx, cy * sy
@@ -77,7 +70,7 @@ def front_depth(depth_m: np.ndarray) -> np.ndarray:
 
 
 def behind_mask(depth_m: np.ndarray) -> np.ndarray:
-    """(H, W) bool: the measured pixels of ``depth_m`` lying more than ``GAP_M`` behind :func:`front_depth`."""
+    """(H, W) bool: the measured pixels of ``depth_m`` more than ``GAP_M`` behind :func:`front_depth`."""
     d = np.asarray(depth_m, np.float32)
     return (d > 0) & (d > front_depth(d) + np.float32(GAP_M))
 

@@ -10,9 +10,9 @@ from __future__ import annotations
 import hashlib
 import threading
 from collections.abc import Callable
-from dataclasses import dataclass
 from functools import cache
 from pathlib import Path
+from types import SimpleNamespace
 from typing import Any, Literal, get_args
 
 import numpy as np
@@ -25,6 +25,9 @@ Runtime = Literal["auto", "onnxruntime", "openvino"]
 RUNTIMES: tuple[str, ...] = get_args(Runtime)
 SHAPES_KEPT = 4  # image shapes OpenVINO compiles the first stage for; one compile with them free serves more
 BATCH_STEP = 8  # a batch of patches is padded to a multiple of this (a new batch size costs OpenVINO a plan)
+FORMAT = "rebar-keypoint"
+FORMAT_VERSION = 1
+META_KEY = "rebar_keypoint"
 
 
 def onnx_session(path: Path, threads: int, runtime: str = "onnxruntime"):
@@ -43,8 +46,7 @@ def onnx_session(path: Path, threads: int, runtime: str = "onnxruntime"):
     so.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     so.graph_optimization_level = ort.GraphOptimizationLevel.ORT_ENABLE_ALL
     so.log_severity_level = 3
-    # threads sleep between runs: spinning doubled the latency beside the simulator on 2 cores
-    so.add_session_config_entry("session.intra_op.allow_spinning", "0")
+    so.add_session_config_entry("session.intra_op.allow_spinning", "0")  # threads sleep between runs
     try:
         return ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
     except Exception as e:
@@ -88,19 +90,6 @@ def _openvino_core() -> Any:
         return None
 
 
-@dataclass(frozen=True)
-class _Arg:
-    """An input or output as ONNX Runtime's ``NodeArg`` names it: free dimensions are strings."""
-
-    name: str
-    shape: list[int | str]
-
-
-@dataclass(frozen=True)
-class _Meta:
-    custom_metadata_map: dict[str, str]
-
-
 class OpenVinoSession:
     """An ONNX file compiled by OpenVINO for the CPU, answering the calls made of an ONNX Runtime session.
 
@@ -111,15 +100,13 @@ class OpenVinoSession:
     def __init__(self, path: Path, threads: int):
         import onnx
 
-        core = _openvino_core()
         try:
-            self._model = core.read_model(str(path))
+            self._model = _openvino_core().read_model(str(path))
             proto = onnx.load(str(path), load_external_data=False)
         except Exception as e:
             raise ConfigError(f"{path}: cannot be loaded as an ONNX model ({type(e).__name__})") from None
-        self._meta = _Meta({p.key: p.value for p in proto.metadata_props})
-        self._inputs = [_arg(v) for v in proto.graph.input]
-        self._outputs = [_arg(v) for v in proto.graph.output]
+        self._meta = SimpleNamespace(custom_metadata_map={p.key: p.value for p in proto.metadata_props})
+        self._inputs, self._outputs = _args(proto.graph.input), _args(proto.graph.output)
         self._config = {
             "INFERENCE_NUM_THREADS": threads,
             "PERFORMANCE_HINT": "LATENCY",
@@ -140,58 +127,57 @@ class OpenVinoSession:
         compiled = _openvino_core().compile_model(model, "CPU", self._config)
         return compiled, compiled.create_infer_request()
 
-    def get_inputs(self) -> list[_Arg]:
+    def get_inputs(self) -> list[SimpleNamespace]:
         return self._inputs
 
-    def get_outputs(self) -> list[_Arg]:
+    def get_outputs(self) -> list[SimpleNamespace]:
         return self._outputs
 
-    def get_modelmeta(self) -> _Meta:
+    def get_modelmeta(self) -> SimpleNamespace:
         return self._meta
 
     def run(self, output_names: None, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
         """Every output for ``feed`` (``output_names`` must be None: all of them, in the file's order)."""
         with self._lock:
-            return self._run(feed)
-
-    def _run(self, feed: dict[str, np.ndarray]) -> list[np.ndarray]:
-        key = tuple((k, v.shape) for k, v in feed.items()) if self._per_shape else ()
-        if key not in self._compiled:
-            if len(self._compiled) >= SHAPES_KEPT:
-                key = ()  # one compile with the free dimensions left free serves every other shape
+            key = tuple((k, v.shape) for k, v in feed.items()) if self._per_shape else ()
             if key not in self._compiled:
-                model = self._model.clone()
-                if key:
-                    model.reshape({k: list(v.shape) for k, v in feed.items()})
-                else:  # any shape, any batch: the detector reads a frame and its mirror image in one call
-                    model.reshape({i.any_name: _batch_free(i.get_partial_shape()) for i in model.inputs})
-                self._compiled[key] = self._compile(model)
-        compiled, request = self._compiled[key]
-        n = pad = 0
-        if self._padded:
+                if len(self._compiled) >= SHAPES_KEPT:
+                    key = ()  # one compile with the free dimensions left free serves every other shape
+                if key not in self._compiled:
+                    model = self._model.clone()
+                    if key:
+                        model.reshape({k: list(v.shape) for k, v in feed.items()})
+                    else:  # any shape, any batch: the detector reads a frame and its mirror image in one call
+                        from openvino import Dimension, PartialShape
+
+                        free = {
+                            i.any_name: [Dimension(), *list(i.get_partial_shape())[1:]] for i in model.inputs
+                        }
+                        model.reshape({k: PartialShape(v) for k, v in free.items()})
+                    self._compiled[key] = self._compile(model)
+            compiled, request = self._compiled[key]
             n = len(next(iter(feed.values())))
-            pad = -n % BATCH_STEP
-        if pad:
-            feed = {k: np.concatenate([v, np.zeros((pad, *v.shape[1:]), v.dtype)]) for k, v in feed.items()}
-        out = request.infer(feed, share_inputs=True)  # read in place: no copy of the image or patches
-        return [np.array(out[o][:n] if pad else out[o]) for o in compiled.outputs]
+            pad = -n % BATCH_STEP if self._padded else 0
+            if pad:
+                feed = {
+                    k: np.concatenate([v, np.zeros((pad, *v.shape[1:]), v.dtype)]) for k, v in feed.items()
+                }
+            out = request.infer(feed, share_inputs=True)  # read in place: no copy of the image or patches
+            return [np.array(out[o][:n] if pad else out[o]) for o in compiled.outputs]
 
 
-def _batch_free(shape: Any) -> Any:
-    """An OpenVINO input shape with its first dimension (the batch) left free."""
-    import openvino
-
-    return openvino.PartialShape([openvino.Dimension(), *list(shape)[1:]])
-
-
-def _arg(value: Any) -> _Arg:
-    dims = value.type.tensor_type.shape.dim
-    return _Arg(value.name, [d.dim_value if d.HasField("dim_value") else (d.dim_param or "?") for d in dims])
-
-
-FORMAT = "rebar-keypoint"
-FORMAT_VERSION = 1
-META_KEY = "rebar_keypoint"
+def _args(values: Any) -> list[SimpleNamespace]:
+    """ONNX graph inputs or outputs as ONNX Runtime's ``NodeArg`` names them: free dimensions are strings."""
+    return [
+        SimpleNamespace(
+            name=v.name,
+            shape=[
+                d.dim_value if d.HasField("dim_value") else (d.dim_param or "?")
+                for d in v.type.tensor_type.shape.dim
+            ],
+        )
+        for v in values
+    ]
 
 
 def sha256_file(path: Path) -> str:
@@ -225,12 +211,7 @@ def stage_files(model: Path) -> list[Path]:
 
 
 def stage_file(
-    model: Path,
-    meta: dict[str, Any],
-    key: str,
-    beside: Callable[[Path], Path],
-    *,
-    sha_key: str = "sha256",
+    model: Path, meta: dict[str, Any], key: str, beside: Callable[[Path], Path], *, sha_key: str = "sha256"
 ) -> tuple[Path, dict[str, Any]] | None:
     """The file (``beside(model)``) and meta entry of the stage ``model``'s meta names under ``key`` (None:
     none); ConfigError unless the file is there with the SHA-256 under ``sha_key``."""
@@ -251,57 +232,42 @@ def stage_file(
     return path, entry
 
 
-def load_refiner(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> Refiner | None:
-    """The second stage ``model``'s meta names (None: none), with its int8 copy where it has one."""
-    found = stage_file(model, meta, "refiner", refiner_path)
-    if found is None:
-        return None
-    path, entry = found
-    int8 = None
-    if entry.get("quantize") == "later":
-        int8, _ = stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
-    return read_refiner(path, threads=threads, runtime=runtime, int8_path=int8, **refiner_passes(entry))
-
-
-def load_depth_check(model: Path, meta: dict[str, Any], threads: int, runtime: str) -> DepthCheck | None:
-    """The depth check ``model``'s meta names (None: none)."""
-    found = stage_file(model, meta, "depth_check", depth_check_path)
-    if found is None:
-        return None
-    path, entry = found
-    return read_depth_check(
-        path, threads=threads, scale_m=float(entry["scale_m"]), clip=float(entry["clip"]), runtime=runtime
-    )
-
-
-def load_crossing_point(
-    model: Path, meta: dict[str, Any], threads: int, runtime: str
-) -> CrossingPoint | None:
-    """The crossing-point stage ``model``'s meta names (None: none)."""
-    found = stage_file(model, meta, "crossing_point", crossing_point_path)
-    return None if found is None else read_crossing_point(found[0], threads=threads, runtime=runtime)
-
-
 def refiner_passes(entry: dict[str, Any]) -> dict[str, Any]:
     """How the second stage's passes run, as its meta entry says."""
-    views = int(entry.get("views", 1))
     return {
-        "iterations": int(entry.get("iterations", 1)),
-        "views": views,
-        "first_pass_views": int(entry.get("first_pass_views", views)),
-        "step": float(entry.get("step", 1.0)),
+        "iterations": int(entry["iterations"]),
+        "views": int(entry["views"]),
+        "first_pass_views": int(entry.get("first_pass_views", entry["views"])),
+        "step": float(entry["step"]),
         "shrink_above_px": entry.get("shrink_above_px"),
     }
 
 
-def _one_input(path: Path, threads: int, runtime: str, size_axis: int, what: str):
-    """A session of a one-input stage file, a call of it, and its fixed patch size."""
+def load_stages(
+    model: Path, meta: dict[str, Any], threads: int, runtime: str
+) -> tuple[Refiner | None, DepthCheck | None, CrossingPoint | None]:
+    """The second stage (with its int8 copy where it has one), the depth check and the crossing-point stage
+    ``model``'s meta names; None for each it does not."""
+    refiner = depth = crossing = None
+    if found := stage_file(model, meta, "refiner", refiner_path):
+        int8 = None
+        if found[1].get("quantize") == "later":
+            int8, _ = stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
+        passes = refiner_passes(found[1])
+        refiner = read_refiner(found[0], threads=threads, runtime=runtime, int8_path=int8, **passes)
+    if found := stage_file(model, meta, "depth_check", depth_check_path):
+        scale_m, clip = float(found[1]["scale_m"]), float(found[1]["clip"])
+        depth = read_depth_check(found[0], threads=threads, scale_m=scale_m, clip=clip, runtime=runtime)
+    if found := stage_file(model, meta, "crossing_point", crossing_point_path):
+        crossing = read_crossing_point(found[0], threads=threads, runtime=runtime)
+    return refiner, depth, crossing
+
+
+def _patch_stage(path: Path, threads: int, runtime: str, size_axis: int) -> tuple[Any, Callable, int]:
+    """A session of a one-input patch stage's file, a call of it, and its patch size."""
     sess = onnx_session(path, threads, runtime)
     name = sess.get_inputs()[0].name
-    size = sess.get_inputs()[0].shape[size_axis]
-    if not isinstance(size, int):
-        raise ConfigError(f"{path}: is not a {what} file (its patch size is not fixed)")
-    return sess, lambda x: sess.run(None, {name: x})[0], size
+    return sess, lambda x: sess.run(None, {name: x})[0], sess.get_inputs()[0].shape[size_axis]
 
 
 def read_refiner(
@@ -316,22 +282,9 @@ def read_refiner(
     int8_path: Path | None = None,
     runtime: str = "onnxruntime",
 ) -> Refiner:
-    """The second stage in an ONNX file; ``int8_path``, an int8 copy for the later passes, runs in ONNX Runtime."""
-    sess, run, size = _one_input(path, threads, runtime, 1, "refiner")
-    int8_run = None
-    if int8_path is not None:
-        int8, int8_run, _ = _one_input(int8_path, threads, "onnxruntime", 1, "refiner")
-        signature = (sess.get_inputs()[0].shape, sess.get_outputs()[0].shape)
-        if (int8.get_inputs()[0].shape, int8.get_outputs()[0].shape) != signature:
-            raise ConfigError(
-                f"{int8_path}: takes or gives other shapes than {path.name}; accepted: the int8 copy "
-                f"written from it by `rebar train` (quantize: later)"
-            )
-    if sess.get_inputs()[0].shape[-1] != 4:  # RGB and the border mask
-        raise ConfigError(
-            f"{path}: does not take RGB and the border mask; accepted: the refiner file written with its "
-            "model file by `rebar train`"
-        )
+    """The second stage in an ONNX file; ``int8_path``: an int8 copy for the later passes (ONNX Runtime)."""
+    sess, run, size = _patch_stage(path, threads, runtime, 1)
+    int8_run = None if int8_path is None else _patch_stage(int8_path, threads, "onnxruntime", 1)[1]
     columns = sess.get_outputs()[0].shape[-1]  # offsets, then the verification logit, then the log box side
     return Refiner(
         run,
@@ -349,16 +302,13 @@ def read_refiner(
 
 def read_crossing_point(path: Path, *, threads: int, runtime: str = "onnxruntime") -> CrossingPoint:
     sess = onnx_session(path, threads, runtime)
-    inputs = sess.get_inputs()
-    size = inputs[0].shape[1]
-    if len(inputs) != 2 or not isinstance(size, int):
-        raise ConfigError(f"{path}: is not a crossing-point file (it takes no patches and rays)")
-    names = [i.name for i in inputs]
-    return CrossingPoint(lambda x, rays: sess.run(None, {names[0]: x, names[1]: rays})[0], patch_px=size)
+    patches, rays = (i.name for i in sess.get_inputs())
+    size = sess.get_inputs()[0].shape[1]
+    return CrossingPoint(lambda x, r: sess.run(None, {patches: x, rays: r})[0], patch_px=size)
 
 
 def read_depth_check(
     path: Path, *, threads: int, scale_m: float, clip: float, runtime: str = "onnxruntime"
 ) -> DepthCheck:
-    _, run, size = _one_input(path, threads, runtime, -1, "depth-check")
+    _, run, size = _patch_stage(path, threads, runtime, -1)
     return DepthCheck(run, patch_px=size, scale_m=scale_m, clip=clip)

@@ -1,8 +1,5 @@
-"""The patch stages: small networks reading the full-resolution patch around each detection.
-
-:class:`Refiner` (the second stage) moves each detection onto its crossing and gives the logit that the patch
-shows one; :class:`CrossingPoint` gives where each detection's 3D crossing point projects.
-"""
+"""The patch stages: :class:`Refiner` (the second stage) moves each detection onto its crossing and verifies
+it; :class:`CrossingPoint` gives where each detection's 3D crossing point projects."""
 
 from __future__ import annotations
 
@@ -13,6 +10,7 @@ import cv2
 import numpy as np
 
 from rebar_data.errors import ConfigError
+from rebar_data.perception.inference.image import Camera
 
 BORDERS = ("mirror", "mask")  # how a patch shows what lies beyond the image's border
 # (flip rows, flip columns, swap axes) in the order ``views`` takes them; exact about a patch's centre corner
@@ -28,57 +26,28 @@ SYMMETRIES = (
 )
 VIEWS = (1, 2, 4, 8)
 SHRINKS = (1.0, 0.75, 0.5)  # a later pass's resolution by the crossing's size against ``shrink_above_px``
-POINTS = ("sight", "crossing")  # what a detection's pixel stands for
 
 
-def _accepted(name: str, value, accepted: tuple) -> None:
-    """ConfigError naming ``name`` unless ``value`` is one of ``accepted``."""
-    if value not in accepted:
+def accepted(name: str, value, choices: tuple) -> None:
+    """ConfigError naming ``name`` unless ``value`` is one of ``choices``."""
+    if value not in choices:
         shown = repr(value) if isinstance(value, str) else value
         raise ConfigError(
-            f"{name} = {shown} is not accepted; accepted: one of {', '.join(map(str, accepted))}"
+            f"{name} = {shown} is not accepted; accepted: one of {', '.join(map(str, choices))}"
         )
-
-
-def check_point(point: str) -> str:
-    """``point`` if it is one of :data:`POINTS`, else ConfigError."""
-    _accepted("point", point, POINTS)
-    return point
-
-
-def turned(x: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
-    """Patches (N, P, P, C) under one of :data:`SYMMETRIES`."""
-    rows, cols, swap = symmetry
-    y = x[:, ::-1] if rows else x
-    y = y[:, :, ::-1] if cols else y
-    return y.transpose(0, 2, 1, 3) if swap else y
-
-
-def turned_back(offset: np.ndarray, symmetry: tuple[bool, bool, bool]) -> np.ndarray:
-    """(N, 2) offsets (du, dv) read in patches under ``symmetry``, in the original patches' axes."""
-    rows, cols, swap = symmetry
-    d = offset[:, ::-1] if swap else offset
-    return d * np.array([-1.0 if cols else 1.0, -1.0 if rows else 1.0])
 
 
 def patches(
     image: np.ndarray, centres: np.ndarray, size: int, *, border: str = "mirror"
 ) -> tuple[np.ndarray, np.ndarray]:
-    """``size`` x ``size`` patches of ``image`` centred on the pixel corner nearest each (u, v) of ``centres``.
-
-    Beyond the border the pixels are mirrored (``"mirror"``), or 0 with a fourth channel, 255 on the image
-    and 0 beyond it (``"mask"``, for an (H, W, 3) uint8 image).
-
-    Returns:
-        (N, size, size[, C]) patches of the image's type and (N, 2) the corners they are centred on.
-    """
-    _accepted("border", border, BORDERS)
+    """(N, size, size[, C]) patches of ``image`` centred on the pixel corner nearest each (u, v) of
+    ``centres``, and (N, 2) those corners. Beyond the border the pixels are mirrored (``"mirror"``), or 0 with
+    a fourth channel, 255 on the image and 0 beyond it (``"mask"``, for an (H, W, 3) uint8 image)."""
+    accepted("border", border, BORDERS)
     centres = np.asarray(centres, float).reshape(-1, 2)
     h, w = image.shape[:2]
     half = size // 2
     corners = np.clip(np.floor(centres + 0.5), 0, [w, h]).astype(np.int64)
-    if border == "mask" and (image.ndim != 3 or image.shape[2] != 3 or image.dtype != np.uint8):
-        raise ConfigError(f"a masked patch needs an (H, W, 3) uint8 image, not {image.shape} {image.dtype}")
     mode = cv2.BORDER_CONSTANT if border == "mask" else cv2.BORDER_REFLECT
     padded = cv2.copyMakeBorder(image, half, half, half, half, mode, value=0)
     windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size), axis=(0, 1))
@@ -99,27 +68,21 @@ def patches(
     return out, corners.astype(np.float64)
 
 
-def _shrunk_size(h: int, w: int, scale: float) -> tuple[int, int]:
-    return max(1, round(w / scale)), max(1, round(h / scale))
-
-
 def shrunk(image: np.ndarray, scale: float) -> tuple[np.ndarray, np.ndarray]:
-    """``image`` shrunk ``scale`` times (area averaging), and the (2,) factors from its (u, v) to the shrunk one's."""
+    """``image`` shrunk ``scale`` times (area averaging), and the (2,) factors from its (u, v) to the new."""
     h, w = image.shape[:2]
-    size = _shrunk_size(h, w, scale)
+    size = max(1, round(w / scale)), max(1, round(h / scale))
     return cv2.resize(image, size, interpolation=cv2.INTER_AREA), np.array([size[0] / w, size[1] / h])
 
 
 def shrunk_around(
     image: np.ndarray, centres: np.ndarray, scale: float, size: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`shrunk`, worked out only where ``size`` patches around ``centres`` read it (0 elsewhere).
-
-    Area averaging at a factor p / q maps each q x q block to a p x p block on its own, so each patch's region,
-    widened to whole blocks, is resized alone; where the factor is not such a ratio the whole image is shrunk.
-    """
+    """:func:`shrunk`, worked out only where ``size`` patches around ``centres`` read it (0 elsewhere): area
+    averaging at a factor p / q maps each q x q block to a p x p block, so each patch's region, widened to
+    whole blocks, is resized alone; where the factor is no such ratio the whole image is shrunk."""
     h, w = image.shape[:2]
-    out_w, out_h = _shrunk_size(h, w, scale)
+    out_w, out_h = max(1, round(w / scale)), max(1, round(h / scale))
     factors = np.array([out_w / w, out_h / h])
     ratio = Fraction(out_w, w).limit_denominator(16)
     p, q = ratio.numerator, ratio.denominator
@@ -127,8 +90,6 @@ def shrunk_around(
         return shrunk(image, scale)
     canvas = np.zeros((out_h, out_w) + image.shape[2:], image.dtype)
     centres = np.asarray(centres, float).reshape(-1, 2)
-    if not len(centres):
-        return canvas, factors
     half = size // 2
     corners = np.clip(np.floor(centres * factors + 0.5), 0, [out_w, out_h]).astype(np.int64)
     lo = np.clip(corners - half, 0, None) // p * p
@@ -143,14 +104,10 @@ def shrunk_around(
 
 class Refiner:
     """The second stage: ``refine_and_verify(image, uv)`` moves each point onto its crossing and gives the
-    first pass's verification logit.
-
-    The first pass reads the patch at each point; each of the ``iterations`` - 1 later passes reads the patch
-    where the pass before placed it and moves ``step`` of the way to where it places it. ``views`` > 1
-    averages the offsets over turned and flipped patches (:data:`SYMMETRIES`). With ``sizes`` and
-    ``shrink_above_px`` the later passes read a large crossing from the image shrunk (:data:`SHRINKS`).
-    ``int8_run``, when given, reads the later passes (while ``use_int8_passes`` is on).
-    """
+    first pass's verification logit. Each of the ``iterations`` - 1 later passes moves ``step`` of the way to
+    where the patch at the point places it, read by ``int8_run`` where given; ``views`` > 1 averages the
+    offsets over turned and flipped patches (:data:`SYMMETRIES`); with ``sizes`` and ``shrink_above_px`` a
+    later pass reads a large crossing from the image shrunk (:data:`SHRINKS`)."""
 
     def __init__(
         self,
@@ -166,26 +123,19 @@ class Refiner:
         first_pass_views: int | None = None,
         int8_run: Callable[[np.ndarray], np.ndarray] | None = None,
     ):
-        first_pass_views = views if first_pass_views is None else first_pass_views
-        _accepted("views", views, VIEWS)
-        _accepted("first_pass_views", first_pass_views, VIEWS)
-        if not 0.0 < step <= 1.0:
-            raise ConfigError(f"step = {step} is not accepted; accepted: a number above 0, at most 1")
         self._run = run
-        self._int8_run = int8_run
-        self.use_int8_passes = int8_run is not None
+        self.int8_run = int8_run
         self.views = views
-        self.first_pass_views = first_pass_views
+        self.first_pass_views = views if first_pass_views is None else first_pass_views
         self.step = step
         self.patch_px = patch_px
         self.iterations = iterations
         self.verifies = verifies
-        self.sizes = sizes
-        self.shrink_above_px = tuple(shrink_above_px) if shrink_above_px is not None else None
+        self.shrink_above_px = tuple(shrink_above_px) if sizes and shrink_above_px is not None else None
 
     @property
     def has_int8_passes(self) -> bool:
-        return self._int8_run is not None
+        return self.int8_run is not None
 
     def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
         """(N, 2) refined positions of the points ``uv`` (N, 2)."""
@@ -197,27 +147,24 @@ class Refiner:
         uv: np.ndarray,
         *,
         keep: Callable[[np.ndarray], np.ndarray] | None = None,
-        later_views: int | None = None,
-        int8_first_pass: bool = False,
+        mirrored: bool = False,
     ) -> tuple[np.ndarray, np.ndarray | None]:
         """(N, 2) refined positions and (N,) first-pass verification logits (None without verification).
-
-        ``keep`` maps those logits to the points the later passes go on moving; ``later_views`` is their
-        views (None: ``views``); ``int8_first_pass`` has the first pass read the int8 copy too.
-        """
-        if later_views is not None:
-            _accepted("later_views", later_views, VIEWS)
+        ``keep`` maps those logits to the points the later passes go on moving; ``mirrored`` (the mirrored
+        reading) has the first pass read the int8 copy too and the later passes one view."""
         uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
         if not len(uv):
             return uv, (np.zeros(0) if self.verifies else None)
-        corners, out = self._read_at(image, uv, self.first_pass_views, int8=int8_first_pass)
+        first_run = self.int8_run if mirrored and self.int8_run is not None else self._run
+        x, corners = patches(image, uv, self.patch_px, border="mask")
+        out = self._read(x, self.first_pass_views, first_run)
         logit = out[:, 2].copy() if self.verifies else None
-        box = self.patch_px * np.exp(out[:, 3]) if self.sizes and self.shrink_above_px is not None else None
+        box = self.patch_px * np.exp(out[:, 3]) if self.shrink_above_px is not None else None
         uv = corners + out[:, :2]
         moving = slice(None)
         if self.iterations > 1 and keep is not None and logit is not None:
             moving = np.asarray(keep(logit), bool)
-        views = self.views if later_views is None else later_views
+        views = 1 if mirrored else self.views
         moved, box = uv[moving], None if box is None else box[moving]
         for _ in range(1, self.iterations):
             if not len(moved):
@@ -226,24 +173,15 @@ class Refiner:
         uv[moving] = moved
         return uv, logit
 
-    def _runner(self, int8: bool) -> Callable[[np.ndarray], np.ndarray]:
-        return self._int8_run if int8 and self.use_int8_passes and self._int8_run is not None else self._run
-
-    def _read_at(
-        self, image: np.ndarray, uv: np.ndarray, views: int, *, int8: bool = False
-    ) -> tuple[np.ndarray, np.ndarray]:
-        """The patches' corners around ``uv`` and the network's output for them in ``views`` views."""
-        x, corners = patches(image, uv, self.patch_px, border="mask")
-        return corners, self._read(x, views, self._runner(int8))
-
     def _placed_at_size(
         self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, views: int
     ) -> np.ndarray:
         """Where each point's patch places its crossing, each read at the resolution its box side ``box``
         calls for (None: full resolution); every resolution's patches in one call."""
+        run = self._run if self.int8_run is None else self.int8_run
         if box is None:
-            corners, out = self._read_at(image, uv, views, int8=True)
-            return corners + out[:, :2]
+            x, corners = patches(image, uv, self.patch_px, border="mask")
+            return corners + self._read(x, views, run)[:, :2]
         lo, hi = self.shrink_above_px
         level = (box > lo).astype(int) + (box > hi)
         picks, inputs, shifts = [], [], []
@@ -259,7 +197,7 @@ class Refiner:
             picks.append(pick)
             inputs.append(x)
             shifts.append((corners, factors))
-        out = self._read(np.concatenate(inputs) if len(inputs) > 1 else inputs[0], views, self._runner(True))
+        out = self._read(np.concatenate(inputs) if len(inputs) > 1 else inputs[0], views, run)
         placed = np.empty_like(uv)
         start = 0
         for pick, (corners, factors) in zip(picks, shifts, strict=True):
@@ -272,14 +210,22 @@ class Refiner:
         if views == 1:
             return run(x).astype(np.float64)
         sym = SYMMETRIES[:views]
-        out = run(np.ascontiguousarray(np.concatenate([turned(x, s) for s in sym]))).astype(np.float64)
-        out = out.reshape(views, len(x), -1)
+        turned = []
+        for rows, cols, swap in sym:
+            y = x[:, ::-1] if rows else x
+            y = y[:, :, ::-1] if cols else y
+            turned.append(y.transpose(0, 2, 1, 3) if swap else y)
+        out = run(np.ascontiguousarray(np.concatenate(turned))).astype(np.float64).reshape(views, len(x), -1)
+        back = []  # each view's offsets (du, dv) in the plain patch's axes
+        for o, (rows, cols, swap) in zip(out, sym, strict=True):
+            d = o[:, 1::-1] if swap else o[:, :2]
+            back.append(d * np.array([-1.0 if cols else 1.0, -1.0 if rows else 1.0]))
         plain = out[0].copy()
-        plain[:, :2] = np.mean([turned_back(o[:, :2], s) for o, s in zip(out, sym, strict=True)], axis=0)
+        plain[:, :2] = np.mean(back, axis=0)
         return plain
 
 
-def patch_rays(corners: np.ndarray, camera: tuple[float, float, float, float]) -> np.ndarray:
+def patch_rays(corners: np.ndarray, camera: Camera) -> np.ndarray:
     """(N, 2) float32 viewing ray ((u - cx) / fx, (v - cy) / fy) of each patch centre."""
     fx, fy, cx, cy = camera
     c = np.asarray(corners, np.float64).reshape(-1, 2)
@@ -294,18 +240,9 @@ class CrossingPoint:
         self._run = run
         self.patch_px = patch_px
 
-    def offsets(
-        self, image: np.ndarray, uv: np.ndarray, camera: tuple[float, float, float, float]
-    ) -> np.ndarray:
-        """(N, 2) pixel offsets from the sight points ``uv`` to their projected 3D crossing points."""
+    def points(self, image: np.ndarray, uv: np.ndarray, camera: Camera) -> np.ndarray:
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         if not len(uv):
-            return np.zeros((0, 2))
+            return uv.copy()
         x, corners = patches(image, uv, self.patch_px)
-        return self._run(x, patch_rays(corners, camera)).astype(np.float64)
-
-    def points(
-        self, image: np.ndarray, uv: np.ndarray, camera: tuple[float, float, float, float]
-    ) -> np.ndarray:
-        uv = np.asarray(uv, np.float64).reshape(-1, 2)
-        return uv + self.offsets(image, uv, camera)
+        return uv + self._run(x, patch_rays(corners, camera)).astype(np.float64)
