@@ -257,7 +257,8 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     from rebar_data.perception.training.depth_check import load as load_depth_check
 
     depth_data = load_depth_check(run / "depth_last.pt")[2]["data"]
-    assert depth_data[-2].startswith("adapted:") and depth_data[-1] == "its own lower-mat negatives: 16"
+    assert depth_data[-3].startswith("adapted:") and depth_data[-2] == "its own lower-mat negatives: 16"
+    assert depth_data[-1] == "sensor depth"  # what it read: each image's sensor depth
     ship(run, models_dir=tmp_path / "models", gate=False)
     card = (tmp_path / "models" / CARD_NAME).read_text()
     assert "| adapt epochs | 2 |" in card and "second supplements 3 times; batch norms frozen" in card

@@ -1,7 +1,7 @@
 """The detector's regression gate: the shipped model scored on a fixed held-out set
 (``pipelines/detector-gate.yaml``) against its own reference (``gate.json``, :func:`write_reference`).
 
-AP@0.5, PCK@2px and recall@P0.99, with RGB alone and with depth, pass when at least the reference minus
+AP@0.5, PCK@2px and recall@P0.99, with RGB alone and with the set's sensor depth, pass when at least the reference minus
 ``K_SE`` bootstrap standard errors over the set's scenes (why: ``docs/detector/design.md``, "The regression
 gate").
 """
@@ -30,12 +30,12 @@ GATE_NAME = "gate.json"
 GATE_FILE = MODELS_DIR / GATE_NAME
 FIGURES = ("oks_ap50", "pck2", "recall_at_p99")
 MODES = {"rgb": False, "rgbd": True}  # mode -> whether the detector reads the depth image
-MODE_NAMES = {"rgb": "RGB only", "rgbd": "with depth"}
+MODE_NAMES = {"rgb": "RGB only", "rgbd": "with sensor depth"}
 RUNTIME = "onnxruntime"
 K_SE = 3.0
 BOOTSTRAP_REPLICATES = 1000
 BOOTSTRAP_SEED = 0
-SET_FOLDERS = ("images/", "depth/", "labels/")  # the files whose hashes make the set's digest
+SET_FOLDERS = ("images/", "depth/", "sensor_depth/", "labels/")  # the files whose hashes make the set's digest
 
 
 def build_gate_set(out_root: str | Path, *, workers: int = 1) -> Path:
