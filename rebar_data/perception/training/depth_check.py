@@ -108,8 +108,9 @@ def train_depth_check(
     progress: bool = False,
 ) -> tuple[DepthNet, list[dict[str, float]]]:
     """Train the depth check on the sensor depth images of ``samples`` (their exact depth where a dataset has
-    none), resumable in ``out/depth_last.pt``; returns it and one row per epoch. ``negatives`` (each sample's (M, 2) points) may be a function that gives
-    them, called only when there is training to do; ``data`` names what they came from."""
+    none), resumable in ``out/depth_last.pt``; returns it and one row per epoch. ``negatives`` (each sample's
+    (M, 2) points) may be a function that gives them, called only when there is training to do; ``data`` names
+    what they came from."""
     check_depth(samples)
     torch.manual_seed(seed)
 
