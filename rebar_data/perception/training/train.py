@@ -82,11 +82,8 @@ RESUMABLE_CHANGES = {
     "crossing_point",
     "line_check",
 }
-STAGES = {
-    "refine": "refine",
-    "depth_check": "depth",
-    "crossing_point": "crossing",
-}  # their files: best.<name>.pt
+# the later stages' files: best.<name>.pt
+STAGES = {"refine": "refine", "depth_check": "depth", "crossing_point": "crossing"}
 STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
 
 
