@@ -8,14 +8,13 @@ import cv2
 import numpy as np
 import pytest
 
-from rebar_data.config import MeshConfig
+from rebar_data.config import ConfigError, MeshConfig
 from rebar_data.dataset.worker import INSTANCE_OFFSET
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.perception.evaluation.data import load_split, read_distractors
 from rebar_data.perception.evaluation.evaluate import score
 from rebar_data.perception.evaluation.lower_mat import lower_mat_crossings, lower_mat_of, lower_mat_places
-from rebar_data.perception.training.adapt import adapt_settings
-from rebar_data.perception.training.config import AdaptConfig, TrainConfig
+from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
 from rebar_data.perception.training.epochs import TrainingImages, make_batch
 from rebar_data.perception.training.refine import with_lower_mat
 from rebar_data.scene.mat_surface import MatSurface
@@ -133,23 +132,10 @@ def test_a_dataset_without_a_lower_mat_has_no_lower_mat_crossings(drawn_dataset)
     assert [len(f) for f in lower_mat_of(samples)] == [0] * len(samples)
 
 
-def test_training_batches_weigh_the_lower_mat_crossings_only_when_asked(lower_dataset):
-    samples = load_split(lower_dataset, "train")
-    cfg = TrainConfig(batch_size=6, crop_px=128, augment={"mosaic_epochs": 0})
-    plain = TrainingImages(samples, cache=True, occluded="ignore", progress=False)
-    hard = TrainingImages(samples, cache=True, occluded="ignore", progress=False, lower_mat=True)
-    assert plain.hard is None and sum(len(h) for h in hard.hard) > 0
-    weighed = make_batch(hard, np.random.default_rng(1), cfg, mosaic=False, lower_mat_weight=3.0)
-    same = make_batch(plain, np.random.default_rng(1), cfg, mosaic=False)
-    assert (weighed[3] == 3.0).any() and not (same[3] == 3.0).any()
-    np.testing.assert_array_equal(weighed[0].numpy(), same[0].numpy())  # the same crops and targets
-    np.testing.assert_array_equal(weighed[2].numpy(), same[2].numpy())
-    assert ((weighed[3] == same[3]) | (weighed[3] == 3.0)).all()
-
-
-def test_a_lower_mat_weight_of_one_keeps_the_adapt_epochs_checkpoints_from_before_it():
-    assert "lower_mat_weight" not in adapt_settings(AdaptConfig())
-    assert adapt_settings(AdaptConfig(lower_mat_weight=3.0))["lower_mat_weight"] == 3.0
+def test_a_retired_lower_mat_weight_loads_at_one_and_is_refused_otherwise():
+    assert AdaptConfig(lower_mat_weight=1.0) == AdaptConfig()
+    with pytest.raises(ConfigError, match="adapt.lower_mat_weight = 3.0 is no longer supported"):
+        resolve_config({"adapt": {"lower_mat_weight": 3.0}}, {})
 
 
 def test_training_images_know_their_distractors_pixels_only_when_the_gain_is_on(lower_dataset):

@@ -19,7 +19,8 @@ from rebar_data.perception.training.config import AugmentConfig, RefineConfig
 from rebar_data.perception.training.refine import (
     build,
     calibration_patches,
-    mine_negatives,
+    first_stage_detections,
+    negatives_in,
     train_refiner,
 )
 from rebar_data.perception.training.refine_data import (
@@ -593,7 +594,7 @@ def test_mined_negatives_are_first_stage_detections_away_from_every_crossing(tra
     det.refiner = det.depth_check = None  # the first stage alone, as training mines with
     cfg = RefineConfig(negative_score=0.01, negative_gate_px=1.0)  # loose: a tiny network's detections
     images = [read_image(s.path) for s in samples]
-    mined = mine_negatives(det, samples, cfg, images=images)
+    mined = negatives_in(first_stage_detections(det, samples, cfg, images=images), samples, cfg)
     assert len(mined) == len(samples)
     total = 0
     for s, rgb, neg in zip(samples, images, mined, strict=True):

@@ -47,20 +47,6 @@ def test_ignored_points_zero_the_weight_around_them_but_not_at_positives():
     assert hw[0, 0] == 1.0
 
 
-def test_hard_negatives_weigh_their_cells_but_never_a_crossing_s_neighbourhood_or_an_ignored_one():
-    pos = np.array([[50.0, 50.0]])
-    hard = np.array([[90.0, 90.0], [54.0, 50.0], [10.0, 110.0]])  # far; beside the crossing; ignored
-    heat, hw, _, _ = encode(
-        pos, np.array([[10.0, 110.0]]), 32, 32, sigma_cells=1.0, hard=hard, hard_weight=3.0
-    )
-    assert (hw[21:24, 21:24] == 3.0).all()  # the 3x3 cells around (90, 90)
-    assert (hw == 3.0).sum() == 9
-    assert hw[12, 12] == 1.0 and hw[12, 13] == 1.0  # the crossing's cell and its neighbour keep weight 1
-    assert (hw[25:30, 0:5] == 0.0).all()  # the ignored point stays out of the loss
-    plain = encode(pos, np.zeros((0, 2)), 32, 32, sigma_cells=1.0)
-    np.testing.assert_array_equal(heat, plain[0])  # the targets themselves do not change
-
-
 def test_decode_never_gives_two_peaks_for_a_plateau_of_saturated_scores():
     logit = np.full((8, 8), -10.0, np.float32)
     logit[3, 3], logit[3, 4] = 40.0, 40.5  # both round to probability 1.0 in float32

@@ -41,12 +41,13 @@ def read_checkpoint(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
 
 def save_checkpoint(path: str | Path, net: KeypointNet, meta: dict[str, Any], **extra: Any) -> None:
     """Write the first stage's weights, architecture and ``meta`` (plus any training state in ``extra``)."""
-    head = {
-        "format": FORMAT,
-        "format_version": FORMAT_VERSION,
-        "model_config": net.cfg.model_dump(mode="json"),
-    }
-    write_checkpoint(path, {**head, "state_dict": net.state_dict(), "meta": meta, **extra})
+    write_checkpoint(path, {**_head(net), "state_dict": net.state_dict(), "meta": meta, **extra})
+
+
+def _head(net: KeypointNet) -> dict[str, Any]:
+    """What a first-stage file says of itself: its format and version and the network's settings."""
+    config = net.cfg.model_dump(mode="json")
+    return {"format": FORMAT, "format_version": FORMAT_VERSION, "model_config": config}
 
 
 def load_checkpoint(path: str | Path) -> tuple[KeypointNet, dict[str, Any], dict[str, Any]]:
@@ -111,14 +112,8 @@ def export_onnx(net: nn.Module, path: str | Path, meta: dict[str, Any] | None = 
         )
     if isinstance(net, KeypointNet):
         model = onnx.load(str(tmp))
-        full = {
-            "format": FORMAT,
-            "format_version": FORMAT_VERSION,
-            "model_config": net.cfg.model_dump(mode="json"),
-            **(meta or {}),
-        }
         entry = model.metadata_props.add()
-        entry.key, entry.value = META_KEY, json.dumps(full, sort_keys=True)
+        entry.key, entry.value = META_KEY, json.dumps({**_head(net), **(meta or {})}, sort_keys=True)
         onnx.save(model, str(tmp))
     tmp.replace(path)
     return path

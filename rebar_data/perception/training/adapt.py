@@ -22,7 +22,7 @@ from rebar_data.perception.networks.files import (
     save_checkpoint,
     write_checkpoint,
 )
-from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
+from rebar_data.perception.training.config import TrainConfig, resolve_config
 from rebar_data.perception.training.epochs import (
     WeightAverage,
     batch_stream,
@@ -58,7 +58,7 @@ def adapt_first_stage(
         for stale in (out / ADAPT_LAST, out / ADAPTED):
             stale.unlink(missing_ok=True)
         return out / "best.pt", []
-    want = {"adapt": adapt_settings(a), "base_epoch": base_epoch, "data": list(data)}
+    want = {"adapt": a.model_dump(mode="json"), "base_epoch": base_epoch, "data": list(data)}
     net, meta, _ = load_checkpoint(out / "best.pt")
     net = net.to(memory_format=torch.channels_last)
     avg = WeightAverage(net)
@@ -94,15 +94,7 @@ def adapt_first_stage(
             f"{len(extra)} x {a.supplement_repeats} of {', '.join(data)}"
         )
     first, focal_px = state["epoch"] + 1, meta.get("focal_px")  # other cameras' frames drawn at the model's
-    batches = batch_stream(
-        mix,
-        run,
-        first=first,
-        last=a.epochs,
-        steps=steps,
-        lower_mat_weight=a.lower_mat_weight,
-        focal_px=focal_px,
-    )
+    batches = batch_stream(mix, run, first=first, last=a.epochs, steps=steps, focal_px=focal_px)
     for epoch in range(state["epoch"] + 1, a.epochs + 1):
         row = train_epoch(
             net, avg, opt, batches, run, state, epoch=epoch, steps=steps, progress=progress, frozen_norm=True
@@ -116,12 +108,6 @@ def adapt_first_stage(
     batches = None  # stops the loader process
     save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
     return out / ADAPTED, state["history"]
-
-
-def adapt_settings(a: AdaptConfig) -> dict[str, Any]:
-    """The adapt epochs' settings, without a lower-mat weight of 1 (so a checkpoint from before it still
-    counts)."""
-    return a.model_dump(mode="json", exclude={"lower_mat_weight"} if a.lower_mat_weight == 1.0 else set())
 
 
 def adapt_model(

@@ -8,7 +8,7 @@ four quadrants of a crop from four images. Photometric changes touch pixels only
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import cv2
 import numpy as np
@@ -27,19 +27,16 @@ class Crop:
     positives: np.ndarray  # (N, 2) visible crossings
     ignore: np.ndarray  # (M, 2) points left out of the loss (occluded, or cut by a mosaic seam)
     rays: np.ndarray  # (2, S / 4, S / 4) each output cell's viewing ray (:func:`crop_rays`)
-    hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))  # the lower mat's crossings
 
 
 @dataclass
 class Source:
-    """One image to crop from: pixels, crossings, points to ignore, intrinsics (fx, fy, cx, cy), hard
-    negatives."""
+    """One image to crop from: pixels, crossings, points to ignore, intrinsics (fx, fy, cx, cy)."""
 
     image: np.ndarray
     positives: np.ndarray
     ignore: np.ndarray
     camera: tuple[float, float, float, float]
-    hard: np.ndarray = field(default_factory=lambda: np.zeros((0, 2)))
     distractors: np.ndarray | None = None  # (H, W) bool: the distractors' pixels, when known
     gain: float = 1.0  # every crop's scale times this: a frame of another focal length drawn at the model's
 
@@ -112,12 +109,7 @@ def crop_rays(
 
 
 def random_affine(
-    rng: np.random.Generator,
-    *,
-    centre: np.ndarray,
-    target: np.ndarray,
-    cfg: AugmentConfig,
-    gain: float = 1.0,
+    rng: np.random.Generator, *, centre: np.ndarray, target: np.ndarray, cfg: AugmentConfig, gain: float = 1.0
 ) -> np.ndarray:
     """A random similarity (scale times ``gain``, rotation, flips) taking ``centre`` to ``target``."""
     lo, hi = cfg.scale
@@ -152,14 +144,7 @@ def single_crop(src: Source, rng: np.random.Generator, *, size: int, cfg: Augmen
     ign = apply_affine(src.ignore, crop_from_image)
     keep = _inside(pos, 0, 0, size, size)
     rays = crop_rays(crop_from_image, size, src.camera)
-    hard = apply_affine(src.hard, crop_from_image)
-    return Crop(
-        out,
-        pos[keep],
-        ign[_inside(ign, -8, -8, size + 8, size + 8)],
-        rays,
-        hard[_inside(hard, 0, 0, size, size)],
-    )
+    return Crop(out, pos[keep], ign[_inside(ign, -8, -8, size + 8, size + 8)], rays)
 
 
 def mosaic_crop(
@@ -170,7 +155,7 @@ def mosaic_crop(
     canvas = np.empty((size, size, 3), np.uint8)
     rays = np.empty((2, size // STRIDE, size // STRIDE), np.float32)
     cell = STRIDE * (np.arange(size // STRIDE) + 0.5)
-    pos_all, ign_all, hard_all = [], [], []
+    pos_all, ign_all = [], []
     fill = float(rng.uniform(0, 255))
     for x0, y0, x1, y1 in ((0, 0, xc, yc), (xc, 0, size, yc), (0, yc, xc, size), (xc, yc, size, size)):
         src = pick()
@@ -195,15 +180,7 @@ def mosaic_crop(
         ign_all.append(pos[inside & ~clear])
         ign = apply_affine(src.ignore, crop_from_image)
         ign_all.append(ign[_inside(ign, x0 - 8, y0 - 8, x1 + 8, y1 + 8)])
-        hard = apply_affine(src.hard, crop_from_image)
-        hard_all.append(hard[_inside(hard, x0, y0, x1, y1)])
-    return Crop(
-        canvas,
-        np.concatenate(pos_all).reshape(-1, 2),
-        np.concatenate(ign_all).reshape(-1, 2),
-        rays,
-        np.concatenate(hard_all).reshape(-1, 2),
-    )
+    return Crop(canvas, np.concatenate(pos_all).reshape(-1, 2), np.concatenate(ign_all).reshape(-1, 2), rays)
 
 
 def photometric(image: np.ndarray, rng: np.random.Generator, cfg: AugmentConfig) -> np.ndarray:

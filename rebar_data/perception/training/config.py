@@ -212,7 +212,11 @@ class AdaptConfig(Strict):
     lr: Positive = 1e-3  # peak learning rate
     warmup_epochs: NonNegative = 0.05  # linear warm-up
     supplement_repeats: PositiveInt = 10  # times each supplement image is listed
-    lower_mat_weight: Positive = 1.0  # heatmap loss weight at the lower mat's crossings
+
+    @model_validator(mode="before")
+    @classmethod
+    def _retired(cls, values: Any) -> Any:
+        return _without_retired(values, {"lower_mat_weight": 1.0}, "adapt")
 
 
 class TrainConfig(Strict):

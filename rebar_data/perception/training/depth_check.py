@@ -1,6 +1,6 @@
 """Training and model files of the depth check (:mod:`rebar_data.perception.inference.checks`): depth
 patches around the visible crossings are its positives, the first stage's false detections
-(:func:`~rebar_data.perception.training.refine.mine_negatives`) its negatives."""
+(:func:`~rebar_data.perception.training.refine.negatives_in`) its negatives."""
 
 from __future__ import annotations
 

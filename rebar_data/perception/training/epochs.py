@@ -17,7 +17,6 @@ import torch
 from tqdm import tqdm
 
 from rebar_data.perception.evaluation.data import Sample, per_file, read_distractors, read_image, read_images
-from rebar_data.perception.evaluation.lower_mat import lower_mat_of
 from rebar_data.perception.inference.detector import STRIDE
 from rebar_data.perception.inference.image import focal_scale
 from rebar_data.perception.networks.keypoint_net import KeypointNet
@@ -82,7 +81,6 @@ class TrainingImages:
         cache: bool,
         occluded: str,
         progress: bool,
-        lower_mat: bool = False,
         distractors: bool = False,
         focal_px: float | None = None,
     ):
@@ -90,7 +88,6 @@ class TrainingImages:
         # each image's crops drawn at the focal length focal_px (None: as it comes), as the detector reads it
         self.gains = [1.0 if s.camera is None else focal_scale(focal_px, s.camera) for s in samples]
         self.ignore_occluded = occluded == "ignore"
-        self.hard = lower_mat_of(samples) if lower_mat else None  # the lower mat's crossings: hard negatives
         self.images = read_images(samples, progress="load images" if progress else None) if cache else None
         self.distractors = distractors
         self.masks = per_file(samples, read_distractors) if distractors and cache else None
@@ -99,25 +96,18 @@ class TrainingImages:
         k = int(rng.integers(len(self.samples)))
         s = self.samples[k]
         image = self.images[k] if self.images is not None else read_image(s.path)
-        hard = self.hard[k] if self.hard is not None else np.zeros((0, 2))
         mask = (
             (self.masks[k] if self.masks is not None else read_distractors(s)) if self.distractors else None
         )
         ignore = s.occluded if self.ignore_occluded else np.zeros((0, 2))
-        return Source(image, s.visible, ignore, s.camera, hard, mask, self.gains[k])
+        return Source(image, s.visible, ignore, s.camera, mask, self.gains[k])
 
 
 def make_batch(
-    data: TrainingImages,
-    rng: np.random.Generator,
-    cfg: TrainConfig,
-    *,
-    mosaic: bool,
-    lower_mat_weight: float = 1.0,
+    data: TrainingImages, rng: np.random.Generator, cfg: TrainConfig, *, mosaic: bool
 ) -> tuple[torch.Tensor, ...]:
     """One augmented batch: images (B, 3, S, S), rays (B, 2, S, S) and the targets heat, heat weight,
-    offset, offset weight; the cells at the lower mat's crossings (``data``'s hard negatives) weigh
-    ``lower_mat_weight`` in the heatmap loss."""
+    offset, offset weight."""
     size, aug = cfg.crop_px, cfg.augment
     cells = size // STRIDE
     rows = []
@@ -126,10 +116,7 @@ def make_batch(
             crop = mosaic_crop(lambda: data.pick(rng), rng, size=size, cfg=aug)
         else:
             crop = single_crop(data.pick(rng), rng, size=size, cfg=aug)
-        sigma, weight = cfg.heatmap_sigma_cells, lower_mat_weight
-        targets = encode(
-            crop.positives, crop.ignore, cells, cells, sigma_cells=sigma, hard=crop.hard, hard_weight=weight
-        )
+        targets = encode(crop.positives, crop.ignore, cells, cells, sigma_cells=cfg.heatmap_sigma_cells)
         rows.append((photometric(crop.image, rng, aug), crop.rays, *targets))
     images, *rest = (np.stack(a) for a in zip(*rows, strict=True))
     return (torch.from_numpy(images).permute(0, 3, 1, 2).float(), *(torch.from_numpy(a) for a in rest))
@@ -145,7 +132,6 @@ class BatchStream(torch.utils.data.IterableDataset):
     first: int
     last: int
     steps: int
-    lower_mat_weight: float = 1.0
     focal_px: float | None = None
 
     def __iter__(self):
@@ -154,7 +140,6 @@ class BatchStream(torch.utils.data.IterableDataset):
             cache=self.cfg.cache_images,
             occluded=self.cfg.occluded,
             progress=False,
-            lower_mat=self.lower_mat_weight != 1.0,
             distractors=self.cfg.augment.scales_distractors,
             focal_px=self.focal_px,
         )
@@ -162,7 +147,7 @@ class BatchStream(torch.utils.data.IterableDataset):
             rng = np.random.default_rng(np.random.SeedSequence([self.cfg.seed, epoch]))
             mosaic = epoch <= self.cfg.augment.mosaic_epochs
             for _ in range(self.steps):
-                yield make_batch(data, rng, self.cfg, mosaic=mosaic, lower_mat_weight=self.lower_mat_weight)
+                yield make_batch(data, rng, self.cfg, mosaic=mosaic)
 
 
 def _loader_worker_init(_: int) -> None:
@@ -179,13 +164,12 @@ def batch_stream(
     first: int,
     last: int,
     steps: int,
-    lower_mat_weight: float = 1.0,
     focal_px: float | None = None,
 ):
     """An iterator over :class:`BatchStream`'s batches, each image's crops drawn at the focal length
     ``focal_px`` (None: as it comes). With ``loader_workers`` = 1 they are made in a second process
     (spawned: OpenCV's and OpenMP's thread pools do not survive a fork) while the network trains."""
-    stream = BatchStream(samples, cfg, first, last, steps, lower_mat_weight, focal_px)
+    stream = BatchStream(samples, cfg, first, last, steps, focal_px)
     if cfg.loader_workers == 0:
         return iter(stream)
     return iter(

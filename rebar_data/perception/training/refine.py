@@ -3,7 +3,7 @@
 It trains from the labels alone, on jittered, turned, flipped and scaled patches around the training
 images' visible crossings (:mod:`~rebar_data.perception.training.refine_data`), so it never learns one
 first-stage network's quirks; only its verification output looks at the first stage, whose false
-detections are its negatives (:func:`mine_negatives`).
+detections are its negatives (:func:`negatives_in`).
 """
 
 from __future__ import annotations
@@ -11,7 +11,6 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -83,19 +82,10 @@ def calibration_patches(
     return np.concatenate(out)[: cfg.calibration_patches]
 
 
-def mine_negatives(
-    detector, samples: list[Sample], cfg: RefineConfig, *, images: list[np.ndarray], progress: bool = False
-) -> list[np.ndarray]:
-    """Where ``detector`` (the first stage alone) finds crossings that are not there: per sample, its
-    detections scoring ``cfg.negative_score`` or more, farther than ``cfg.negative_gate_px`` from every
-    visible crossing, as (M, 2) u, v."""
-    return negatives_in(
-        first_stage_detections(detector, samples, cfg, images=images, progress=progress), samples, cfg
-    )
-
-
 def negatives_in(found: list[np.ndarray], samples: list[Sample], cfg: RefineConfig) -> list[np.ndarray]:
-    """:func:`mine_negatives` from each sample's :func:`first_stage_detections` ``found``."""
+    """Where the first stage finds crossings that are not there: per sample, its detections ``found``
+    (:func:`first_stage_detections`) farther than ``cfg.negative_gate_px`` from every visible crossing,
+    as (M, 2) u, v."""
     gate = cfg.negative_gate_px
     return [_away_from(s.visible, p[:, :2].reshape(-1, 2), gate) for s, p in zip(samples, found, strict=True)]
 
@@ -160,7 +150,7 @@ def train_refiner(
 ) -> tuple[PatchNet, list[dict[str, float]]]:
     """Train the refiner on the visible crossings of ``samples``, resumable in ``out/refine_last.pt``; returns
     it and one row per epoch. With ``cfg.verify``, ``negatives_of(samples, images)`` gives each sample's
-    (M, 2) negatives (:func:`mine_negatives`; called only when there is training to do, its answer kept in
+    (M, 2) negatives (:func:`negatives_in`; called only when there is training to do, its answer kept in
     the checkpoint); without it the verification learns from positives alone."""
     if not any(len(s.visible) for s in samples):
         raise ConfigError(
@@ -238,8 +228,3 @@ def train_refiner(
         describe=describe,
         progress=progress,
     )
-
-
-def calibrated_on(dataset: str | None, supplements: list[dict[str, Any]]) -> list[str]:
-    """What an int8 file's metadata says it was calibrated on: the train split and each supplement."""
-    return [f"{dataset} train"] + [f"{m['name']} v{m['version']}" for m in supplements]

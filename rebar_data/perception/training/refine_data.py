@@ -52,10 +52,7 @@ def training_patch(
         error = rng.normal(0.0, cfg.jitter_px, 2)
     size = cfg.patch_px
     patch_from_image = random_affine(
-        rng,
-        centre=np.asarray(crossing, float) + error,
-        target=np.array([size / 2, size / 2]),
-        cfg=geometry,
+        rng, centre=np.asarray(crossing, float) + error, target=np.array([size / 2, size / 2]), cfg=geometry
     )
     offset = apply_affine(crossing, patch_from_image)[0] - size / 2
     scale = float(np.sqrt(abs(np.linalg.det(patch_from_image[:, :2]))))

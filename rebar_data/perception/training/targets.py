@@ -18,20 +18,11 @@ IGNORE_RADIUS = 2  # cells around an ignored point left out of the heatmap loss
 
 
 def encode(
-    positives: np.ndarray,
-    ignore: np.ndarray,
-    out_h: int,
-    out_w: int,
-    *,
-    sigma_cells: float,
-    hard: np.ndarray | None = None,
-    hard_weight: float = 1.0,
+    positives: np.ndarray, ignore: np.ndarray, out_h: int, out_w: int, *, sigma_cells: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Targets for one crop of ``out_h`` x ``out_w`` cells: heat (H, W) in [0, 1], exactly 1 at each
     crossing's cell; heat_weight (H, W), 0 around the ``ignore`` points; offset (2, H, W) in cells;
-    offset_weight (H, W), 1 where an offset is learned. ``positives`` and ``ignore`` are in input pixels;
-    the 3x3 cells around each ``hard`` place (one that looks like a crossing and is none) weigh
-    ``hard_weight`` where no crossing's target reaches them.
+    offset_weight (H, W), 1 where an offset is learned. ``positives`` and ``ignore`` are in input pixels.
     """
     heat = np.zeros((out_h, out_w), np.float32)
     heat_weight = np.ones((out_h, out_w), np.float32)
@@ -66,12 +57,5 @@ def encode(
                     offset[0, ci, cj] = dx
                     offset[1, ci, cj] = dy
                     offset_weight[ci, cj] = 1.0
-    if hard is not None and hard_weight != 1.0:
-        for u, v in np.asarray(hard, float).reshape(-1, 2):
-            j, i = int(np.floor(u / STRIDE)), int(np.floor(v / STRIDE))
-            i0, i1, j0, j1 = max(i - 1, 0), min(i + 2, out_h), max(j - 1, 0), min(j + 2, out_w)
-            cells = heat_weight[i0:i1, j0:j1]
-            clear = (heat[i0:i1, j0:j1] < 0.01) & (cells > 0)
-            cells[clear] = hard_weight
     heat_weight[heat >= 1.0] = 1.0  # a crossing next to an ignored one is still a positive
     return heat, heat_weight, offset, offset_weight

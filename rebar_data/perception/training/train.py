@@ -65,7 +65,7 @@ from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, quantize_onnx, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
 from rebar_data.perception.training import crossing_point, depth_check, epochs, refine
-from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage, adapt_settings
+from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage
 from rebar_data.perception.training.config import TrainConfig, resolve_config
 from rebar_data.perception.training.line_check import UnfitLineCheck, fit_line_check, fitted_on
 
@@ -82,11 +82,8 @@ RESUMABLE_CHANGES = {
     "crossing_point",
     "line_check",
 }
-STAGES = {
-    "refine": "refine",
-    "depth_check": "depth",
-    "crossing_point": "crossing",
-}  # their files: best.<name>.pt
+# the later stages' files: best.<name>.pt
+STAGES = {"refine": "refine", "depth_check": "depth", "crossing_point": "crossing"}
 STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
 
 
@@ -374,7 +371,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
     # what the later stages' negatives come from: a changed first stage trains them again
     negatives_from = [f"first stage: epoch {state['best_epoch']}"]
     if first_path.name == ADAPTED:
-        negatives_from.append(f"adapted: {json.dumps(adapt_settings(cfg.adapt), sort_keys=True)}")
+        negatives_from.append(f"adapted: {json.dumps(cfg.adapt.model_dump(mode='json'), sort_keys=True)}")
     found: dict[int, list[np.ndarray]] = {}  # the first stage's detections, run once a sample list
 
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
@@ -492,10 +489,8 @@ def _finish(
             quantize_onnx(files["refine"], later, patches)
             run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
             meta["refiner"]["int8_sha256"] = sha256_file(later)
-            meta["refiner"]["int8_calibrated_on"] = {
-                "data": refine.calibrated_on(run.dataset.get("name"), run.dataset.get("supplements", [])),
-                "patches": len(patches),
-            }
+            calibrated_on = [f"{run.dataset.get('name')} train"] + _names(run.dataset["supplements"])
+            meta["refiner"]["int8_calibrated_on"] = {"data": calibrated_on, "patches": len(patches)}
     if "depth_check" in files:
         d = cfg.depth_check
         entry = {"patch_px": d.patch_px, "scale_m": d.scale_m, "clip": d.clip, "power": d.power}
