@@ -44,21 +44,14 @@ def _place_of(s: Sample, uv: np.ndarray, placed: dict[str, np.ndarray]) -> np.nd
 
 
 def false_detection_census(
-    root: str | Path,
-    samples: Sequence[Sample],
-    predictions: Sequence[np.ndarray],
-    *,
-    recall: float = RECALL,
+    root: str | Path, samples: Sequence[Sample], predictions: Sequence[np.ndarray], *, recall: float = RECALL
 ) -> dict:
     """The false detections of ``samples`` of the dataset at ``root`` (whose tables place the lower mat)
     scoring at least the score where recall reaches ``recall``, by place, and what recall at precision 0.99
-    would be without each place's false detections, whatever their score.
-
-    Returns:
-        ``recall``, ``reached`` (False: recall never reaches it, and every prediction counts), ``score`` (the
-        cut), ``false`` and ``true`` (the detections above it), one count per place in ``PLACES``,
-        ``recall_at_p99`` and ``recall_at_p99_without`` (place -> recall at precision 0.99).
-    """
+    would be without each place's false detections, whatever their score. Returns ``recall``, ``reached``
+    (False: recall never reaches it, and every prediction counts), ``score`` (the cut), ``false`` and
+    ``true`` (the detections above it), one count per place in ``PLACES``, ``recall_at_p99`` and
+    ``recall_at_p99_without`` (place -> recall at precision 0.99)."""
     if not 0.0 < recall <= 1.0:
         raise ValueError(f"recall = {recall} is not accepted; accepted: a number in (0, 1]")
     hits, scores, place = [], [], []

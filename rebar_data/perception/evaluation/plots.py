@@ -198,11 +198,8 @@ def write_frame(
     occluded: np.ndarray | None = None,
 ) -> tuple[Path, float]:
     """One frame with its detections drawn (:func:`draw_overlay`) as a PNG of ``FRAME_COLOURS`` colours: at
-    full size when it fits in ``MAX_FIGURE_BYTES``, else shrunk by steps of 0.85 until it does.
-
-    Returns:
-        The file written and the scale it was drawn at.
-    """
+    full size when it fits in ``MAX_FIGURE_BYTES``, else shrunk by steps of 0.85 until it does; returns the
+    file written and the scale it was drawn at."""
     from PIL import Image
 
     preds = np.asarray(predictions, float).reshape(-1, 3)

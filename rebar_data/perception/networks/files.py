@@ -169,8 +169,7 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
 
     The export folds each batch norm into the convolution before it: each such convolution gets the
     folded kernel, its batch norm the folded bias with unit scale, mean 0 and variance 1 - eps. ConfigError
-    when the file is not a detector's or its layers do not match its model config.
-    """
+    when the file is not a detector's or its layers do not match its model config."""
     import onnx
     from onnx import numpy_helper
 

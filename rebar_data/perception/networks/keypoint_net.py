@@ -57,8 +57,7 @@ class KeypointNet(nn.Module):
 
     The rays enter the decoder at stride 8 as a learned embedding added to the features; the stride-16
     features averaged over the image scale and shift the stride-8 ones (FiLM), so every crossing's head
-    knows the frame's perspective.
-    """
+    knows the frame's perspective."""
 
     def __init__(self, cfg: ModelConfig | None = None):
         super().__init__()

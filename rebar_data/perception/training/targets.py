@@ -22,8 +22,7 @@ def encode(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Targets for one crop of ``out_h`` x ``out_w`` cells: heat (H, W) in [0, 1], exactly 1 at each
     crossing's cell; heat_weight (H, W), 0 around the ``ignore`` points; offset (2, H, W) in cells;
-    offset_weight (H, W), 1 where an offset is learned. ``positives`` and ``ignore`` are in input pixels.
-    """
+    offset_weight (H, W), 1 where an offset is learned. ``positives`` and ``ignore`` are in input pixels."""
     heat = np.zeros((out_h, out_w), np.float32)
     heat_weight = np.ones((out_h, out_w), np.float32)
     offset = np.zeros((2, out_h, out_w), np.float32)

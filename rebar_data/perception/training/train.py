@@ -72,18 +72,9 @@ from rebar_data.perception.training.line_check import UnfitLineCheck, fit_line_c
 COMMAND = "rebar train"
 EARLY_STOP_METRIC = "val_oks_ap"
 NEWER_FIELDS = {"other_renderer_repeats": 0}  # settings newer than some run folders, at their old value
-RESUMABLE_CHANGES = {
-    "epochs",
-    "patience",
-    "val_every",
-    "adapt",
-    "refine",
-    "depth_check",
-    "crossing_point",
-    "line_check",
-}
 # the later stages' files: best.<name>.pt
 STAGES = {"refine": "refine", "depth_check": "depth", "crossing_point": "crossing"}
+RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "line_check", *STAGES}
 STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
 
 
