@@ -35,7 +35,8 @@ RUNTIME = "onnxruntime"
 K_SE = 3.0
 BOOTSTRAP_REPLICATES = 1000
 BOOTSTRAP_SEED = 0
-SET_FOLDERS = ("images/", "depth/", "sensor_depth/", "labels/")  # the files whose hashes make the set's digest
+# the files whose hashes make the set's digest
+SET_FOLDERS = ("images/", "depth/", "sensor_depth/", "labels/")
 
 
 def build_gate_set(out_root: str | Path, *, workers: int = 1) -> Path:
