@@ -192,6 +192,11 @@ def warmup_cosine(step: int, *, peak: float, warm: float, total: float) -> float
     return peak * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * t)))
 
 
+def batch_bar(steps: int, desc: str, *, progress: bool) -> tqdm:
+    """The progress bar over an epoch's ``steps`` batches (on stderr, gone when done)."""
+    return tqdm(range(steps), desc=desc, unit="batch", disable=not progress, leave=False, file=sys.stderr)
+
+
 def train_epoch(
     net: KeypointNet,
     avg: WeightAverage,
@@ -215,14 +220,7 @@ def train_epoch(
             m.eval()
     t0 = time.perf_counter()
     sums = np.zeros(3)
-    bar = tqdm(
-        range(steps),
-        desc=f"epoch {epoch}/{cfg.epochs}",
-        unit="batch",
-        disable=not progress,
-        leave=False,
-        file=sys.stderr,
-    )
+    bar = batch_bar(steps, f"epoch {epoch}/{cfg.epochs}", progress=progress)
     lr = cfg.lr
     for _ in bar:
         lr = warmup_cosine(

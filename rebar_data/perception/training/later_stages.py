@@ -18,7 +18,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.networks.files import read_checkpoint, write_checkpoint
-from rebar_data.perception.training.epochs import warmup_cosine
+from rebar_data.perception.training.epochs import batch_bar, warmup_cosine
 
 
 @dataclass(frozen=True)
@@ -104,14 +104,7 @@ def train_stage(
         for epoch in range(first, cfg.epochs + 1):
             net.train()
             t0, tally = time.perf_counter(), defaultdict(float)
-            bar = tqdm(
-                range(steps),
-                desc=f"{name} {epoch}/{cfg.epochs}",
-                unit="batch",
-                disable=not progress,
-                leave=False,
-                file=sys.stderr,
-            )
+            bar = batch_bar(steps, f"{name} {epoch}/{cfg.epochs}", progress=progress)
             for b in bar:
                 lr = warmup_cosine(
                     (epoch - 1) * steps + b, peak=cfg.lr, warm=max(1, round(0.03 * total)), total=total
