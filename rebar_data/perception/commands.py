@@ -182,12 +182,9 @@ def run_detect(args: argparse.Namespace) -> int:
     (outputs.input_folder if target.is_dir() else outputs.input_file)(target, arg="input", what=accepted)
     dataset = (target / "tables/samples.parquet").exists()
     if dataset:
-        from rebar_data.perception.evaluation.data import DEPTH_SOURCES
+        from rebar_data.perception.evaluation.data import check_depth_source
 
-        if args.depth_from not in DEPTH_SOURCES:
-            raise ConfigError(
-                f"--depth-from {args.depth_from}: not a depth source; accepted: one of {', '.join(DEPTH_SOURCES)}"
-            )
+        check_depth_source(args.depth_from, f"--depth-from {args.depth_from}")  # before anything is written
         if args.flatten_behind and args.no_depth:
             raise ConfigError(
                 "--flatten-behind reads the depth images, which --no-depth leaves out; accepted: one of the "

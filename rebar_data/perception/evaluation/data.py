@@ -10,6 +10,7 @@ import json
 import zlib
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from functools import cache
 from pathlib import Path
 from typing import TypeVar
 
@@ -22,6 +23,7 @@ from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.perception.inference.checks import MM_PER_M
 from rebar_data.pipeline import DEFAULT_OKS_SIGMA
+from rebar_data.scene.config import DEPTH_MODELS
 
 T = TypeVar("T")
 
@@ -117,16 +119,27 @@ def read_sample_image(sample: Sample) -> np.ndarray:
 
 # the depth a detector reads: the dataset's sensor depth (its exact depth where it has none), the exact
 # depth, or a depth sensor model's image made from the exact depth (its nominal parameters, 1 px off the colour)
-DEPTH_SOURCES = ("sensor", "exact", "structured_light", "active_stereo", "time_of_flight")
+DEPTH_SOURCES = ("sensor", *DEPTH_MODELS)
+
+
+@cache
+def _nominal_sensor(model: str):
+    """The sensor ``model`` as :func:`sample_depth` simulates it, built once per model."""
+    from rebar_data.scene.sample import nominal_depth_sensor
+
+    return replace(nominal_depth_sensor(model), shift_x_px=1.0)
+
+
+def check_depth_source(source: str, given: str) -> None:
+    """Raise ConfigError, naming what was ``given``, unless ``source`` is one of :data:`DEPTH_SOURCES`."""
+    if source not in DEPTH_SOURCES:
+        raise ConfigError(f"{given}: not a depth source; accepted: one of {', '.join(DEPTH_SOURCES)}")
 
 
 def sample_depth(s: Sample, source: str = "sensor") -> np.ndarray | None:
     """The depth image (float32 metres, 0 = none) that ``source`` (see :data:`DEPTH_SOURCES`) gives for ``s``;
     None when the dataset has no depth. A sensor model's noise is drawn from the image id alone."""
-    if source not in DEPTH_SOURCES:
-        raise ConfigError(
-            f"depth source {source!r} is not accepted; accepted: one of {', '.join(DEPTH_SOURCES)}"
-        )
+    check_depth_source(source, f"depth source {source!r}")
     if source == "sensor" and s.sensor_depth_path is not None:
         return read_depth(s.sensor_depth_path)
     if s.depth_path is None:
@@ -135,11 +148,9 @@ def sample_depth(s: Sample, source: str = "sensor") -> np.ndarray | None:
     if source in ("sensor", "exact"):
         return exact
     from rebar_data.render.depth_sensor import sense_depth
-    from rebar_data.scene.sample import nominal_depth_sensor
 
-    sensor = replace(nominal_depth_sensor(source), shift_x_px=1.0)
     rng = np.random.default_rng(zlib.crc32(s.image_id.encode()))
-    return sense_depth(exact, sensor, rng, fx=s.camera[0])
+    return sense_depth(exact, _nominal_sensor(source), rng, fx=s.camera[0])
 
 
 def read_depth(path: str | Path) -> np.ndarray:
