@@ -12,7 +12,7 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_depth, read_image
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.checks import DepthCheck, as_depth_m, encode
-from rebar_data.perception.inference.detector import Detector, verified_score
+from rebar_data.perception.inference.detector import Detector, shifted_score
 from rebar_data.perception.inference.refine import patches
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx
@@ -83,10 +83,24 @@ def test_a_detection_with_no_depth_at_its_centre_keeps_its_score():
     check = DepthCheck(run, patch_px=8, scale_m=0.05, clip=4.0)
     depth = np.ones((20, 20), np.float32)
     depth[:8, :8] = 0.0
-    logits = check.logits(depth, np.array([[3.0, 3.0], [12.0, 12.0]]))
+    logits, share = check.logits(depth, np.array([[3.0, 3.0], [12.0, 12.0]]))
     assert logits.tolist() == [np.inf, -2.0] and seen == [1]
-    assert verified_score(np.array([0.7]), logits[:1])[0] == pytest.approx(0.7)
-    assert check.logits(depth, np.zeros((0, 2))).shape == (0,)
+    assert share.tolist() == [0.0, 1.0]
+    assert check.veto(depth, np.array([[3.0, 3.0]])).tolist() == [0.0]
+    assert check.logits(depth, np.zeros((0, 2)))[0].shape == (0,)
+
+
+def test_the_depth_check_only_lowers_a_score_when_confident_over_a_measured_patch():
+    """The veto is power * share**2 * min(0, logit + margin): nothing above -margin, and a patch half
+    measured counts a quarter as hard as a whole one."""
+    check = DepthCheck(lambda x: np.full(len(x), -6.0, np.float32), patch_px=8, scale_m=0.05, clip=4.0)
+    assert (check.power, check.margin) == (0.5, 2.0)
+    depth = np.ones((20, 40), np.float32)
+    depth[:, 24:28] = 0.0  # half of the second point's patch has no measurement
+    veto = check.veto(depth, np.array([[10.0, 10.0], [24.0, 10.0]]))
+    np.testing.assert_allclose(veto, [0.5 * (-4.0), 0.5 * 0.25 * (-4.0)])
+    mild = DepthCheck(lambda x: np.full(len(x), -1.5, np.float32), patch_px=8, scale_m=0.05, clip=4.0)
+    assert mild.veto(depth, np.array([[10.0, 10.0]])).tolist() == [0.0]
 
 
 def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
@@ -104,8 +118,8 @@ def test_onnx_depth_check_gives_what_pytorch_gives(tmp_path):
     )
     assert onnx_check.patch_px == 16
     np.testing.assert_allclose(
-        onnx_check.logits(depth, points),
-        eager.depth_check(net, scale_m=0.05, clip=4.0).logits(depth, points),
+        onnx_check.logits(depth, points)[0],
+        eager.depth_check(net, scale_m=0.05, clip=4.0).logits(depth, points)[0],
         atol=1e-4,
     )
 
@@ -142,9 +156,9 @@ def test_the_depth_check_learns_crossings_from_points_far_behind_the_bars(drawn_
     check = eager.depth_check(net, scale_m=cfg.scale_m, clip=cfg.clip)
     s = load_split(drawn_dataset, "test")[0]
     depth = read_depth(s.depth_path)
-    assert np.median(check.logits(depth, s.visible)) > 0
+    assert np.median(check.logits(depth, s.visible)[0]) > 0
     far = np.argwhere(depth > np.percentile(depth[depth > 0], 95))[:, ::-1][:10] + 0.5
-    assert np.median(check.logits(depth, far)) < 0
+    assert np.median(check.logits(depth, far)[0]) < 0
     again, rerun = train_depth_check(samples, negatives, tmp_path, cfg, seed=0)  # finished: kept as it is
     assert rerun == history
 
@@ -163,42 +177,24 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     assert "test" in results["results_without_depth"] and results["depth_check_parameters"] > 0
     s = load_split(drawn_dataset, "test")[0]
     rgb, depth = read_image(s.path), read_depth(s.depth_path)
-    assert det.score_bias_without_depth == det.meta["score_bias_without_depth"]
-    own = det.detect(rgb, threshold=1e-4)  # without depth: the RGB stages' own operating point
-    det.flatten_behind = False  # the colour image as it comes with depth too, to compare the two calls
-    det.score_bias_without_depth = det.score_bias  # one operating point, to compare the two calls
-    # beside the depth check the second stage's verification counts less (the settings' default)
-    assert (det.verify_power, det.verify_power_with_depth) == (1.0, 0.5)
-    assert det.meta["refiner"]["verify_power_with_depth"] == 0.5
-    det.verify_power_with_depth = det.verify_power  # one weight, to compare the two calls
+    # one operating point, the RGB stages' own, with depth or without
+    assert det.score_bias == det.meta["score_bias_without_depth"]
     without = det.detect(rgb, threshold=1e-4)
     with_depth = det.detect(rgb, threshold=1e-4, depth=depth)
     assert len(with_depth)
-    # the same detections, their scores lowered by the depth check and cut at the threshold
+    # the same detections, their scores lowered by the depth check's veto and cut at the threshold; the
+    # tiny check is not confident, so its margin is set where it doubts half of them
+    logits = det.depth_check.logits(depth, without[:, :2])[0]
+    det.depth_check.margin = -float(np.median(logits[np.isfinite(logits)]))
+    with_depth = det.detect(rgb, threshold=1e-4, depth=depth)
+    veto = det.depth_check.veto(depth, without[:, :2])
+    assert (veto <= 0).all() and (veto < 0).any()
     expected = without.copy()
-    expected[:, 2] = verified_score(
-        without[:, 2], det.depth_check.logits(depth, without[:, :2]), power=det.depth_power
-    )
+    expected[:, 2] = shifted_score(without[:, 2], veto)
     expected = expected[expected[:, 2] >= 1e-4]
     np.testing.assert_allclose(with_depth, expected[np.argsort(-expected[:, 2], kind="stable")])
-    # beside the depth check the verification counts at its own weight: at half of it each checked score
-    # is lowered less, at the same places, and a call without depth does not read it
-    det.verify_power_with_depth = 0.5
-    half = {tuple(d[:2]): d[2] for d in det.detect(rgb, threshold=1e-4, depth=depth)}
-    full = {tuple(d[:2]): d[2] for d in with_depth}
-    assert set(full) <= set(half)
-    assert all(half[k] >= full[k] for k in full) and any(half[k] > full[k] + 1e-6 for k in full)
-    np.testing.assert_allclose(det.detect(rgb, threshold=1e-4), without)
-    # a call without depth reads its own operating point, one with depth the other
-    det.score_bias_without_depth = det.meta["score_bias_without_depth"]
-    det.score_bias += 3.0
-    np.testing.assert_allclose(det.detect(rgb, threshold=1e-4), own)
-    assert det.detect(rgb, threshold=1e-4, depth=depth)[0, 2] > with_depth[0, 2]
-    det.score_bias -= 3.0
     # with no measurement anywhere (a camera nearer than its sensor's range) it is the RGB stages alone
-    det.score_bias += 1.0  # the two operating points apart, so that using the wrong one shows
-    np.testing.assert_allclose(det.detect(rgb, threshold=1e-4, depth=np.zeros_like(depth)), own)
-    det.score_bias -= 1.0
+    np.testing.assert_allclose(det.detect(rgb, threshold=1e-4, depth=np.zeros_like(depth)), without)
     with pytest.raises(ConfigError, match="registered to the colour image"):
         det.detect(rgb, depth=depth[:-1])
     with det.first_stage_only():

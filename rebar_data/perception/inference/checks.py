@@ -71,25 +71,46 @@ def encode(
     return out, has_centre
 
 
+# how a depth check's logit d lowers a score: by VETO_POWER * share**2 * min(0, d + VETO_MARGIN), share the part
+# of its patch measured; a sensor's smoothed or missing depth may doubt a true crossing, so only a confident
+# doubt, over a patch mostly measured, counts (docs/detector/experiments.md, "Depth that only lowers a score")
+VETO_POWER = 0.5
+VETO_MARGIN = 2.0
+
+
 class DepthCheck:
     """The depth check: ``logits(depth_m, uv)``, each point's logit that the depth around it shows a crossing
-    (+inf where the patch's centre holds no measurement)."""
+    (+inf where the patch's centre holds no measurement), and the share of its patch measured; ``veto``, the
+    logit shift each score takes from it (0 or less)."""
 
     def __init__(
-        self, run: Callable[[np.ndarray], np.ndarray], *, patch_px: int, scale_m: float, clip: float
+        self,
+        run: Callable[[np.ndarray], np.ndarray],
+        *,
+        patch_px: int,
+        scale_m: float,
+        clip: float,
+        power: float = VETO_POWER,
+        margin: float = VETO_MARGIN,
     ):
         self._run = run
         self.patch_px, self.scale_m, self.clip = patch_px, scale_m, clip
+        self.power, self.margin = power, margin
 
-    def logits(self, depth_m: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    def logits(self, depth_m: np.ndarray, uv: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         out = np.full(len(uv), np.inf)
         if not len(uv):
-            return out
+            return out, np.zeros(0)
         x, has_centre = encode(patches(depth_m, uv, self.patch_px)[0], scale_m=self.scale_m, clip=self.clip)
         if has_centre.any():
             out[has_centre] = self._run(np.ascontiguousarray(x[has_centre])).astype(np.float64).reshape(-1)
-        return out
+        return out, x[:, 1].mean(axis=(1, 2), dtype=np.float64)
+
+    def veto(self, depth_m: np.ndarray, uv: np.ndarray) -> np.ndarray:
+        logit, share = self.logits(depth_m, uv)
+        doubt = np.minimum(0.0, np.where(np.isfinite(logit), logit, 0.0) + self.margin)
+        return self.power * share**2 * doubt
 
 
 FLOOR = 0.05  # candidates the first stage scores this or more are evidence

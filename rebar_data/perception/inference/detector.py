@@ -100,14 +100,11 @@ class Detector:
         self.backend = backend
         self.path = path
         self.reading: str = "single"
-        # heatmap logit shifts that put the operating point at 0.5, with and without a depth image
-        self.score_bias = float(meta.get("score_bias", 0.0))
-        self.score_bias_without_depth = float(meta.get("score_bias_without_depth", self.score_bias))
-        # how hard the verification and the depth check count in a score
-        refiner = meta.get("refiner") or {}
-        self.verify_power = float(refiner.get("verify_power", 1.0))
-        self.verify_power_with_depth = float(refiner.get("verify_power_with_depth", self.verify_power))
-        self.depth_power = float((meta.get("depth_check") or {}).get("power", 1.0))
+        # the heatmap logit shift that puts the operating point at 0.5 (a file from before depth only lowered
+        # scores also holds its with-depth path's, no longer read)
+        self.score_bias = float(meta.get("score_bias_without_depth", meta.get("score_bias", 0.0)))
+        # how hard the verification counts in a score
+        self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))
         self.refiner: Refiner | None = None
         self.depth_check: DepthCheck | None = None
         self.crossing_point: CrossingPoint | None = None
@@ -229,8 +226,8 @@ class Detector:
     ) -> np.ndarray:
         """(N, 3) float64 u, v, score of the crossings in an (H, W, 3) uint8 RGB image, best first, scoring
         ``threshold`` or more. ``camera``: (fx, fy, cx, cy), None: :meth:`default_camera`. ``depth``: the
-        registered depth image, (H, W) float metres or uint16 millimetres (0 = none), for the depth check;
-        None: the line check. ``point``: "sight", where the image shows the bars cross, or "crossing", where
+        registered depth image, (H, W) float metres or uint16 millimetres (0 = none): the depth check then
+        lowers the scores it doubts, and raises none. ``point``: "sight", where the image shows the bars cross, or "crossing", where
         the 3D crossing point projects."""
         if not 0.0 < threshold < 1.0:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
@@ -256,12 +253,14 @@ class Detector:
         if depth_m is not None and self.flatten_behind:
             image = flatten_behind(image, depth_m)
         out = self.raw(image, camera=camera)
-        if self.line_check is not None and (depth_m is None or self.depth_check is None):
+        if self.line_check is not None:
             lc = self.line_check
             seen = self._line_pass(image, out, lc.floor, lc.checked_from, lc, threshold)
             det = np.c_[seen.placed, seen.scores]
         else:
-            det = self._rgb_and_depth(image, out, depth_m, threshold)
+            det = self._verified(image, out, threshold)
+        if depth_m is not None and self.depth_check is not None and len(det):
+            det[:, 2] = shifted_score(det[:, 2], self.depth_check.veto(depth_m, det[:, :2]))
         det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
@@ -272,37 +271,21 @@ class Detector:
         det[:, 1] /= sy
         return det
 
-    def _rgb_and_depth(
-        self,
-        image: np.ndarray,
-        out: np.ndarray,
-        depth_m: np.ndarray | None,
-        threshold: float,
-    ) -> np.ndarray:
-        """(N, 3) u, v, score from the first stage's output ``out``, the second stage and, given ``depth_m``,
-        the depth check; unsorted, some under ``threshold``."""
-        checked = depth_m is not None and self.depth_check is not None
-        bias = self.score_bias if checked else self.score_bias_without_depth
-        det = decode(out[0] + bias, out[1:], threshold=threshold)
+    def _verified(self, image: np.ndarray, out: np.ndarray, threshold: float) -> np.ndarray:
+        """(N, 3) u, v, score from the first stage's output ``out`` and the second stage; unsorted, some
+        under ``threshold``."""
+        det = decode(out[0] + self.score_bias, out[1:], threshold=threshold)
         log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing
         if self.refiner is not None and len(det):
             det[:, :2], verify = self.refiner.refine_and_verify(
                 image,
                 det[:, :2],
-                keep=lambda logit: self._may_reach(det[:, 2], logit, threshold, checked=checked, bias=bias),
+                keep=lambda logit: self._may_reach(det[:, 2], logit, threshold),
                 mirrored=self.reading == "mirrored",
             )
             if verify is not None:
                 log_p = log_probability(verify)
-        power = np.full(len(det), self.verify_power)
-        if checked and len(det):
-            logit = self.depth_check.logits(depth_m, det[:, :2])
-            measured = np.isfinite(logit)
-            power[measured] = self.verify_power_with_depth
-            det[measured, 2] = verified_score(det[measured, 2], logit[measured], power=self.depth_power)
-            # nothing measured to check: scored as without depth
-            det[~measured, 2] = shifted_score(det[~measured, 2], self.score_bias_without_depth - bias)
-        det[:, 2] = shifted_score(det[:, 2], power * log_p)
+        det[:, 2] = shifted_score(det[:, 2], self.verify_power * log_p)
         return det
 
     def line_inputs(
@@ -325,7 +308,7 @@ class Detector:
         """The RGB stages and the line check ``check`` (None: none) on the first stage's output ``out``: the
         candidates scoring ``floor`` or more inside the frame are evidence, those scoring ``checked_from`` or
         more are verified and checked; the later passes move those the check scores ``threshold`` or more."""
-        det = decode(out[0] + self.score_bias_without_depth, out[1:], threshold=floor)
+        det = decode(out[0] + self.score_bias, out[1:], threshold=floor)
         h, w = image.shape[:2]
         det = det[(det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)]
         evidence = det[:, 2].copy()
@@ -355,20 +338,11 @@ class Detector:
             read(None)
         return LineInputs(det[:, :2], evidence, checked, placed, scores[-1])
 
-    def _may_reach(
-        self, score: np.ndarray, verify_logit: np.ndarray, threshold: float, *, checked: bool, bias: float
-    ) -> np.ndarray:
-        """Which first-stage detections (``score``, read with ``bias``) can reach ``threshold`` once the
-        verification ``verify_logit`` counts, whatever the depth check says: the later passes move them."""
-        log_p = log_probability(verify_logit)
-        best = self.verify_power * log_p
-        if checked:
-            best = np.maximum(
-                self.verify_power_with_depth * log_p,
-                self.score_bias_without_depth - bias + self.verify_power * log_p,
-            )
+    def _may_reach(self, score: np.ndarray, verify_logit: np.ndarray, threshold: float) -> np.ndarray:
+        """Which first-stage detections (``score``) reach ``threshold`` once the verification ``verify_logit``
+        counts: the later passes move them."""
         # a hair above: rounding spares none that reach it
-        return shifted_score(score, best + 1e-6) >= threshold
+        return shifted_score(score, self.verify_power * log_probability(verify_logit) + 1e-6) >= threshold
 
 
 @dataclass(frozen=True)

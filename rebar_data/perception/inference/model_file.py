@@ -18,7 +18,7 @@ from typing import Any, Literal, get_args
 import numpy as np
 
 from rebar_data.errors import ConfigError
-from rebar_data.perception.inference.checks import DepthCheck
+from rebar_data.perception.inference.checks import VETO_MARGIN, VETO_POWER, DepthCheck
 from rebar_data.perception.inference.refine import CrossingPoint, Refiner
 
 Runtime = Literal["auto", "onnxruntime", "openvino"]
@@ -256,8 +256,16 @@ def load_stages(
         passes = refiner_passes(found[1])
         refiner = read_refiner(found[0], threads=threads, runtime=runtime, int8_path=int8, **passes)
     if found := stage_file(model, meta, "depth_check", depth_check_path):
-        scale_m, clip = float(found[1]["scale_m"]), float(found[1]["clip"])
-        depth = read_depth_check(found[0], threads=threads, scale_m=scale_m, clip=clip, runtime=runtime)
+        d = found[1]
+        depth = read_depth_check(
+            found[0],
+            threads=threads,
+            runtime=runtime,
+            scale_m=float(d["scale_m"]),
+            clip=float(d["clip"]),
+            power=float(d.get("veto_power", VETO_POWER)),
+            margin=float(d.get("veto_margin", VETO_MARGIN)),
+        )
     if found := stage_file(model, meta, "crossing_point", crossing_point_path):
         crossing = read_crossing_point(found[0], threads=threads, runtime=runtime)
     return refiner, depth, crossing
@@ -308,7 +316,8 @@ def read_crossing_point(path: Path, *, threads: int, runtime: str = "onnxruntime
 
 
 def read_depth_check(
-    path: Path, *, threads: int, scale_m: float, clip: float, runtime: str = "onnxruntime"
+    path: Path, *, threads: int, runtime: str = "onnxruntime", **settings: float
 ) -> DepthCheck:
+    """The depth check in ``path``; ``settings``: :class:`DepthCheck`'s scale_m, clip, power and margin."""
     _, run, size = _patch_stage(path, threads, runtime, -1)
-    return DepthCheck(run, patch_px=size, scale_m=scale_m, clip=clip)
+    return DepthCheck(run, patch_px=size, **settings)
