@@ -84,24 +84,27 @@ def test_a_frame_at_the_trained_focal_length_is_read_as_it_comes(monkeypatch):
     assert len(det.detect(rgb, camera=scaled_camera(CAMERA, 2.0, 2.0)))
 
 
-def test_the_depth_image_is_resampled_with_the_frame():
-    """With depth, the drawn frame enlarged twice gives the crossings the frame itself gives (its depth check
-    lowers most of them: the drawn bars lie on the ground): the depth image is resized with it (nearest
-    pixel), so the depth check reads the same patches."""
+def test_the_depth_image_is_resampled_with_the_frame(monkeypatch):
+    """With depth, the drawn frame enlarged twice gives the crossings the frame itself gives: the depth image
+    is resized with it (nearest pixel), so the depth check reads the same depth image at the same points."""
     det = _shipped()
     rgb, depth, _ = _frame()
+    read = []  # what the depth check is given: (depth image, points)
+    veto = det.depth_check.veto
+    monkeypatch.setattr(det.depth_check, "veto", lambda d, uv: read.append((d, uv.copy())) or veto(d, uv))
     at_scale = det.detect(rgb, camera=CAMERA, depth=depth)
     large, large_depth = resample(rgb, (960, 1280)), resample(depth, (960, 1280), nearest=True)
-    camera = scaled_camera(CAMERA, 2.0, 2.0)
-    resampled = det.detect(large, camera=camera, depth=large_depth)
-    without_depth = det.detect(large, camera=camera)
+    resampled = det.detect(large, camera=scaled_camera(CAMERA, 2.0, 2.0), depth=large_depth)
     p, g, _ = match(at_scale[:, :2], resampled[:, :2] / 2.0, 1.5)
     assert len(at_scale) >= 20 and len(p) >= 0.9 * max(len(at_scale), len(resampled)), (
         len(at_scale),
         len(resampled),
         len(p),
     )
-    assert len(without_depth) > 1.5 * len(resampled)  # the depth check ran on the resized depth image
+    (first, first_uv), (second, second_uv) = read
+    assert second.shape == depth.shape and np.array_equal(first, second)
+    near = np.linalg.norm(first_uv[:, None] - second_uv[None], axis=2).min(axis=1)
+    assert np.mean(near < 1.5) >= 0.9  # the points it reads lie in the trained frame's pixels
 
 
 def test_detect_on_images_takes_the_camera_and_answers_in_the_images_pixels(rendered_frame, tmp_path, capsys):

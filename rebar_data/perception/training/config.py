@@ -100,8 +100,7 @@ class RefineConfig(Strict):
     negative_score: Between = 0.1  # lowest first-stage score mined as a negative
     negative_gate_px: Positive = 6.0  # a mined negative lies farther than this from every crossing
     verify_weight: Positive = 1.0  # weight of the verification loss against the offset loss
-    verify_power: Power = 1.0  # how hard the verification counts in a score without depth
-    verify_power_with_depth: Power = 0.5  # how hard it counts beside the depth check
+    verify_power: Power = 1.0  # how hard the verification counts in a score
     border_fraction: Fraction = 0.1  # share of the training patches given an image border of their own
     border_reach_px: NonNegative = 8.0  # that border lies within this of the crossing
     supplement_repeats: PositiveInt = 6  # times each second-stage supplement image is listed
@@ -114,7 +113,13 @@ class RefineConfig(Strict):
     @model_validator(mode="before")
     @classmethod
     def _retired(cls, values: Any) -> Any:
-        retired = {"first_stage_starts": 0.0, "lower_mat_negatives": 0, "context_scale": 0, "border": "mask"}
+        retired = {
+            "first_stage_starts": 0.0,
+            "lower_mat_negatives": 0,
+            "context_scale": 0,
+            "border": "mask",
+            "verify_power_with_depth": 0.5,
+        }
         values = _without_retired(values, retired, "refine")
         if isinstance(values, dict) and values.get("quantize") == "int8":
             raise ValueError("refine.quantize = 'int8' is no longer supported; accepted: 'later' or 'none'")
@@ -136,7 +141,7 @@ class RefineConfig(Strict):
 
 class DepthCheckConfig(Strict):
     """The depth check (:mod:`rebar_data.perception.inference.checks`): lowers the score of a detection
-    whose depth patch shows no crossing."""
+    whose depth patch shows, with confidence, no crossing; it never raises one."""
 
     enabled: bool = True  # train and ship the depth check
     patch_px: PatchPx = 32  # side of the depth patch it reads
@@ -151,13 +156,14 @@ class DepthCheckConfig(Strict):
     jitter_px: NonNegative = 1.5  # Gaussian error of the training patches' centres
     gain: tuple[Positive, Positive] = (0.7, 1.4)  # random scale of the relative depth
     threads: PositiveInt = 2  # CPU threads while it trains
-    power: Power = 1.0  # how hard it counts in a score
+    veto_power: Power = 0.5  # how hard its doubt lowers a score
+    veto_margin: NonNegative = 2.0  # logit above which it lowers no score
     lower_mat_negatives: NonNegativeInt = 16  # lower-mat crossings a training image gives as negatives
 
     @model_validator(mode="before")
     @classmethod
     def _retired(cls, values: Any) -> Any:
-        retired = {"pool": 1, "quantize": "none", "calibration_patches": 2048}
+        retired = {"pool": 1, "quantize": "none", "calibration_patches": 2048, "power": 1.0}
         return _without_retired(values, retired, "depth_check")
 
 

@@ -34,7 +34,7 @@ FILE = StageFile(
     DepthCheckConfig,
     "depth_check_config",
     build,
-    frozenset({"power", "threads"}),
+    frozenset({"veto_power", "veto_margin", "threads"}),
 )
 save, load = FILE.save, FILE.load
 

@@ -43,7 +43,6 @@ FILE = StageFile(
             "quantize",
             "calibration_patches",
             "verify_power",
-            "verify_power_with_depth",
             "views",
             "first_pass_views",
             "iterations",

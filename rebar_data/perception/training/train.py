@@ -445,7 +445,7 @@ def _finish(
 
     cfg, out, sigma, val_samples, test_samples = run.cfg, run.out, run.sigma, run.val, run.test
     net, meta, _ = load_checkpoint(first_path)
-    stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)
+    stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)  # the second: older files
     meta = {k: v for k, v in meta.items() if k not in stale}
     # the run as it finished: its later stages may have trained on other settings or data than the first
     # stage's best epoch recorded
@@ -469,7 +469,6 @@ def _finish(
             "quantize": r.quantize,
             "verify": stages["refine"][0].verify,
             "verify_power": r.verify_power,
-            "verify_power_with_depth": r.verify_power_with_depth,
             "views": r.views,
             "first_pass_views": r.first_pass_views,
             "sha256": sha256_file(files["refine"]),
@@ -484,7 +483,8 @@ def _finish(
             meta["refiner"]["int8_calibrated_on"] = {"data": calibrated_on, "patches": len(patches)}
     if "depth_check" in files:
         d = cfg.depth_check
-        entry = {"patch_px": d.patch_px, "scale_m": d.scale_m, "clip": d.clip, "power": d.power}
+        entry = {"patch_px": d.patch_px, "scale_m": d.scale_m, "clip": d.clip}
+        entry |= {"veto_power": d.veto_power, "veto_margin": d.veto_margin}
         meta["depth_check"] = entry | {"sha256": sha256_file(files["depth_check"])}
     if "crossing_point" in files:
         meta["crossing_point"] = {
@@ -494,15 +494,8 @@ def _finish(
     detector = Detector.load(
         export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
     )
-    if val_samples:  # the operating point, chosen on val with the raw scores
-        raw = predict(detector, val_samples, threshold=CALIBRATION_FLOOR, progress=run.progress)
-        if detector.depth_check is not None:  # and the RGB stages' own, for calls without depth
-            rgb_only = predict(
-                detector, val_samples, threshold=CALIBRATION_FLOOR, depth=False, progress=run.progress
-            )
-            meta["score_bias_without_depth"] = calibrate_score_bias(val_samples, rgb_only)
-            detector.score_bias_without_depth = meta["score_bias_without_depth"]
-            run.log(f"score bias without depth {meta['score_bias_without_depth']:+.3f}")
+    if val_samples:  # the operating point, chosen on val with the RGB stages' raw scores (depth only lowers)
+        raw = predict(detector, val_samples, threshold=CALIBRATION_FLOOR, depth=False, progress=run.progress)
         meta["score_bias"] = detector.score_bias = calibrate_score_bias(val_samples, raw)
         run.log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)")
     if cfg.line_check.enabled and val_samples:  # on the RGB stages as they now score
