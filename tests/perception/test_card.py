@@ -22,9 +22,9 @@ def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
     # the test split again with its depth images and what lies behind flattened, and what that row means
     assert "| drawn test | with depth; what lies behind flattened (`--flatten-behind`) |" in card
     assert "- `what lies behind flattened (`--flatten-behind`)`: every pixel more than" in card
-    # how the stages' scores combine, and the verification's weight beside the depth check
-    assert "- Score: sigmoid(first-stage logit + b + 1 log p + 1 log q)." in card
-    assert "(0.5 log p beside the depth check)" in card and "| second stage, int8 copy |" in card
+    # how the stages' scores combine: the depth check only lowers
+    assert "- Score: sigmoid(first-stage logit + b + 1 log p + 0.5 s^2 min(0, d + 2))." in card
+    assert "The depth check only lowers a score" in card and "| second stage, int8 copy |" in card
     # latency is timed on rendered frames like the training data's, not on the drawn worst case
     assert "over 8 rendered paper-tunnel frames" in card and "candidates" in card
     # its figures read each image as Detector.load does by default: the mirrored reading

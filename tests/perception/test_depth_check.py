@@ -177,8 +177,9 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     assert "test" in results["results_without_depth"] and results["depth_check_parameters"] > 0
     s = load_split(drawn_dataset, "test")[0]
     rgb, depth = read_image(s.path), read_depth(s.depth_path)
-    # one operating point, the RGB stages' own, with depth or without
-    assert det.score_bias == det.meta["score_bias_without_depth"]
+    # one operating point, the RGB stages' own, with depth or without; the veto's settings as trained
+    assert det.score_bias == det.meta["score_bias"] and "score_bias_without_depth" not in det.meta
+    assert (det.depth_check.power, det.depth_check.margin) == (0.5, 2.0)
     without = det.detect(rgb, threshold=1e-4)
     with_depth = det.detect(rgb, threshold=1e-4, depth=depth)
     assert len(with_depth)
