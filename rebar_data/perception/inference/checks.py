@@ -71,9 +71,9 @@ def encode(
     return out, has_centre
 
 
-# how a depth check's logit d lowers a score: by VETO_POWER * share**2 * min(0, d + VETO_MARGIN), share the part
-# of its patch measured; a sensor's smoothed or missing depth may doubt a true crossing, so only a confident
-# doubt, over a patch mostly measured, counts (docs/detector/experiments.md, "Depth that only lowers a score")
+# how a depth check's logit d lowers a score: by VETO_POWER * share**2 * min(0, d + VETO_MARGIN), share the
+# part of its patch measured; a sensor's smoothed or missing depth may doubt a true crossing, so only a
+# confident doubt over a mostly measured patch counts (docs/detector/experiments.md)
 VETO_POWER = 0.5
 VETO_MARGIN = 2.0
 

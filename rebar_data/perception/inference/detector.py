@@ -227,8 +227,8 @@ class Detector:
         """(N, 3) float64 u, v, score of the crossings in an (H, W, 3) uint8 RGB image, best first, scoring
         ``threshold`` or more. ``camera``: (fx, fy, cx, cy), None: :meth:`default_camera`. ``depth``: the
         registered depth image, (H, W) float metres or uint16 millimetres (0 = none): the depth check then
-        lowers the scores it doubts, and raises none. ``point``: "sight", where the image shows the bars cross, or "crossing", where
-        the 3D crossing point projects."""
+        lowers the scores it doubts, and raises none. ``point``: "sight", where the image shows the bars
+        cross, or "crossing", where the 3D crossing point projects."""
         if not 0.0 < threshold < 1.0:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
         accepted("point", point, POINTS)
