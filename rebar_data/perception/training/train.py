@@ -59,8 +59,8 @@ from rebar_data.perception.evaluation.metrics import (
     keypoint_ap,
     pixel_metrics,
 )
-from rebar_data.perception.inference.detector import Detector
-from rebar_data.perception.inference.model_file import int8_passes_path
+from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.detector import Detector, resolve_model_path
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, quantize_onnx, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
@@ -158,36 +158,18 @@ def train(
     out = check_run_folder(out_dir)
     info = read_info(root)
     sigma = float(info.get("oks_sigma", DEFAULT_OKS_SIGMA))
-    train_samples = load_split(root, "train")
-    if not train_samples:
+    samples = load_split(root, "train")
+    if not samples:
         raise ConfigError(f"{root}: the train split has no images; accepted: a dataset with training images")
-    extra, supplement_meta = supplement_images(supplements, trained_on=info.get("name"))
-    train_samples = train_samples + extra
+    extra, extra_meta = supplement_images(supplements, trained_on=info.get("name"))
+    samples = samples + extra
     refine_extra, refine_meta = supplement_images(refine_supplements, trained_on=info.get("name"))
     line_extra, line_meta = supplement_images(line_supplements, trained_on=info.get("name"))
     if cfg.depth_check.enabled:  # fail now, not after the first two stages have trained
-        depth_check.check_depth(train_samples)
-    dataset = {
-        "path": str(root),
-        "name": info.get("name"),
-        "version": info.get("version"),
-        "renderer": renderer_engine(info),
-        "supplements": supplement_meta,
-        "refine_supplements": refine_meta,
-    }
-    run = _Run(
-        cfg,
-        out,
-        sigma,
-        dataset,
-        train_samples,
-        load_split(root, "val"),
-        load_split(root, "test"),
-        refine_extra,
-        line_extra,
-        line_meta,
-        progress,
-    )
+        depth_check.check_depth(samples)
+    dataset = {**_record(root, info), "supplements": extra_meta, "refine_supplements": refine_meta}
+    val, test = load_split(root, "val"), load_split(root, "test")
+    run = _Run(cfg, out, sigma, dataset, samples, val, test, refine_extra, line_extra, line_meta, progress)
     threads_before = torch.get_num_threads()
     with OutputLock(out, command=COMMAND):
         check_run_folder(out)  # again under the lock: another run may have written there meanwhile
@@ -232,16 +214,15 @@ def supplement_images(
         if not these:
             raise ConfigError(f"{root}: the supplement has no images; accepted: a dataset with images")
         images += these
-        meta.append(
-            {
-                "path": str(root),
-                "name": info.get("name"),
-                "version": info.get("version"),
-                "images": len(these),
-                "renderer": renderer_engine(info),
-            }
-        )
+        meta.append({**_record(root, info), "images": len(these)})
     return images, meta
+
+
+def _record(root: Path, info: dict[str, Any]) -> dict[str, Any]:
+    """What a run records of a dataset: its path, name, version and renderer."""
+    return dict(
+        path=str(root), name=info.get("name"), version=info.get("version"), renderer=renderer_engine(info)
+    )
 
 
 def _names(supplements: list[dict[str, Any]]) -> list[str]:
@@ -453,7 +434,7 @@ def _finish(
     for name in STAGES.values():
         for suffix in ("onnx", "pt"):
             (out / f"best.{name}.{suffix}").unlink(missing_ok=True)
-    int8_passes_path(out / "best.onnx").unlink(missing_ok=True)
+    model_file.int8_passes_path(out / "best.onnx").unlink(missing_ok=True)
     files = {}  # each later stage's ONNX file
     for module, (key, name) in zip((refine, depth_check, crossing_point), STAGES.items(), strict=True):
         if stages[key][0] is not None:
@@ -474,7 +455,7 @@ def _finish(
             "sha256": sha256_file(files["refine"]),
         }
         if r.quantize == "later":  # an int8 copy beside it for the passes after the first
-            later = int8_passes_path(out / "best.onnx")
+            later = model_file.int8_passes_path(out / "best.onnx")
             patches = refine.calibration_patches(run.train, r, seed=cfg.seed)
             quantize_onnx(files["refine"], later, patches)
             run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
@@ -595,26 +576,18 @@ def _finish(
 def load_detector(path: str | Path | None = None, **kwargs: Any):
     """A detector from a model file: ``.onnx`` through :meth:`Detector.load` (``kwargs`` its arguments), a
     ``.pt`` checkpoint (with its later stages' ``.pt`` files beside it) run in eager PyTorch."""
-    from rebar_data.perception.inference.detector import resolve_model_path
-    from rebar_data.perception.inference.model_file import (
-        crossing_point_path,
-        depth_check_path,
-        refiner_passes,
-        refiner_path,
-        stage_file,
-    )
-
     p = resolve_model_path(path)
     if p.suffix == ".onnx":
         return Detector.load(p, **kwargs)
     net, meta, _ = load_checkpoint(p)
     det = eager.detector(net, meta=meta, path=p)
-    if (found := stage_file(p, det.meta, "refiner", refiner_path)) is not None:
-        det.refiner = eager.refiner(refine.load(found[0])[0], **refiner_passes(found[1]))
-    if (found := stage_file(p, det.meta, "depth_check", depth_check_path)) is not None:
+    if (found := model_file.stage_file(p, det.meta, "refiner", model_file.refiner_path)) is not None:
+        det.refiner = eager.refiner(refine.load(found[0])[0], **model_file.refiner_passes(found[1]))
+    if (found := model_file.stage_file(p, det.meta, "depth_check", model_file.depth_check_path)) is not None:
         scale_m, clip = float(found[1]["scale_m"]), float(found[1]["clip"])
         det.depth_check = eager.depth_check(depth_check.load(found[0])[0], scale_m=scale_m, clip=clip)
-    if (found := stage_file(p, det.meta, "crossing_point", crossing_point_path)) is not None:
+    found = model_file.stage_file(p, det.meta, "crossing_point", model_file.crossing_point_path)
+    if found is not None:
         det.crossing_point = eager.crossing_point(crossing_point.load(found[0])[0])
     det.attach_line_check(kwargs.get("line_check", True))
     det.reading = kwargs.get("reading", "mirrored")
