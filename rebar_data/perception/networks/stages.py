@@ -9,6 +9,18 @@ from torch import nn
 
 from rebar_data.perception.networks.keypoint_net import conv_bn_relu
 
+Widths = tuple[int, int, int, int]
+
+
+def conv_stack(channels: int, widths: Widths, blocks: tuple[int, int, int]) -> nn.Sequential:
+    """3x3 convolutions from ``channels`` to ``widths[0]`` at full resolution, then three halvings to the
+    other widths, each followed by ``blocks`` more convolutions at its resolution."""
+    a, b, c, d = widths
+    layers = [conv_bn_relu(channels, a)]
+    for cin, cout, n in ((a, b, blocks[0]), (b, c, blocks[1]), (c, d, blocks[2])):
+        layers += [conv_bn_relu(cin, cout, stride=2), *[conv_bn_relu(cout, cout) for _ in range(n)]]
+    return nn.Sequential(*layers)
+
 
 class PatchNet(nn.Module):
     """(N, 4, P, P) patches, values 0-255 (RGB and the mask of the pixels on the image) -> (N, 2) offset
@@ -18,7 +30,7 @@ class PatchNet(nn.Module):
     def __init__(
         self,
         patch_px: int,
-        widths: tuple[int, int, int, int],
+        widths: Widths,
         hidden: int,
         blocks: tuple[int, int, int] = (1, 1, 1),
         *,
@@ -26,18 +38,13 @@ class PatchNet(nn.Module):
         size: bool = False,
     ):
         super().__init__()
-        a, b, c, d = widths
         self.patch_px = patch_px
         self.verify = verify
         self.size = size
-        layers = [conv_bn_relu(self.channels, a)]
-        for cin, cout, n in ((a, b, blocks[0]), (b, c, blocks[1]), (c, d, blocks[2])):
-            layers += [conv_bn_relu(cin, cout, stride=2), *[conv_bn_relu(cout, cout) for _ in range(n)]]
-        self.features = nn.Sequential(*layers)
-        cells = -(-patch_px // 8)
+        self.features = conv_stack(self.channels, widths, blocks)
         self.head = nn.Sequential(
             nn.Flatten(),
-            nn.Linear(d * cells * cells, hidden),
+            nn.Linear(widths[3] * ((patch_px + 7) // 8) ** 2, hidden),
             nn.ReLU(inplace=True),
             nn.Linear(hidden, 2 + int(verify) + int(size)),
         )
@@ -52,19 +59,13 @@ class DepthNet(nn.Module):
     """(N, 2, P, P) encoded depth patches (:func:`~rebar_data.perception.inference.checks.encode`) -> (N,)
     logit that the patch shows a crossing."""
 
-    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
+    def __init__(self, patch_px: int, widths: Widths, hidden: int):
         super().__init__()
-        a, b, c, d = widths
         self.patch_px = patch_px
-        self.features = nn.Sequential(
-            conv_bn_relu(2, a),
-            conv_bn_relu(a, b, stride=2),
-            conv_bn_relu(b, c, stride=2),
-            conv_bn_relu(c, d, stride=2),
-        )
-        cells = -(-patch_px // 8)
+        self.features = conv_stack(2, widths, (0, 0, 0))
+        n = widths[3] * ((patch_px + 7) // 8) ** 2
         self.head = nn.Sequential(
-            nn.Flatten(), nn.Linear(d * cells * cells, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1)
+            nn.Flatten(), nn.Linear(n, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1)
         )
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
@@ -75,22 +76,12 @@ class CrossingNet(nn.Module):
     """(N, 3, P, P) patches, values 0-255, and (N, 2) viewing rays -> (N, 2) offset (x, y) in pixels from
     the patch centre's sight point to the projected 3D crossing point."""
 
-    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
+    def __init__(self, patch_px: int, widths: Widths, hidden: int):
         super().__init__()
-        a, b, c, d = widths
         self.patch_px = patch_px
-        self.features = nn.Sequential(
-            conv_bn_relu(3, a),
-            conv_bn_relu(a, b, stride=2),
-            conv_bn_relu(b, b),
-            conv_bn_relu(b, c, stride=2),
-            conv_bn_relu(c, c),
-            conv_bn_relu(c, d, stride=2),
-        )
-        cells = -(-patch_px // 8)
-        self.head = nn.Sequential(
-            nn.Linear(d * cells * cells + 2, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2)
-        )
+        self.features = conv_stack(3, widths, (1, 1, 0))
+        n = widths[3] * ((patch_px + 7) // 8) ** 2 + 2  # and the ray
+        self.head = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2))
 
     def forward(self, patches: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
         f = self.features(patches * (1.0 / 64.0) - 2.0).flatten(1)
