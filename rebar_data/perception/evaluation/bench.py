@@ -1,6 +1,5 @@
-"""Detector latency (``rebar bench``): 640x480 frames of paper-tunnel's mesh rendered from its pipeline's
-camera trajectories, batch 1, two CPU threads, end to end, against the same network in eager PyTorch timed in
-the same run."""
+"""Detector latency (``rebar bench``): 640x480 paper-tunnel frames rendered along its pipeline's camera
+trajectories, batch 1, two CPU threads, end to end, against the same network in eager PyTorch."""
 
 from __future__ import annotations
 

@@ -1,7 +1,6 @@
 """Ship a trained model with the package: its ONNX files and a model card in the Hugging Face Hub's form
-(the template ``card.md.j2``), written from the run's records, with its figures as small PNGs in
-``models/card/``: the training curves, a precision-recall figure per held-out set and one frame with its
-detections drawn."""
+(``card.md.j2``) written from the run's records, its figures as small PNGs in ``models/card/``: training
+curves, a precision-recall figure per held-out set and one frame with its detections drawn."""
 
 from __future__ import annotations
 
@@ -124,8 +123,7 @@ def renderers(ds: dict) -> tuple[str, str, int]:
 
 
 def stage_rows(model: Path, detector: Detector, res: dict) -> list[tuple[str, ...]]:
-    """The card's table of the model's files: stage, file, size, parameters, and what the settings below
-    do not say."""
+    """The card's table of the model's files: stage, file, size, parameters, what the settings do not say."""
     rows = [("first stage", model, res.get("parameters"), "the heatmap network (`model` below)")]
     if detector.refiner is not None:
         second = "the patch network (`refine` below)"
@@ -397,8 +395,7 @@ def ship(
 ) -> Path:
     """Copy a finished run's ``best.onnx`` and its later stages into ``models_dir`` as the shipped model and
     write its card and figures, scored also on every split of each dataset in ``evaluate_on``. ``gate``: also
-    write the regression gate's reference beside it (``gate.json``, about a minute; False removes a stale
-    one)."""
+    write the regression gate's reference beside it (``gate.json``; False removes a stale one)."""
     from rebar_data.perception.evaluation.gate import GATE_NAME
 
     run_dir = Path(run_dir)

@@ -1,8 +1,7 @@
 """Reads a dataset in the project's layout (the contract in DESIGN.md) into per-image keypoint records: the
 images of a split from ``tables/samples.parquet``, their crossings from ``tables/keypoints.parquet`` and the
 OKS sigma from ``meta/info.json``. Visible crossings (visibility 2) are what the detector learns and is
-scored on; occluded ones (visibility 1) are kept apart so training can leave them out of the loss.
-"""
+scored on; occluded ones (visibility 1) are kept apart so training can leave them out of the loss."""
 
 from __future__ import annotations
 

@@ -1,5 +1,4 @@
-"""Run a detector over a dataset's images and score it: the shared step of validation, `rebar detect` and the
-model card."""
+"""Run a detector over a dataset's images and score it, for validation, `rebar detect` and the model card."""
 
 from __future__ import annotations
 
@@ -92,8 +91,7 @@ def write_predictions(path: str | Path, image_ids: Sequence[str], predictions: S
 
 
 def load_splits(root: str | Path, splits: Sequence[str] = SPLITS, *, truth: str = "sight") -> list[Sample]:
-    """Every image of the given splits, split by split in the samples table's order (``truth``: see
-    :data:`~.data.TRUTHS`)."""
+    """Every image of ``splits``, in the samples table's order (``truth``: :data:`~.data.TRUTHS`)."""
     return [s for split in splits for s in load_split(root, split, truth=truth)]
 
 

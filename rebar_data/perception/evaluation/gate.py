@@ -3,8 +3,7 @@
 
 AP@0.5, PCK@2px and recall@P0.99, with RGB alone and with the set's sensor depth, pass when at least the reference minus
 ``K_SE`` bootstrap standard errors over the set's scenes (why: ``docs/detector/design.md``, "The regression
-gate").
-"""
+gate")."""
 
 from __future__ import annotations
 
@@ -61,8 +60,7 @@ def load_gate_set(root: str | Path) -> tuple[list[Sample], list[str]]:
 
 
 def set_digest(root: str | Path) -> str:
-    """SHA-256 over the manifest's hashes of the set's images, depth images and labels: equal digests, the
-    same pixels and labels."""
+    """SHA-256 over the manifest's hashes of the set's images, depth and labels (:data:`SET_FOLDERS`)."""
     table = pq.read_table(Path(root) / "meta/manifest.parquet", columns=["path", "sha256"])
     rows = sorted(
         f"{p} {h}\n"

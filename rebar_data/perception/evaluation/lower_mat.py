@@ -123,8 +123,7 @@ class _Camera:
         return project(points, self.world_from_camera, **self.intrinsics)
 
     def visible(self, chords: np.ndarray) -> np.ndarray:
-        """The chords (N, 2, 3) with both ends in front of the camera and one within a chord's reach of the
-        frame."""
+        """The chords (N, 2, 3) with both ends in front of the camera and one near the frame."""
         pr = self._project(chords.reshape(-1, 3))
         w, h = self.intrinsics["width"], self.intrinsics["height"]
         margin = 0.1 * max(w, h)

@@ -6,8 +6,7 @@
   at the operating threshold, and the best recall at precision 0.99.
 
 Occluded crossings are not ground truth: a prediction on one is a false positive unless they are passed as
-``ignore`` regions (COCO's crowd semantics).
-"""
+``ignore`` regions (COCO's crowd semantics)."""
 
 from __future__ import annotations
 
@@ -82,8 +81,7 @@ def _match_image(
 @dataclass
 class APResult:
     """OKS keypoint AP (the mean 101-point interpolated precision over OKS 0.50:0.05:0.95; at 0.5; at 0.75),
-    the (thresholds, 101) precision curves behind it, the recall reached with every prediction per threshold
-    and the sigma."""
+    its (thresholds, 101) precision curves, the recall with every prediction per threshold, the sigma."""
 
     ap: float
     ap50: float

@@ -2,8 +2,7 @@
 
 ``<stem>.onnx`` is the first stage; its metadata (JSON under :data:`META_KEY`) names the later stages, each in
 ``<stem>.<stage>.onnx`` beside it with its SHA-256. ``runtime`` "onnxruntime" runs them in float32, "openvino"
-in bfloat16 where the CPU has it, "auto" picks OpenVINO where that holds; int8 files run in ONNX Runtime.
-"""
+in bfloat16 where the CPU has it, "auto" picks OpenVINO where that holds; int8 files run in ONNX Runtime."""
 
 from __future__ import annotations
 

@@ -3,8 +3,7 @@ images and another renderer's frames (the second-stage supplements, repeated), b
 train the first stage the run ships, again whenever their settings, data or that best epoch change.
 
 In the run folder: ``adapt_last.pt`` (after every epoch, to resume) and ``adapted.pt`` (the weight average
-after the last epoch, in ``best.pt``'s format).
-"""
+after the last epoch, in ``best.pt``'s format)."""
 
 from __future__ import annotations
 
@@ -51,8 +50,7 @@ def adapt_first_stage(
 ) -> tuple[Path, list[dict[str, Any]]]:
     """Train the adapt epochs from ``out/best.pt`` (epoch ``base_epoch``) on ``samples`` and ``extra``
     (repeated), or take them from the run folder when they trained on the same settings, ``data`` and best
-    epoch. Returns the first stage to ship (``best.pt`` without adapt epochs or ``extra``) and their
-    history."""
+    epoch. Returns the first stage to ship (``best.pt`` without adapt epochs or ``extra``) and the history."""
     a = cfg.adapt
     if a.epochs == 0 or not extra:
         for stale in (out / ADAPT_LAST, out / ADAPTED):

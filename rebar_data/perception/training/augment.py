@@ -2,8 +2,7 @@
 
 Each crop is one random similarity map ``crop_from_image`` (2x3, COCO's corner origin) that moves the
 keypoints and, converted to OpenCV's pixel-index convention, resamples the pixels; a mosaic fills the
-four quadrants of a crop from four images. Photometric changes touch pixels only.
-"""
+four quadrants of a crop from four images. Photometric changes touch pixels only."""
 
 from __future__ import annotations
 

@@ -1,8 +1,7 @@
 """Settings of the detector's training run, one line each; a bad value is one ConfigError naming the field.
 
 Why each default is what it is, with the figures measured for it, is in ``docs/detector/experiments.md``
-under the setting's name.
-"""
+under the setting's name."""
 
 from __future__ import annotations
 

@@ -2,8 +2,7 @@
 
 It trains from the labels alone: for each visible crossing of the training images, the patch around its
 sight point and the offset to its projected 3D crossing point. The patches are cut once, wider than the
-network's (``context_px``); each batch draws its scale, turns, flips and colour changes.
-"""
+network's (``context_px``); each batch draws its scale, turns, flips and colour changes."""
 
 from __future__ import annotations
 

@@ -1,6 +1,5 @@
-"""The first stage's training epochs, shared by the run and its adapt epochs: the augmented batches (the
-same in a loader process and after a resume), the learning-rate schedule, the step loop and the weights'
-moving average."""
+"""The first stage's training epochs, for the run and its adapt epochs: the augmented batches (the same in a
+loader process and after a resume), the learning-rate schedule, the step loop, the weights' moving average."""
 
 from __future__ import annotations
 
@@ -106,8 +105,7 @@ class TrainingImages:
 def make_batch(
     data: TrainingImages, rng: np.random.Generator, cfg: TrainConfig, *, mosaic: bool
 ) -> tuple[torch.Tensor, ...]:
-    """One augmented batch: images (B, 3, S, S), rays (B, 2, S, S) and the targets heat, heat weight,
-    offset, offset weight."""
+    """One augmented batch: images (B, 3, S, S), rays and the targets (heat, offset and their weights)."""
     size, aug = cfg.crop_px, cfg.augment
     cells = size // STRIDE
     rows = []

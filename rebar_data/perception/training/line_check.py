@@ -4,8 +4,7 @@ The detector, without depth and line check, reads each fitting image as the chec
 (``Detector.line_inputs``); a checked candidate within the scorer's gate of a visible crossing (matched
 one-to-one) is a positive, one matched to an ignored crossing is left out, every other a negative. A
 logistic regression is fitted on their features, and its bias moved so that score 0.5 is the best F1 on
-the validation images.
-"""
+the validation images."""
 
 from __future__ import annotations
 

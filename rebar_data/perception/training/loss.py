@@ -1,8 +1,7 @@
 """Training loss: CenterNet's penalty-reduced focal loss on the heatmap plus L1 on the offsets.
 
 Both are normalised by the number of crossings in the batch, so the loss does not depend on how many
-crossings a crop happens to hold. Cells with zero heat weight (around occluded crossings) add nothing.
-"""
+crossings a crop happens to hold. Cells with zero heat weight (around occluded crossings) add nothing."""
 
 from __future__ import annotations
 

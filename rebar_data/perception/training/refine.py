@@ -3,8 +3,7 @@
 It trains from the labels alone, on jittered, turned, flipped and scaled patches around the training
 images' visible crossings (:mod:`~rebar_data.perception.training.refine_data`), so it never learns one
 first-stage network's quirks; only its verification output looks at the first stage, whose false
-detections are its negatives (:func:`negatives_in`).
-"""
+detections are its negatives (:func:`negatives_in`)."""
 
 from __future__ import annotations
 
@@ -82,9 +81,8 @@ def calibration_patches(
 
 
 def negatives_in(found: list[np.ndarray], samples: list[Sample], cfg: RefineConfig) -> list[np.ndarray]:
-    """Where the first stage finds crossings that are not there: per sample, its detections ``found``
-    (:func:`first_stage_detections`) farther than ``cfg.negative_gate_px`` from every visible crossing,
-    as (M, 2) u, v."""
+    """Where the first stage finds crossings that are not there: per sample, (M, 2) u, v of its detections
+    ``found`` (:func:`first_stage_detections`) farther than ``cfg.negative_gate_px`` from every crossing."""
     gate = cfg.negative_gate_px
     return [_away_from(s.visible, p[:, :2].reshape(-1, 2), gate) for s, p in zip(samples, found, strict=True)]
 

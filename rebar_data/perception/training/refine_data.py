@@ -83,8 +83,7 @@ def _gained_around(
     gain: float,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The part of ``image`` that the square ``span`` (patch pixels) of ``patch_from_image`` reads, a margin
-    wider, its distractor pixels scaled by ``gain`` (cheaper than the whole frame's), and the map from it to
-    the patch."""
+    wider, its distractors scaled by ``gain`` (cheaper than the whole frame's), and its map to the patch."""
     a, b = span
     corners = np.array([[a, a], [b, a], [a, b], [b, b]], float)
     pts = apply_affine(corners, cv2.invertAffineTransform(patch_from_image))

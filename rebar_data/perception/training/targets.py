@@ -4,8 +4,7 @@ Output cell (i, j) at stride 4 covers input pixels [4j, 4j + 4) x [4i, 4i + 4), 
 (4j + 2, 4i + 2) in COCO's corner origin. A crossing at (u, v) lies in cell (floor(v / 4), floor(u / 4));
 that cell's heatmap target is 1, its neighbours get a Gaussian of the cell distance (CenterNet's
 penalty-reduced negatives), and the 3x3 cells around it learn the offset from their own centre to the
-crossing, so decoding still lands on the crossing when the peak falls in a neighbouring cell.
-"""
+crossing, so decoding still lands on the crossing when the peak falls in a neighbouring cell."""
 
 from __future__ import annotations
 

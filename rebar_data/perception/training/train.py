@@ -13,8 +13,7 @@ A run folder holds everything about one run:
 - ``results.json``: the best model's metrics on the validation and test splits;
 - ``curves.png``, ``pr_curve.png``, ``predictions.png``.
 
-The weights evaluated and saved are an exponential moving average of the trained ones.
-"""
+The weights evaluated and saved are an exponential moving average of the trained ones."""
 
 from __future__ import annotations
 
@@ -151,8 +150,7 @@ def train(
         line_supplements: Datasets whose every image the line check is fitted on beside the val split.
         resume: Continue from ``out_dir/last.pt`` if it exists (with the same settings but for
             ``RESUMABLE_CHANGES``); False starts afresh.
-        progress: Show a progress bar per epoch and a summary line after it (on stderr).
-    """
+        progress: Show a progress bar per epoch and a summary line after it (on stderr)."""
     cfg = resolve_config(config, {"epochs": epochs, "batch_size": batch_size})
     root = check_dataset(dataset_path)
     out = check_run_folder(out_dir)
@@ -198,8 +196,7 @@ def train(
 def supplement_images(
     supplements: Sequence[str | Path], *, trained_on: str | None
 ) -> tuple[list[Sample], list[dict[str, Any]]]:
-    """Every image of each supplement, and what the run records of each (path, name, version, images,
-    renderer)."""
+    """Every image of each supplement, and what the run records of each (:func:`_record` and its images)."""
     images: list[Sample] = []
     meta: list[dict[str, Any]] = []
     for path in supplements:
