@@ -43,9 +43,7 @@ class Source:
 def draw_gain(rng: np.random.Generator, cfg: AugmentConfig, distractors: np.ndarray | None) -> float | None:
     """The factor the distractors' pixels are scaled by this time (log-uniform in ``cfg.distractor_gain``),
     or None; draws nothing when the share is 0 or the pixels are unknown."""
-    if distractors is None or not cfg.scales_distractors:
-        return None
-    if rng.uniform() >= cfg.distractor_gain_probability:
+    if distractors is None or not cfg.scales_distractors or rng.uniform() >= cfg.distractor_gain_probability:
         return None
     lo, hi = np.log(cfg.distractor_gain)
     return float(np.exp(rng.uniform(lo, hi)))
@@ -79,13 +77,9 @@ def warp(image: np.ndarray, crop_from_image: np.ndarray, size: int, *, fill: flo
     the image mirrored (so no edge looks like a bar)."""
     m = np.asarray(crop_from_image, float).copy()  # for OpenCV, whose pixel (i, j) is (i + 0.5, j + 0.5)
     m[:, 2] += m[:, :2] @ [0.5, 0.5] - 0.5
+    border, value = (cv2.BORDER_REFLECT, (0, 0, 0)) if fill is None else (cv2.BORDER_CONSTANT, (fill,) * 3)
     return cv2.warpAffine(
-        image,
-        m,
-        (size, size),
-        flags=cv2.INTER_LINEAR,
-        borderMode=cv2.BORDER_REFLECT if fill is None else cv2.BORDER_CONSTANT,
-        borderValue=(0, 0, 0) if fill is None else (fill, fill, fill),
+        image, m, (size, size), flags=cv2.INTER_LINEAR, borderMode=border, borderValue=value
     )
 
 
@@ -123,12 +117,7 @@ def random_affine(
 def _inside(
     points: np.ndarray, x0: float, y0: float, x1: float, y1: float, margin: float = 0.0
 ) -> np.ndarray:
-    return (
-        (points[:, 0] >= x0 + margin)
-        & (points[:, 0] < x1 - margin)
-        & (points[:, 1] >= y0 + margin)
-        & (points[:, 1] < y1 - margin)
-    )
+    return ((points >= [x0 + margin, y0 + margin]) & (points < [x1 - margin, y1 - margin])).all(axis=1)
 
 
 def single_crop(src: Source, rng: np.random.Generator, *, size: int, cfg: AugmentConfig) -> Crop:
@@ -166,11 +155,9 @@ def mosaic_crop(
         full = warp(distractor_gain(src.image, src.distractors, rng, cfg), crop_from_image, size, fill=fill)
         i0, i1, j0, j1 = round(y0), round(y1), round(x0), round(x1)
         canvas[i0:i1, j0:j1] = full[i0:i1, j0:j1]
-        rows = (cell >= i0) & (cell < i1)  # output cells whose centre lies in the pasted region
-        cols = (cell >= j0) & (cell < j1)
-        rays[:, rows[:, None] & cols[None, :]] = crop_rays(crop_from_image, size, src.camera)[
-            :, rows[:, None] & cols[None, :]
-        ]
+        # the output cells whose centre lies in the pasted region
+        pasted = ((cell >= i0) & (cell < i1))[:, None] & ((cell >= j0) & (cell < j1))[None, :]
+        rays[:, pasted] = crop_rays(crop_from_image, size, src.camera)[:, pasted]
         x0, y0, x1, y1 = j0, i0, j1, i1  # the region actually pasted
         pos = apply_affine(src.positives, crop_from_image)
         inside = _inside(pos, x0, y0, x1, y1)
