@@ -115,11 +115,8 @@ def renderers(ds: dict) -> tuple[str, str, int]:
 
     supplements = (ds.get("supplements") or []) + (ds.get("refine_supplements") or [])
     other = [d for d in supplements if name(d) != name(ds)]
-    return (
-        name(ds),
-        " and ".join(sorted({name(d) for d in other})),
-        sum(int(d.get("images") or 0) for d in other),
-    )
+    others = " and ".join(sorted({name(d) for d in other}))
+    return name(ds), others, sum(int(d.get("images") or 0) for d in other)
 
 
 def stage_rows(model: Path, detector: Detector, res: dict) -> list[tuple[str, ...]]:
@@ -134,10 +131,8 @@ def stage_rows(model: Path, detector: Detector, res: dict) -> list[tuple[str, ..
             int8 = f"read by the later passes; calibrated on {cal.get('patches', '?')} patches of {sets}"
             rows.append(("second stage, int8 copy", model_file.int8_passes_path(model), "(the same)", int8))
     if detector.depth_check is not None:
-        depth = "read with a depth image (`depth_check` below)"
-        rows.append(
-            ("depth check", model_file.depth_check_path(model), res.get("depth_check_parameters"), depth)
-        )
+        depth, path = "read with a depth image (`depth_check` below)", model_file.depth_check_path(model)
+        rows.append(("depth check", path, res.get("depth_check_parameters"), depth))
     if detector.crossing_point is not None:
         point = 'only with `point="crossing"` (`crossing_point` below)'
         path = model_file.crossing_point_path(model)

@@ -140,14 +140,7 @@ def reference(
         se = bootstrap_se(samples, preds, scenes, sigma=sigma, replicates=replicates, seed=seed)
         margin = {f: K_SE * se[f] for f in FIGURES}
         floor = {f: fig[f] - margin[f] for f in FIGURES}
-        modes[mode] = {
-            "depth": MODES[mode],
-            "figures": fig,
-            "se": se,
-            "margin": margin,
-            "floor": floor,
-            "summary": m,
-        }
+        modes[mode] = dict(depth=MODES[mode], figures=fig, se=se, margin=margin, floor=floor, summary=m)
     path = detector.path
     return {
         "model": {"file": path.name if path else None, "sha256": sha256_file(path) if path else None},

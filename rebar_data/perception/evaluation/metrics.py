@@ -124,8 +124,8 @@ def keypoint_ap(
         ignored_all.append(ignored)
     precision = np.zeros((len(thresholds), len(RECALL_THRESHOLDS)))
     recall = np.zeros(len(thresholds))
+    nan = float("nan")
     if n_gt == 0:
-        nan = float("nan")
         return APResult(nan, nan, nan, np.full_like(precision, np.nan), np.full_like(recall, np.nan), sigma)
     if scores_all:
         scores = np.concatenate(scores_all)
@@ -144,7 +144,6 @@ def keypoint_ap(
             precision[ti, ok] = pr[idx[ok]]
     per_t = precision.mean(axis=1)
     at = {round(float(t), 2): float(per_t[i]) for i, t in enumerate(thresholds)}
-    nan = float("nan")
     return APResult(float(per_t.mean()), at.get(0.5, nan), at.get(0.75, nan), precision, recall, sigma)
 
 

@@ -167,16 +167,14 @@ class OpenVinoSession:
 
 def _args(values: Any) -> list[SimpleNamespace]:
     """ONNX graph inputs or outputs as ONNX Runtime's ``NodeArg`` names them: free dimensions are strings."""
-    return [
-        SimpleNamespace(
-            name=v.name,
-            shape=[
-                d.dim_value if d.HasField("dim_value") else (d.dim_param or "?")
-                for d in v.type.tensor_type.shape.dim
-            ],
-        )
-        for v in values
-    ]
+
+    def shape(v: Any) -> list[int | str]:
+        return [
+            d.dim_value if d.HasField("dim_value") else (d.dim_param or "?")
+            for d in v.type.tensor_type.shape.dim
+        ]
+
+    return [SimpleNamespace(name=v.name, shape=shape(v)) for v in values]
 
 
 def sha256_file(path: Path) -> str:

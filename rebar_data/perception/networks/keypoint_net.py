@@ -21,9 +21,8 @@ class ModelConfig(Strict):
 
     channels: tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt] = (16, 32, 64, 128)  # strides 2 to 16
     blocks: tuple[NonNegativeInt, NonNegativeInt, NonNegativeInt] = (1, 2, 4)  # separable, strides 4 to 16
-    ray_channels: Literal[True] = (
-        True  # each output cell's viewing ray ((u - cx) / fx, (v - cy) / fy) is an input
-    )
+    # each output cell's viewing ray ((u - cx) / fx, (v - cy) / fy) is an input
+    ray_channels: Literal[True] = True
     global_context: Literal[True] = True  # the stride-8 features scaled and shifted by a whole-image vector
 
 

@@ -99,11 +99,9 @@ def batches(data: PatchSet, cfg: CrossingPointConfig, aug: AugmentConfig, *, see
         for j, (r, w) in enumerate(zip(rows, window, strict=True)):
             lo_px = c // 2 - w // 2
             crop = data.context[r, lo_px : lo_px + w, lo_px : lo_px + w]
-            out[j] = (
-                crop
-                if w == p
-                else cv2.resize(crop, (p, p), interpolation=cv2.INTER_AREA if w > p else cv2.INTER_LINEAR)
-            )
+            if w != p:
+                crop = cv2.resize(crop, (p, p), interpolation=cv2.INTER_AREA if w > p else cv2.INTER_LINEAR)
+            out[j] = crop
         offset = data.offset[rows] * (p / window)[:, None].astype(np.float32)
         rays = data.rays[rows].copy()
         turns = rng.integers(0, 4, n)
