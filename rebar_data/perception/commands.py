@@ -311,8 +311,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
         against = "" if args.truth == "sight" else " (against the projected 3D crossing points)"
         found = "" if point == args.truth else f", the detector's {point} points"
         print(f"{args.split}{against}{found}: {format_summary(metrics)}", file=sys.stderr)
-        # where the confident false detections lie; against the 3D points most detections of sight points lie
-        # beyond the gate, so the census is taken against the labels alone
+        # where the confident false detections lie (against the labels alone: most miss the 3D points' gate)
         census = false_detection_census(root, samples, preds) if args.truth == "sight" else None
         if census is not None:
             print(format_census(census), file=sys.stderr)

@@ -15,8 +15,7 @@ from pathlib import Path
 FULL_FRAME_DIAGONAL_MM = math.hypot(36.0, 24.0)
 EXIF_IFD = 0x8769  # the Exif sub-IFD, where the camera settings are
 FOCAL_LENGTH_35MM = 0xA405
-# 35 mm equivalents a camera lens has (a phone's ultra-wide 13 mm, the longest telephotos 2000 mm); a value
-# outside is a corrupt tag, and reading a photograph with it would find nothing
+# the 35 mm equivalents lenses have (13 mm phone ultra-wides to 2000 mm telephotos); outside: a corrupt tag
 PLAUSIBLE_35MM = (4.0, 3000.0)
 
 

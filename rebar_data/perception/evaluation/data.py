@@ -116,8 +116,8 @@ def read_sample_image(sample: Sample) -> np.ndarray:
     return read_image(sample.path)
 
 
-# the depth a detector reads: the dataset's sensor depth (its exact depth where it has none), the exact
-# depth, or a depth sensor model's image made from the exact depth (its nominal parameters, 1 px off the colour)
+# the depth a detector reads: the dataset's sensor depth (else its exact depth), the exact depth, or a depth
+# sensor model's image of the exact depth (its nominal parameters, 1 px off the colour)
 DEPTH_SOURCES = ("sensor", *DEPTH_MODELS)
 
 

@@ -25,8 +25,7 @@ from rebar_data.labels.projection import Projection, project
 from rebar_data.perception.evaluation.data import Sample, read_distractors, read_info, read_uint16
 from rebar_data.scene.mat_surface import MatSurface
 
-# a crossing shows where the depth image is this close to the nearer bar's centerline there (its surface
-# lies up to 10 mm in front of it); anything else lies 100 mm or more in front of a lower bar
+# a crossing shows where the depth is this close to the nearer bar's centreline (its surface: within 10 mm)
 DEPTH_TOLERANCE_M = 0.02
 REACH_PX = 2.0  # the lower mat shows within this many pixels, beyond the widest top bar's half-width (10 mm)
 # a top bar in front of a lower bar of the other direction, and the lower mat's own crossings

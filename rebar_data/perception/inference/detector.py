@@ -100,8 +100,7 @@ class Detector:
         self.backend = backend
         self.path = path
         self.reading: str = "single"
-        # the heatmap logit shift that puts the operating point at 0.5 (a file from before depth only lowered
-        # scores also holds its with-depth path's, no longer read)
+        # the heatmap logit shift that puts the operating point at 0.5 (an older file's second one unread)
         self.score_bias = float(meta.get("score_bias_without_depth", meta.get("score_bias", 0.0)))
         # how hard the verification counts in a score
         self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))

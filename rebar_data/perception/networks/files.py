@@ -198,8 +198,7 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
             "`rebar train`"
         )
     with torch.no_grad():
-        # the export traces the layers in the order the modules were made (the context's linear layers
-        # aside, matched on their own)
+        # the export traces the layers in the order the modules were made (the linear layers matched apart)
         for node, conv in zip(nodes["Conv"], convs, strict=True):
             w = weights[node.input[1]]
             b = weights[node.input[2]] if len(node.input) > 2 else torch.zeros(w.shape[0])
@@ -253,8 +252,7 @@ def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray) -> Path:
     try:  # in a folder beside dst, so the finished file is renamed into place atomically
         with tempfile.TemporaryDirectory(prefix=".rebar-quant-", dir=dst.parent) as tmp:
             pre, out = Path(tmp) / "pre.onnx", Path(tmp) / "int8.onnx"
-            # symbolic shape inference cannot resolve the batch axis and would leave a file in the working
-            # folder; ONNX's own shape inference is enough for a plain convolution network
+            # ONNX's own shape inference: the symbolic one cannot resolve the batch axis and leaves a file
             quant_pre_process(str(src), str(pre), skip_symbolic_shape=True)
             quantize_static(
                 str(pre),

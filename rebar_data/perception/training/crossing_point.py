@@ -67,9 +67,8 @@ class PatchSet:
             centre = s.visible[ok] + rng.normal(0.0, cfg.jitter_px, (len(ok), 2))
             cut, corners = patches(read_image(s.path), centre, cfg.context_px)
             context.append(cut)
-            # the offset is the label's own, from the sight point: at inference it is added to the refined
-            # detection, so where the patch centre lies (the detection's error, the rounding to a pixel
-            # corner) is not this stage's to correct
+            # the label's own offset from the sight point: at inference it is added to the refined detection,
+            # so the patch centre's error (the detection's, the rounding to a corner) is not this stage's
             offset.append(s.crossings[ok] - s.visible[ok])  # in the patch's pixels
             rays.append(patch_rays(corners, s.camera))
         if not context:

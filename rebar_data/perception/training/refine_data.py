@@ -143,8 +143,7 @@ def patch_batch(
     crossing = positive.copy()
     # colour, blur and noise; what lies beyond the border stays 0
     x[..., :3] = photometric_batch(np.ascontiguousarray(x[..., :3]), rng, aug) * (x[..., 3:4] > 0)
-    # a crossing beyond the frame's edge is no crossing to the labels: its offset still trains, its
-    # verification learns "no"
+    # a crossing beyond the frame's edge: its offset still trains, its verification learns "no"
     size = x.shape[1]
     j, i = np.clip(np.floor(size / 2 + y[:, :2]).astype(np.int64), 0, size - 1).T
     crossing &= x[np.arange(len(x)), i, j, 3] > 0

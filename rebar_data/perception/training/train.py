@@ -290,8 +290,7 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
         "focal_px": float(np.median([0.5 * (s.camera[0] + s.camera[1]) for s in run.train])),
         "train_config": cfg.model_dump(mode="json"),
     }
-    # the first epochs' images: the training images and, other_renderer_repeats times, the second-stage
-    # supplements'
+    # the first epochs' images: the training images, then the second-stage supplements' repeated
     first_samples = run.train + run.refine_extra * cfg.other_renderer_repeats
     steps = max(1, math.ceil(len(first_samples) * cfg.crops_per_image / cfg.batch_size))
     run.started = time.perf_counter()
@@ -425,8 +424,7 @@ def _finish(
     net, meta, _ = load_checkpoint(first_path)
     stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)  # the second: older files
     meta = {k: v for k, v in meta.items() if k not in stale}
-    # the run as it finished: its later stages may have trained on other settings or data than the first
-    # stage's best epoch recorded
+    # the run as it finished (its later stages may have trained on other settings or data)
     meta.update(dataset=run.dataset, train_config=cfg.model_dump(mode="json"))
     for name in STAGES.values():
         for suffix in ("onnx", "pt"):
