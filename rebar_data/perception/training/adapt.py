@@ -15,12 +15,7 @@ import torch
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample
-from rebar_data.perception.networks.files import (
-    load_checkpoint,
-    read_checkpoint,
-    save_checkpoint,
-    write_checkpoint,
-)
+from rebar_data.perception.networks import files
 from rebar_data.perception.training.config import TrainConfig, resolve_config
 from rebar_data.perception.training.epochs import (
     WeightAverage,
@@ -57,7 +52,7 @@ def adapt_first_stage(
             stale.unlink(missing_ok=True)
         return out / "best.pt", []
     want = {"adapt": a.model_dump(mode="json"), "base_epoch": base_epoch, "data": list(data)}
-    net, meta, _ = load_checkpoint(out / "best.pt")
+    net, meta, _ = files.load_checkpoint(out / "best.pt")
     net = net.to(memory_format=torch.channels_last)
     avg = WeightAverage(net)
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=cfg.weight_decay)
@@ -66,7 +61,7 @@ def adapt_first_stage(
     saved = None
     if path.exists():
         try:
-            saved = read_checkpoint(path, fmt=FORMAT, what="adapt")
+            saved = files.read_checkpoint(path, fmt=FORMAT, what="adapt")
         except ConfigError:  # unreadable: trained afresh
             saved = None
     if saved is not None and saved["want"] == want:
@@ -102,9 +97,9 @@ def adapt_first_stage(
         state["history"].append({**row, "seconds": row["train_seconds"]})
         state["epoch"] = epoch
         payload = {"format": FORMAT, "want": want, "state_dict": net.state_dict()}
-        write_checkpoint(path, {**payload, **checkpoint_state(net, avg, opt, state)})
+        files.write_checkpoint(path, {**payload, **checkpoint_state(net, avg, opt, state)})
     batches = None  # stops the loader process
-    save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
+    files.save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})
     return out / ADAPTED, state["history"]
 
 
@@ -125,7 +120,6 @@ def adapt_model(
     import shutil
 
     from rebar_data.perception.inference.model_file import stage_files
-    from rebar_data.perception.networks.files import export_onnx, network_from_onnx
 
     if model.suffix != ".onnx":
         raise ConfigError(
@@ -135,22 +129,22 @@ def adapt_model(
         raise ConfigError(
             "no frames to adapt to; accepted: one or more datasets of the other camera's frames"
         )
-    net, meta = network_from_onnx(model)
+    net, meta = files.network_from_onnx(model)
     if cfg is None:
         cfg = resolve_config(meta.get("train_config"), {}, source=f"{model}'s train settings")
     if cfg.adapt.epochs == 0:
         raise ConfigError("adapt.epochs = 0 trains nothing; accepted: 1 or more adapt epochs")
     out.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(out / "best.pt", net, meta)
+    files.save_checkpoint(out / "best.pt", net, meta)
     first, _ = adapt_first_stage(
         out, cfg, samples, extra, base_epoch=int(meta.get("epoch", 0)), data=data, log=log, progress=progress
     )
-    adapted, adapted_meta, _ = load_checkpoint(first)
+    adapted, adapted_meta, _ = files.load_checkpoint(first)
     target = out / "rebar_keypoint.onnx"
     for a, b in zip(stage_files(model), stage_files(target), strict=True):
         if a.exists():
             shutil.copy2(a, b)
     # the first stage last: a file there means the whole model is there
-    return export_onnx(
+    return files.export_onnx(
         adapted, target, {**meta, "adapt": adapted_meta.get("adapt", {}), "adapted_from": str(model)}
     )

@@ -11,14 +11,7 @@ import numpy as np
 import torch
 
 from rebar_data.perception.evaluation.data import Sample, per_file_lazily, read_distractors, read_sample_image
-from rebar_data.perception.training.augment import (
-    apply_affine,
-    draw_gain,
-    photometric_batch,
-    random_affine,
-    scaled_where,
-    warp,
-)
+from rebar_data.perception.training import augment
 from rebar_data.perception.training.config import AugmentConfig, RefineConfig
 
 # uint8 patches, offsets, has an offset (a labelled crossing), is a crossing in the frame (verification)
@@ -45,16 +38,18 @@ def training_patch(
     error from the Gaussian alone (for a mined negative); the ``distractors`` pixels get
     ``AugmentConfig.distractor_gain``'s factor; a ``cfg.border_fraction`` of patches get a straight border of
     their own within ``cfg.border_reach_px`` of the crossing."""
-    gain = draw_gain(rng, geometry, distractors)  # first: the patch's other draws stay those without it
+    gain = augment.draw_gain(
+        rng, geometry, distractors
+    )  # first: the patch's other draws stay those without it
     if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
     else:
         error = rng.normal(0.0, cfg.jitter_px, 2)
     size = cfg.patch_px
-    patch_from_image = random_affine(
+    patch_from_image = augment.random_affine(
         rng, centre=np.asarray(crossing, float) + error, target=np.array([size / 2, size / 2]), cfg=geometry
     )
-    offset = apply_affine(crossing, patch_from_image)[0] - size / 2
+    offset = augment.apply_affine(crossing, patch_from_image)[0] - size / 2
     scale = float(np.sqrt(abs(np.linalg.det(patch_from_image[:, :2]))))
     if gain is not None:
         image, patch_from_image = _gained_around(image, distractors, patch_from_image, (0.0, size), gain)
@@ -69,7 +64,7 @@ def training_patch(
         at = (size / 2 + offset)[axis] + rng.uniform(-cfg.border_reach_px, cfg.border_reach_px)
         keep = c < at if at > size / 2 else c > at
         on_image &= keep[None, :] if axis == 0 else keep[:, None]
-    x = warp(image, patch_from_image, size, fill=0.0)
+    x = augment.warp(image, patch_from_image, size, fill=0.0)
     x[~on_image] = 0
     x = np.concatenate([x, (on_image * np.uint8(255))[..., None]], axis=2)
     return x, offset, scale
@@ -86,11 +81,11 @@ def _gained_around(
     wider, its distractors scaled by ``gain`` (cheaper than the whole frame's), and its map to the patch."""
     a, b = span
     corners = np.array([[a, a], [b, a], [a, b], [b, b]], float)
-    pts = apply_affine(corners, cv2.invertAffineTransform(patch_from_image))
+    pts = augment.apply_affine(corners, cv2.invertAffineTransform(patch_from_image))
     h, w = image.shape[:2]
     x0, y0 = np.clip(np.floor(pts.min(0)).astype(int) - 2, 0, [w - 1, h - 1])
     x1, y1 = np.clip(np.ceil(pts.max(0)).astype(int) + 2, [x0 + 1, y0 + 1], [w, h])
-    part = scaled_where(image[y0:y1, x0:x1], distractors[y0:y1, x0:x1], gain)
+    part = augment.scaled_where(image[y0:y1, x0:x1], distractors[y0:y1, x0:x1], gain)
     patch_from_part = patch_from_image.copy()
     patch_from_part[:, 2] += patch_from_image[:, :2] @ [x0, y0]
     return part, patch_from_part
@@ -142,7 +137,7 @@ def patch_batch(
     positive = rows[:, 2].astype(bool)
     crossing = positive.copy()
     # colour, blur and noise; what lies beyond the border stays 0
-    x[..., :3] = photometric_batch(np.ascontiguousarray(x[..., :3]), rng, aug) * (x[..., 3:4] > 0)
+    x[..., :3] = augment.photometric_batch(np.ascontiguousarray(x[..., :3]), rng, aug) * (x[..., 3:4] > 0)
     # a crossing beyond the frame's edge: its offset still trains, its verification learns "no"
     size = x.shape[1]
     j, i = np.clip(np.floor(size / 2 + y[:, :2]).astype(np.int64), 0, size - 1).T
