@@ -130,12 +130,8 @@ def train_depth_check(
         return F.binary_cross_entropy_with_logits(logit, y)
 
     def summary(tally, steps):
-        negatives_right, positives_right = classed_rightly(tally)
-        return {
-            "loss": tally["loss"] / steps,
-            "negatives_right": negatives_right,
-            "positives_right": positives_right,
-        }
+        n, p = classed_rightly(tally)
+        return {"loss": tally["loss"] / steps, "negatives_right": n, "positives_right": p}
 
     def describe(row):
         return (

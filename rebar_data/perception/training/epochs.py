@@ -219,11 +219,9 @@ def train_epoch(
     t0 = time.perf_counter()
     sums = np.zeros(3)
     bar = batch_bar(steps, f"epoch {epoch}/{cfg.epochs}", progress=progress)
-    lr = cfg.lr
+    lr, warm = cfg.lr, cfg.warmup_epochs * steps
     for _ in bar:
-        lr = warmup_cosine(
-            state["step"], peak=cfg.lr, warm=cfg.warmup_epochs * steps, total=cfg.epochs * steps
-        )
+        lr = warmup_cosine(state["step"], peak=cfg.lr, warm=warm, total=cfg.epochs * steps)
         for g in opt.param_groups:
             g["lr"] = lr
         x, rays, heat, hw, off, ow = next(batches)

@@ -85,11 +85,8 @@ def train_stage(
             _, saved, payload = stage.load(last)
         except ConfigError:  # an older layout: trained afresh
             payload = None
-    if (
-        payload is not None
-        and stage.settings(saved) == stage.settings(cfg)
-        and payload.get("data", []) == data
-    ):
+    same = payload is not None and stage.settings(saved) == stage.settings(cfg)
+    if same and payload.get("data", []) == data:
         net.load_state_dict(payload["state_dict"])
         opt.load_state_dict(payload["optimizer"])
     else:
@@ -101,14 +98,13 @@ def train_stage(
     try:
         batches, steps, keep = prepare(payload, first) if first <= cfg.epochs else (None, 0, {})
         total = cfg.epochs * steps
+        warm = max(1, round(0.03 * total))
         for epoch in range(first, cfg.epochs + 1):
             net.train()
             t0, tally = time.perf_counter(), defaultdict(float)
             bar = batch_bar(steps, f"{name} {epoch}/{cfg.epochs}", progress=progress)
             for b in bar:
-                lr = warmup_cosine(
-                    (epoch - 1) * steps + b, peak=cfg.lr, warm=max(1, round(0.03 * total)), total=total
-                )
+                lr = warmup_cosine((epoch - 1) * steps + b, peak=cfg.lr, warm=warm, total=total)
                 for g in opt.param_groups:
                     g["lr"] = lr
                 x = loss(net, next(batches), tally)

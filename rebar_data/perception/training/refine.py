@@ -30,25 +30,16 @@ def build(cfg: RefineConfig) -> PatchNet:
     return PatchNet(cfg.patch_px, cfg.widths, cfg.hidden, cfg.blocks, verify=cfg.verify, size=cfg.size)
 
 
-# export_only: the settings that shape the exported file or how its output is used
+# the settings that leave training alone: how the file is written, and how the detector runs it
+WRITING = ("quantize", "calibration_patches")
+RUNNING = ("verify_power", "views", "first_pass_views", "iterations", "step", "shrink_above_px")
 FILE = StageFile(
     "rebar-keypoint-refiner",
     "refiner",
     RefineConfig,
     "refine_config",
     build,
-    export_only=frozenset(
-        [
-            "quantize",
-            "calibration_patches",
-            "verify_power",
-            "views",
-            "first_pass_views",
-            "iterations",
-            "step",
-            "shrink_above_px",
-        ]
-    ),
+    export_only=frozenset(WRITING + RUNNING),
     defaults=(("verify", False), ("size", False)),  # files from before the stage could verify or size
     retrain=" (train the second stage again)",
 )
@@ -64,9 +55,8 @@ def calibration_patches(
 
     rng = np.random.default_rng(np.random.SeedSequence([seed, 4099]))
     used = [s for s in samples if len(s.visible)]
-    used = [
-        used[i] for i in np.unique(np.linspace(0, len(used) - 1, min(images_used, len(used))).astype(int))
-    ]
+    spread = np.unique(np.linspace(0, len(used) - 1, min(images_used, len(used))).astype(int))
+    used = [used[i] for i in spread]
     each = -(-cfg.calibration_patches // max(1, len(used)))
     out = []
     for s in used:
@@ -201,16 +191,12 @@ def train_refiner(
         return row
 
     def describe(row):
-        checked = (
-            f"; classed rightly: {row['verify_positives_right']:.1%} of crossings, "
-            f"{row['verify_negatives_right']:.1%} of {sum(len(n) for n in negatives)} negatives"
-            if net.verify
-            else ""
-        )
-        return (
-            f"loss {row['loss']:.4f}, mean error {row['mean_error_px']:.2f} px on jittered training "
-            f"patches{checked}"
-        )
+        error = row["mean_error_px"]
+        text = f"loss {row['loss']:.4f}, mean error {error:.2f} px on jittered training patches"
+        if net.verify:
+            text += f"; classed rightly: {row['verify_positives_right']:.1%} of crossings, "
+            text += f"{row['verify_negatives_right']:.1%} of {sum(len(n) for n in negatives)} negatives"
+        return text
 
     return train_stage(
         FILE,
