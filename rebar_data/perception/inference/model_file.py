@@ -276,33 +276,15 @@ def _patch_stage(path: Path, threads: int, runtime: str, size_axis: int) -> tupl
 
 
 def read_refiner(
-    path: Path,
-    *,
-    threads: int,
-    iterations: int = 1,
-    views: int = 1,
-    step: float = 1.0,
-    shrink_above_px: tuple[float, float] | None = None,
-    first_pass_views: int | None = None,
-    int8_path: Path | None = None,
-    runtime: str = "onnxruntime",
+    path: Path, *, threads: int, int8_path: Path | None = None, runtime: str = "onnxruntime", **passes: Any
 ) -> Refiner:
-    """The second stage in an ONNX file; ``int8_path``: an int8 copy for the later passes (ONNX Runtime)."""
+    """The second stage in an ONNX file, its ``passes`` as :class:`Refiner` takes them (one iteration by
+    default); ``int8_path``: an int8 copy for the later passes (ONNX Runtime)."""
     sess, run, size = _patch_stage(path, threads, runtime, 1)
     int8_run = None if int8_path is None else _patch_stage(int8_path, threads, "onnxruntime", 1)[1]
     columns = sess.get_outputs()[0].shape[-1]  # offsets, then the verification logit, then the log box side
-    return Refiner(
-        run,
-        patch_px=size,
-        iterations=iterations,
-        verifies=columns >= 3,
-        views=views,
-        step=step,
-        sizes=columns == 4,
-        shrink_above_px=shrink_above_px,
-        first_pass_views=first_pass_views,
-        int8_run=int8_run,
-    )
+    passes = {"iterations": 1, **passes}
+    return Refiner(run, patch_px=size, verifies=columns >= 3, sizes=columns == 4, int8_run=int8_run, **passes)
 
 
 def read_crossing_point(path: Path, *, threads: int, runtime: str = "onnxruntime") -> CrossingPoint:

@@ -13,17 +13,10 @@ from rebar_data.errors import ConfigError
 from rebar_data.perception.inference.image import Camera
 
 BORDERS = ("mirror", "mask")  # how a patch shows what lies beyond the image's border
-# (flip rows, flip columns, swap axes) in the order ``views`` takes them; exact about a patch's centre corner
-SYMMETRIES = (
-    (False, False, False),
-    (True, True, False),
-    (False, True, False),
-    (True, False, False),
-    (False, False, True),
-    (True, True, True),
-    (False, True, True),
-    (True, False, True),
-)
+# (flip rows, flip columns, swap axes) in the order ``views`` takes them; exact about a patch's centre corner:
+# as it is, turned half a turn, mirrored left to right, upside down; then each of those transposed
+_FLIPS = ((False, False), (True, True), (False, True), (True, False))
+SYMMETRIES = tuple((rows, cols, swap) for swap in (False, True) for rows, cols in _FLIPS)
 VIEWS = (1, 2, 4, 8)
 SHRINKS = (1.0, 0.75, 0.5)  # a later pass's resolution by the crossing's size against ``shrink_above_px``
 
