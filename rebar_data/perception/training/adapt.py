@@ -71,15 +71,8 @@ def adapt_first_stage(
     (out / ADAPTED).unlink(missing_ok=True)
     mix = samples + extra * a.supplement_repeats
     # the first epochs' machinery: a cosine decay from a.lr over the adapt epochs, no mosaic, own batches
-    run = cfg.model_copy(
-        update={
-            "epochs": a.epochs,
-            "lr": a.lr,
-            "warmup_epochs": a.warmup_epochs,
-            "seed": cfg.seed + SEED_OFFSET,
-            "augment": cfg.augment.model_copy(update={"mosaic_epochs": 0}),
-        }
-    )
+    update = dict(epochs=a.epochs, lr=a.lr, warmup_epochs=a.warmup_epochs, seed=cfg.seed + SEED_OFFSET)
+    run = cfg.model_copy(update={**update, "augment": cfg.augment.model_copy(update={"mosaic_epochs": 0})})
     steps = max(1, math.ceil(len(mix) * cfg.crops_per_image / cfg.batch_size))
     if log:
         log(

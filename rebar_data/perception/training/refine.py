@@ -95,13 +95,8 @@ def first_stage_detections(
     for i, s in enumerate(samples):
         first.setdefault(str(s.path), i)
     kept = list(first.values())
-    ran = predict(
-        detector,
-        [samples[i] for i in kept],
-        threshold=cfg.negative_score,
-        images=[images[i] for i in kept],
-        progress=progress,
-    )
+    kept_samples, kept_images = [samples[i] for i in kept], [images[i] for i in kept]
+    ran = predict(detector, kept_samples, threshold=cfg.negative_score, images=kept_images, progress=progress)
     of_file = {str(samples[i].path): p for i, p in zip(kept, ran, strict=True)}
     return [of_file[str(s.path)] for s in samples]
 

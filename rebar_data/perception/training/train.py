@@ -437,16 +437,10 @@ def _finish(
             files[key] = export_onnx(stages[key][0], out / f"best.{name}.onnx")
     if "refine" in files:
         r = cfg.refine
-        meta["refiner"] = {
-            "patch_px": r.patch_px,
-            "iterations": r.iterations,
-            "step": r.step,
+        kept = {"patch_px", "iterations", "step", "quantize", "verify_power", "views", "first_pass_views"}
+        meta["refiner"] = r.model_dump(include=kept) | {
             "shrink_above_px": list(r.shrink_above_px) if r.size else None,
-            "quantize": r.quantize,
             "verify": stages["refine"][0].verify,
-            "verify_power": r.verify_power,
-            "views": r.views,
-            "first_pass_views": r.first_pass_views,
             "sha256": sha256_file(files["refine"]),
         }
         if r.quantize == "later":  # an int8 copy beside it for the passes after the first
@@ -458,9 +452,9 @@ def _finish(
             calibrated_on = [f"{run.dataset.get('name')} train"] + _names(run.dataset["supplements"])
             meta["refiner"]["int8_calibrated_on"] = {"data": calibrated_on, "patches": len(patches)}
     if "depth_check" in files:
-        d = cfg.depth_check
-        entry = {"patch_px": d.patch_px, "scale_m": d.scale_m, "clip": d.clip}
-        entry |= {"veto_power": d.veto_power, "veto_margin": d.veto_margin}
+        entry = cfg.depth_check.model_dump(
+            include={"patch_px", "scale_m", "clip", "veto_power", "veto_margin"}
+        )
         meta["depth_check"] = entry | {"sha256": sha256_file(files["depth_check"])}
     if "crossing_point" in files:
         meta["crossing_point"] = {
