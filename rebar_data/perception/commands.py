@@ -144,16 +144,10 @@ def run_add_crossing_point(args: argparse.Namespace) -> None:
 
     found = _stage_inputs(args, ADD_CROSSING_POINT, _crossing_point_folder, args.supplement or ())
     out, samples, model, cfg, extra, _ = found
-    cfg = cfg or resolve_config(None, {})
+    cfg, samples = cfg or resolve_config(None, {}), samples + extra
     with _writing(out, ADD_CROSSING_POINT, _crossing_point_folder):
         stage = attach(
-            model,
-            samples + extra,
-            out,
-            cfg.crossing_point,
-            cfg.augment,
-            seed=cfg.seed,
-            progress=not args.quiet,
+            model, samples, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=not args.quiet
         )
     print(f"crossing-point stage beside {model}: {stage}", file=sys.stderr)
     print(stage)

@@ -470,14 +470,10 @@ def _finish(
         run.log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)")
     if cfg.line_check.enabled and val_samples:  # on the RGB stages as they now score
         data = fitted_on(run.dataset.get("name"), run.line_supplements)
+        fitting = val_samples + run.line_extra
         try:
             entry, detector.line_check = fit_line_check(
-                detector,
-                val_samples + run.line_extra,
-                val_samples,
-                cfg.line_check,
-                data=data,
-                progress=run.progress,
+                detector, fitting, val_samples, cfg.line_check, data=data, progress=run.progress
             )
         except UnfitLineCheck as e:  # a run too small to have false detections: the model goes without
             run.log(f"no line check: {e}")
