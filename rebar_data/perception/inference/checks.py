@@ -314,9 +314,8 @@ class LineCheck:
 
     @classmethod
     def from_meta(cls, entry: dict[str, Any], source: str) -> LineCheck:
-        if list(entry.get("features", [])) != list(FEATURES) or len(entry.get("weights", ())) != len(
-            FEATURES
-        ):
+        named, weights = list(entry.get("features", [])), entry.get("weights", ())
+        if named != list(FEATURES) or len(weights) != len(FEATURES):
             raise ConfigError(
                 f"{source}: its line check reads {entry.get('features')}; accepted: one fitted on this "
                 f"version's features ({', '.join(FEATURES)}), as `rebar train` fits it"
@@ -326,9 +325,5 @@ class LineCheck:
                 f"{source}: its line check was fitted reading the bars with {entry.get('reading')}; "
                 f"accepted: one fitted with this version's {READING}, as `rebar train` fits it"
             )
-        return cls(
-            np.asarray(entry["weights"], np.float64),
-            float(entry["bias"]),
-            float(entry["floor"]),
-            float(entry["checked_from"]),
-        )
+        weights, bias = np.asarray(weights, np.float64), float(entry["bias"])
+        return cls(weights, bias, float(entry["floor"]), float(entry["checked_from"]))

@@ -141,11 +141,9 @@ class Detector:
                 feed[names[1]] = rays
             return sess.run(None, feed)[0]
 
+        meta = json.loads(raw) if raw else {}
         det = cls(
-            lambda image, rays: run_batch(image[None], rays[None])[0],
-            meta=json.loads(raw) if raw else {},
-            backend=runtime,
-            path=p,
+            lambda image, rays: run_batch(image[None], rays[None])[0], meta=meta, backend=runtime, path=p
         )
         det._run_pair = run_batch if runtime == "openvino" else None  # compiled for two; ONNX Runtime: one
         det.refiner, det.depth_check, det.crossing_point = load_stages(p, det.meta, threads, runtime)
