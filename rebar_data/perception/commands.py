@@ -111,8 +111,7 @@ def run_train(args: argparse.Namespace) -> None:
 
 def _stage_inputs(args: argparse.Namespace, command: str, owned, datasets) -> tuple:
     """What `rebar adapt` and `rebar add-crossing-point` read: ``--out`` (new, empty or the command's own,
-    outside every input), the dataset, the model file, ``--config`` (None without it) and every image of
-    ``datasets``, with their records."""
+    outside every input), the dataset, model file, ``--config`` (or None), every image of ``datasets``."""
     from rebar_data.config import read_yaml
     from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
     from rebar_data.perception.inference.detector import resolve_model_path
@@ -397,9 +396,8 @@ def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
 
 
 def _detect_image(detector, f: Path, rgb: np.ndarray, out: Path, camera, threshold: float, args) -> tuple:
-    """Detect in one image and draw its overlay into ``out``; returns the detections and the camera it
-    was read with: ``camera``, else the photograph's EXIF 35 mm equivalent focal length's, else None (the
-    training camera's field of view)."""
+    """Detect in one image and draw its overlay into ``out``; returns the detections and the camera it was
+    read with: ``camera``, else its EXIF 35 mm equivalent's, else None (the training field of view)."""
     import cv2
 
     from rebar_data.perception.evaluation.plots import draw_overlay

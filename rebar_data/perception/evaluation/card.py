@@ -178,8 +178,7 @@ def table_rows(rows: dict[str, dict], default_input: str) -> list[tuple[str, str
 
 def model_index(rows: list[tuple[str, str, dict]], ds: dict, *, default_input: str) -> dict:
     """The card's YAML metadata beyond the template's: the training datasets and the model index, each
-    held-out set in each input mode with its headline figures (not the val split, frames that were trained on,
-    or a part of a set)."""
+    held-out set in each input mode with its headline figures (not the val split, trained frames or parts)."""
     results = []
     for head, rest, m in rows:
         whole = (

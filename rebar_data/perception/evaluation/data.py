@@ -40,9 +40,8 @@ class Sample:
     """One image and its crossings, in pixels with COCO's corner origin: (N, 2) visible ones with each one's
     detection-box side (its OKS scale), (M, 2) occluded ones (inside the image but hidden), the intrinsics
     (fx, fy, cx, cy), the registered exact depth image, the depth sensor's image (datasets from 2.3.0) and
-    the instance map (None where the dataset has none), and
-    ``crossings``, the projected 3D crossing point of each visible one (NaN where not recorded; None when the
-    dataset's tables lack the 3D points)."""
+    the instance map (None where the dataset has none), and ``crossings``, the projected 3D crossing point
+    of each visible one (NaN where not recorded; None when the dataset's tables lack the 3D points)."""
 
     image_id: str
     path: Path

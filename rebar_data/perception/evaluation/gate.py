@@ -126,8 +126,7 @@ def reference(
     seed: int = BOOTSTRAP_SEED,
 ) -> dict:
     """What ``gate.json`` holds for ``detector`` on the built set at ``root``: per mode the figures, their
-    bootstrap SEs, the margins (``K_SE`` SEs), the floors (figure - margin) and every headline figure, and
-    where they come from."""
+    bootstrap SEs, margins (``K_SE`` SEs), floors (figure - margin), every headline figure, their source."""
     from rebar_data.dataset.writers.manifest import sha256_file
 
     samples, scenes = load_gate_set(root)

@@ -52,9 +52,8 @@ class _Chords:
 
 
 def lower_mat_crossings(root: str | Path, samples: list[Sample]) -> list[np.ndarray]:
-    """(M, 2) u, v (COCO corner origin) of the crossings that each sample's lower mat shows (its own, and
-    those of top bars with lower bars); empty for a scene without a lower mat, and for every sample of a
-    dataset whose samples table records none."""
+    """(M, 2) u, v (COCO corner origin) of the crossings each sample's lower mat shows (its own, and those of
+    top bars with lower bars); empty without a lower mat, as for every sample of a dataset recording none."""
     return [np.concatenate([k[name] for name in KINDS]) for k in lower_mat_places(root, samples)]
 
 

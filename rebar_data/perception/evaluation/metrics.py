@@ -202,9 +202,8 @@ def pixel_metrics(
     threshold: float = OPERATING_THRESHOLD,
     gate_px: float = GATE_PX,
 ) -> PixelResult:
-    """PCK, pixel errors, precision and recall of per-image (N, 3) u, v, score predictions, with Hungarian
-    matching of every prediction, whatever its score, within ``gate_px``; one matched to an ``ignore``
-    crossing is dropped from the counts."""
+    """PCK, pixel errors, precision and recall of per-image (N, 3) u, v, score predictions, each matched
+    (Hungarian) within ``gate_px`` at any score; one matched to an ``ignore`` crossing is not counted."""
     n_gt = 0
     scores, hits, errors = [], [], []
     for truth, pred in zip(truths, predictions, strict=True):

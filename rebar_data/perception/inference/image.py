@@ -44,8 +44,7 @@ BLUR_CELLS = 4.0  # the fill's Gaussian sigma, in cells (16 px)
 
 def front_depth(depth_m: np.ndarray) -> np.ndarray:
     """(H, W) float32 metres: the depth of the nearest surface around each pixel (0 in ``depth_m`` = none),
-    the morphological opening over :data:`WINDOW_PX` squares at a quarter of the resolution; inf where a
-    window holds no measurement."""
+    the opening over :data:`WINDOW_PX` squares at a quarter of the resolution; inf where none is measured."""
     d = np.asarray(depth_m, np.float32)
     h, w = d.shape
     hc, wc = -(-h // CELL_PX), -(-w // CELL_PX)

@@ -90,11 +90,9 @@ def _openvino_core() -> Any:
 
 
 class OpenVinoSession:
-    """An ONNX file compiled by OpenVINO for the CPU, answering the calls made of an ONNX Runtime session.
-
-    A file with free image dimensions is compiled per input shape (the first :data:`SHAPES_KEPT`, then once
-    with them free); one free only in the batch is compiled once and fed batches padded to :data:`BATCH_STEP`.
-    """
+    """An ONNX file compiled by OpenVINO for the CPU, answering the calls made of an ONNX Runtime session. A
+    file with free image dimensions is compiled per input shape (the first :data:`SHAPES_KEPT`, then once
+    with them free); one free in the batch alone compiled once, fed batches padded to :data:`BATCH_STEP`."""
 
     def __init__(self, path: Path, threads: int):
         import onnx

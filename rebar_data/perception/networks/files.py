@@ -165,11 +165,10 @@ def check_model_file(model: str | Path) -> Path:
 
 def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
     """The first stage of an ONNX file from :func:`export_onnx` back in PyTorch, and its ``meta``, so that
-    training can go on from a shipped model (with its batch norms frozen, as the adapt epochs do).
-
-    The export folds each batch norm into the convolution before it: each such convolution gets the
-    folded kernel, its batch norm the folded bias with unit scale, mean 0 and variance 1 - eps. ConfigError
-    when the file is not a detector's or its layers do not match its model config."""
+    training can go on from a shipped model (with its batch norms frozen, as the adapt epochs do). The export
+    folds each batch norm into the convolution before it: each such convolution gets the folded kernel, its
+    batch norm the folded bias with unit scale, mean 0 and variance 1 - eps. ConfigError when the file is not
+    a detector's or its layers do not match its model config."""
     import onnx
     from onnx import numpy_helper
 

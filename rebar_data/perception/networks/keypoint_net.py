@@ -52,11 +52,9 @@ class SeparableBlock(nn.Module):
 class KeypointNet(nn.Module):
     """Image (N, 3, H, W), RGB values 0-255, H and W multiples of 16, and the viewing rays of the output
     cells' centres (N, 2, H/4, W/4) -> (N, 3, H/4, W/4): the heatmap logit and the offset (x, y) of the
-    crossing from the cell's centre, in cells.
-
-    The rays enter the decoder at stride 8 as a learned embedding added to the features; the stride-16
-    features averaged over the image scale and shift the stride-8 ones (FiLM), so every crossing's head
-    knows the frame's perspective."""
+    crossing from the cell's centre, in cells. The rays enter the decoder at stride 8 as a learned embedding
+    added to the features; the stride-16 features averaged over the image scale and shift the stride-8 ones
+    (FiLM), so every crossing's head knows the frame's perspective."""
 
     def __init__(self, cfg: ModelConfig | None = None):
         super().__init__()

@@ -109,8 +109,7 @@ def train_depth_check(
 ) -> tuple[DepthNet, list[dict[str, float]]]:
     """Train the depth check on the sensor depth images of ``samples`` (their exact depth where a dataset has
     none), resumable in ``out/depth_last.pt``; returns it and one row per epoch. ``negatives`` (each sample's
-    (M, 2) points) may be a function that gives them, called only when there is training to do; ``data`` names
-    what they came from."""
+    (M, 2) points) may be a function giving them, called only when there is training; ``data``: whence."""
     check_depth(samples)
     torch.manual_seed(seed)
 

@@ -70,9 +70,8 @@ def fit_line_check(
     data: Sequence[str] = (),
     progress: bool = False,
 ) -> tuple[dict[str, Any], LineCheck]:
-    """The line check fitted on the candidates of ``samples`` (the validation images among them or not),
-    its operating point set on ``val_samples``, and its entry for the model file's metadata (``data``
-    names the fitting datasets)."""
+    """The line check fitted on the candidates of ``samples`` (the validation images among them or not), its
+    operating point set on ``val_samples``, and its model-file entry (``data``: the fitting datasets)."""
     from sklearn.linear_model import LogisticRegression
 
     t0 = time.perf_counter()

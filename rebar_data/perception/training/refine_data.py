@@ -114,11 +114,10 @@ def patch_batch(
     aug: AugmentConfig,
     distractors_of: Callable[[int], np.ndarray | None] | None = None,
 ) -> Batch:
-    """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, C) uint8; (B, 2) offsets of
-    the crossing from the centre (with ``cfg.size`` a third column, the log of its box side over the
-    patch's); (B,) whether each is around a labelled crossing; (B,) whether that crossing lies on the
-    image the patch shows (the verification's label). ``distractors_of`` gives a sample's distractor
-    pixels (or None)."""
+    """The augmented patches of ``rows`` (from :func:`patch_keys`): (B, P, P, C) uint8; (B, 2) offsets of the
+    crossing from the centre (with ``cfg.size`` a third column, the log of its box side over the patch's);
+    (B,) whether each is around a labelled crossing; (B,) whether that crossing lies on the image the patch
+    shows (the verification's label). ``distractors_of`` gives a sample's distractor pixels (or None)."""
     geometry = patch_geometry(cfg, aug)
     xs, ys = [], []
     for i, k, positive in rows:
