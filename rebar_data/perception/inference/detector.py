@@ -100,7 +100,7 @@ class Detector:
         self.backend = backend
         self.path = path
         self.reading: str = "single"
-        # the heatmap logit shift that puts the operating point at 0.5 (an older file's second one unread)
+        # the heatmap logit shift that puts the operating point at 0.5 (older files' with-depth one unread)
         self.score_bias = float(meta.get("score_bias_without_depth", meta.get("score_bias", 0.0)))
         # how hard the verification counts in a score
         self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))
@@ -269,7 +269,7 @@ class Detector:
         return det
 
     def _verified(self, image: np.ndarray, out: np.ndarray, threshold: float) -> np.ndarray:
-        """(N, 3) u, v, score from the first stage's output ``out`` and the second stage, unsorted."""
+        """(N, 3) u, v, score from the first stage's output ``out`` and the second stage; unsorted, unfiltered."""
         det = decode(out[0] + self.score_bias, out[1:], threshold=threshold)
         log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing
         if self.refiner is not None and len(det):
