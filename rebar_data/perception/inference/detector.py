@@ -269,7 +269,7 @@ class Detector:
         return det
 
     def _verified(self, image: np.ndarray, out: np.ndarray, threshold: float) -> np.ndarray:
-        """(N, 3) u, v, score from the first stage's output ``out`` and the second stage; unsorted, unfiltered."""
+        """(N, 3) u, v, score from the first stage's ``out`` and the second stage; unsorted, unfiltered."""
         det = decode(out[0] + self.score_bias, out[1:], threshold=threshold)
         log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing
         if self.refiner is not None and len(det):
