@@ -138,21 +138,25 @@ def test_the_later_passes_skip_only_detections_that_cannot_reach_the_threshold(m
     det = Detector.load(threads=1)
     det.line_check = None
     rgb, depth = drawn_frame()  # dense with bars on the ground: many candidates the later stages reject
-    may_reach = Detector._may_reach
+    refine_and_verify = det.refiner.refine_and_verify
     spared = []
 
-    def counted(self, score, *args, **kwargs):
-        keep = may_reach(self, score, *args, **kwargs)
-        spared.append(int((~keep).sum()))
-        return keep
+    def counted(image, uv, *, keep, mirrored):
+        def kept(logit):
+            k = keep(logit)
+            spared.append(int((~k).sum()))
+            return k
+
+        return refine_and_verify(image, uv, keep=kept, mirrored=mirrored)
+
+    def all_kept(image, uv, *, keep, mirrored):
+        return refine_and_verify(image, uv, keep=lambda logit: np.ones(len(logit), bool), mirrored=mirrored)
 
     for threshold in (0.5, 0.05):
         for d in (depth, None):
-            monkeypatch.setattr(Detector, "_may_reach", counted)
+            monkeypatch.setattr(det.refiner, "refine_and_verify", counted)
             got = det.detect(rgb, depth=d, threshold=threshold)
-            monkeypatch.setattr(
-                Detector, "_may_reach", lambda self, score, *a, **k: np.ones(len(score), bool)
-            )
+            monkeypatch.setattr(det.refiner, "refine_and_verify", all_kept)
             np.testing.assert_array_equal(got, det.detect(rgb, depth=d, threshold=threshold))
     assert spared[0] > 0  # at the operating point some really were spared
 

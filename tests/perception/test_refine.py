@@ -11,7 +11,7 @@ import torch
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_image
 from rebar_data.perception.inference import model_file
-from rebar_data.perception.inference.detector import Detector, verified_score
+from rebar_data.perception.inference.detector import Detector, log_probability, shifted_score
 from rebar_data.perception.inference.refine import Refiner, patches, shrunk, shrunk_around
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, quantize_onnx
@@ -31,6 +31,11 @@ from rebar_data.perception.training.refine_data import (
 from rebar_data.perception.training.train import load_detector
 
 from .conftest import STILL, TINY_TRAIN
+
+
+def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:
+    """sigmoid(logit(score) + power * log sigmoid(``verify_logit``)): a score the verification lowered."""
+    return shifted_score(score, power * log_probability(verify_logit))
 
 
 def _blob(h: int, w: int, centre: np.ndarray, sigma: float = 2.0) -> np.ndarray:

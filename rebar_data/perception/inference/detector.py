@@ -249,13 +249,10 @@ class Detector:
         as_it_comes = image  # what the crossing-point stage trained on
         if depth_m is not None and self.flatten_behind:
             image = flatten_behind(image, depth_m)
-        out = self.raw(image, camera=camera)
-        if self.line_check is not None:
-            lc = self.line_check
-            seen = self._line_pass(image, out, lc.floor, lc.checked_from, lc, threshold)
-            det = np.c_[seen.placed, seen.scores]
-        else:
-            det = self._verified(image, out, threshold)
+        lc = self.line_check
+        floor, checked_from = (lc.floor, lc.checked_from) if lc else (threshold, threshold)
+        seen = self._line_pass(image, self.raw(image, camera=camera), floor, checked_from, lc, threshold)
+        det = np.c_[seen.placed, seen.scores]
         if depth_m is not None and self.depth_check is not None and len(det):
             det[:, 2] = shifted_score(det[:, 2], self.depth_check.veto(depth_m, det[:, :2]))
         det = det[det[:, 2] >= threshold]
@@ -268,29 +265,13 @@ class Detector:
         det[:, 1] /= sy
         return det
 
-    def _verified(self, image: np.ndarray, out: np.ndarray, threshold: float) -> np.ndarray:
-        """(N, 3) u, v, score from the first stage's ``out`` and the second stage; unsorted, unfiltered."""
-        det = decode(out[0] + self.score_bias, out[1:], threshold=threshold)
-        log_p = np.zeros(len(det))  # the second stage's log-probability of a crossing
-        if self.refiner is not None and len(det):
-            det[:, :2], verify = self.refiner.refine_and_verify(
-                image,
-                det[:, :2],
-                keep=lambda logit: self._may_reach(det[:, 2], logit, threshold),
-                mirrored=self.reading == "mirrored",
-            )
-            if verify is not None:
-                log_p = log_probability(verify)
-        det[:, 2] = shifted_score(det[:, 2], self.verify_power * log_p)
-        return det
-
     def line_inputs(
         self, rgb: np.ndarray, floor: float, checked_from: float, *, camera: Camera | None = None
     ) -> LineInputs:
         """What a line check with these first-stage scores reads in an image without depth (to fit one)."""
         image = _check_image(rgb)
         out = self.raw(image, camera=self._camera(image, camera))
-        return self._line_pass(image, out, floor, checked_from, None, floor)
+        return self._line_pass(image, out, floor, checked_from, None, 0.0)
 
     def _line_pass(
         self,
@@ -303,7 +284,7 @@ class Detector:
     ) -> LineInputs:
         """The RGB stages and the line check ``check`` (None: none) on the first stage's output ``out``: the
         candidates scoring ``floor`` or more inside the frame are evidence, those scoring ``checked_from`` or
-        more are verified and checked; the later passes move those the check scores ``threshold`` or more."""
+        more are verified and checked; the later passes move those scoring ``threshold`` or more."""
         det = decode(out[0] + self.score_bias, out[1:], threshold=floor)
         h, w = image.shape[:2]
         det = det[(det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)]
@@ -324,21 +305,17 @@ class Detector:
 
         placed = det[checked, :2]
         if self.refiner is not None and len(checked):
-            keep = None if check is None else (lambda logit: read(logit) >= threshold)
             placed, verify = self.refiner.refine_and_verify(
-                image, placed, keep=keep, mirrored=self.reading == "mirrored"
+                image,
+                placed,
+                keep=lambda logit: read(logit) >= threshold,
+                mirrored=self.reading == "mirrored",
             )
             if not scores:
                 read(verify)
         elif not scores:
             read(None)
         return LineInputs(det[:, :2], evidence, checked, placed, scores[-1])
-
-    def _may_reach(self, score: np.ndarray, verify_logit: np.ndarray, threshold: float) -> np.ndarray:
-        """Which first-stage detections (``score``) reach ``threshold`` once the verification ``verify_logit``
-        counts: the later passes move them."""
-        # a hair above: rounding spares none that reach it
-        return shifted_score(score, self.verify_power * log_probability(verify_logit) + 1e-6) >= threshold
 
 
 @dataclass(frozen=True)
@@ -376,11 +353,6 @@ def shifted_score(score: np.ndarray, shift: float | np.ndarray) -> np.ndarray:
     """sigmoid(logit(score) + shift)."""
     s = np.clip(np.asarray(score, np.float64), 1e-12, 1.0 - 1e-12)
     return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + shift)))
-
-
-def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:
-    """sigmoid(logit(score) + power * log sigmoid(``verify_logit``)): a score lowered by a verification."""
-    return shifted_score(score, power * log_probability(verify_logit))
 
 
 def _check_image(rgb: np.ndarray) -> np.ndarray:
