@@ -65,3 +65,29 @@ def test_detect_refuses_an_unknown_depth_source_in_one_line(drawn_dataset, tmp_p
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--depth-from lidar" in err[0] and "structured_light" in err[0]
     assert not out.exists()
+
+
+@pytest.mark.parametrize("model", MODELS)
+def test_a_frame_with_a_sensors_holes_is_read_no_worse_than_without_depth(
+    rendered_frame, rendered_depth, model
+):
+    """The shipped detector on a rendered frame and a sensor model's image of its depth (holes along the bars'
+    edges, lost thin bars, misregistration): every crossing found without depth is found with it, at the same
+    point, and no detection is added."""
+    from rebar_data.perception.evaluation.data import _nominal_sensor
+    from rebar_data.perception.evaluation.metrics import match
+    from rebar_data.perception.inference import detector as infer
+    from rebar_data.render.depth_sensor import sense_depth
+
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    rgb, visible, _, camera = rendered_frame
+    sensed = sense_depth(rendered_depth, _nominal_sensor(model), np.random.default_rng(5), fx=camera[0])
+    assert (sensed == 0).mean() > (rendered_depth == 0).mean()  # the sensor left holes
+    det = infer.Detector.load(threads=1, runtime="onnxruntime", reading="single")
+    without = det.detect(rgb, camera=camera)
+    with_depth = det.detect(rgb, camera=camera, depth=sensed)
+    found_without = match(visible, without[:, :2], 2.0)[1]
+    found_with = match(visible, with_depth[:, :2], 2.0)[1]
+    assert len(found_without) >= 5 and set(found_without) <= set(found_with)
+    assert len(with_depth) <= len(without)
