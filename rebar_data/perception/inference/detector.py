@@ -253,9 +253,10 @@ class Detector:
         floor, checked_from = (lc.floor, lc.checked_from) if lc else (threshold, threshold)
         seen = self._line_pass(image, self.raw(image, camera=camera), floor, checked_from, lc, threshold)
         det = np.c_[seen.placed, seen.scores]
+        det = det[det[:, 2] >= threshold]  # the depth check only lowers: it reads only these
         if depth_m is not None and self.depth_check is not None and len(det):
             det[:, 2] = shifted_score(det[:, 2], self.depth_check.veto(depth_m, det[:, :2]))
-        det = det[det[:, 2] >= threshold]
+            det = det[det[:, 2] >= threshold]
         det = det[np.argsort(-det[:, 2], kind="stable")]
         inside = (det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)
         det = drop_duplicates(det[inside], DUPLICATE_PX)

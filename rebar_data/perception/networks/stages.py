@@ -22,6 +22,11 @@ def conv_stack(channels: int, widths: Widths, blocks: tuple[int, int, int]) -> n
     return nn.Sequential(*layers)
 
 
+def flat_size(patch_px: int, widths: Widths) -> int:
+    """The length of :func:`conv_stack`'s output for a ``patch_px`` patch, flattened."""
+    return widths[3] * ((patch_px + 7) // 8) ** 2
+
+
 class PatchNet(nn.Module):
     """(N, 4, P, P) patches, values 0-255 (RGB and the mask of the pixels on the image) -> (N, 2) offset
     (x, y) of the crossing from the patch centre in pixels; with ``verify`` a third column, the logit that
@@ -44,7 +49,7 @@ class PatchNet(nn.Module):
         self.features = conv_stack(self.channels, widths, blocks)
         self.head = nn.Sequential(
             nn.Flatten(),
-            nn.Linear(widths[3] * ((patch_px + 7) // 8) ** 2, hidden),
+            nn.Linear(flat_size(patch_px, widths), hidden),
             nn.ReLU(inplace=True),
             nn.Linear(hidden, 2 + int(verify) + int(size)),
         )
@@ -63,7 +68,7 @@ class DepthNet(nn.Module):
         super().__init__()
         self.patch_px = patch_px
         self.features = conv_stack(2, widths, (0, 0, 0))
-        n = widths[3] * ((patch_px + 7) // 8) ** 2
+        n = flat_size(patch_px, widths)
         self.head = nn.Sequential(
             nn.Flatten(), nn.Linear(n, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 1)
         )
@@ -80,7 +85,7 @@ class CrossingNet(nn.Module):
         super().__init__()
         self.patch_px = patch_px
         self.features = conv_stack(3, widths, (1, 1, 0))
-        n = widths[3] * ((patch_px + 7) // 8) ** 2 + 2  # and the ray
+        n = flat_size(patch_px, widths) + 2  # and the ray
         self.head = nn.Sequential(nn.Linear(n, hidden), nn.ReLU(inplace=True), nn.Linear(hidden, 2))
 
     def forward(self, patches: torch.Tensor, rays: torch.Tensor) -> torch.Tensor:
