@@ -96,6 +96,19 @@ def shipped_model_copy(folder: Path) -> Path:
     return folder / infer.SHIPPED_MODEL.name
 
 
+def refined(refiner, image: np.ndarray, uv: np.ndarray, *, keep=None, mirrored: bool = False):
+    """The second stage's (N, 2) positions and first-pass verification logits for points ``uv``, the later
+    passes moving those ``keep`` (logits -> bool) names (None: all)."""
+    uv = np.asarray(uv, float).reshape(-1, 2)
+    if not len(uv):
+        return uv.copy(), np.zeros(0)
+    placed, logit, box = refiner.first_pass(image, uv, mirrored=mirrored)
+    moving = np.ones(len(uv), bool) if keep is None or logit is None else keep(logit)
+    box = None if box is None else box[moving]
+    placed[moving] = refiner.later_passes(image, placed[moving], box, mirrored=mirrored)
+    return placed, logit
+
+
 TINY_MODEL = {"channels": (8, 8, 16, 16), "blocks": (0, 1, 1)}
 TINY_TRAIN = {
     "batch_size": 4,

@@ -138,25 +138,28 @@ def test_the_later_passes_skip_only_detections_that_cannot_reach_the_threshold(m
     det = Detector.load(threads=1)
     det.line_check = None
     rgb, depth = drawn_frame()  # dense with bars on the ground: many candidates the later stages reject
-    refine_and_verify = det.refiner.refine_and_verify
-    spared = []
+    first_pass, later_passes = det.refiner.first_pass, det.refiner.later_passes
+    spared, first = [], {}
 
-    def counted(image, uv, *, keep, mirrored):
-        def kept(logit):
-            k = keep(logit)
-            spared.append(int((~k).sum()))
-            return k
+    def kept_first(image, uv, *, mirrored):
+        first["uv"], _, first["box"] = out = first_pass(image, uv, mirrored=mirrored)
+        return out
 
-        return refine_and_verify(image, uv, keep=kept, mirrored=mirrored)
+    def counted(image, uv, box, *, mirrored):
+        spared.append(len(first["uv"]) - len(uv))
+        return later_passes(image, uv, box, mirrored=mirrored)
 
-    def all_kept(image, uv, *, keep, mirrored):
-        return refine_and_verify(image, uv, keep=lambda logit: np.ones(len(logit), bool), mirrored=mirrored)
+    def all_moved(image, uv, box, *, mirrored):  # every point moved; those asked for returned
+        moved = later_passes(image, first["uv"], first["box"], mirrored=mirrored)
+        row = {tuple(p): k for k, p in enumerate(first["uv"])}
+        return moved[[row[tuple(p)] for p in uv]]
 
+    monkeypatch.setattr(det.refiner, "first_pass", kept_first)
     for threshold in (0.5, 0.05):
         for d in (depth, None):
-            monkeypatch.setattr(det.refiner, "refine_and_verify", counted)
+            monkeypatch.setattr(det.refiner, "later_passes", counted)
             got = det.detect(rgb, depth=d, threshold=threshold)
-            monkeypatch.setattr(det.refiner, "refine_and_verify", all_kept)
+            monkeypatch.setattr(det.refiner, "later_passes", all_moved)
             np.testing.assert_array_equal(got, det.detect(rgb, depth=d, threshold=threshold))
     assert spared[0] > 0  # at the operating point some really were spared
 

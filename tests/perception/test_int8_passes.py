@@ -15,7 +15,7 @@ from rebar_data.perception.inference.model_file import int8_passes_path
 from rebar_data.perception.inference.refine import Refiner
 from rebar_data.perception.networks.files import onnx_meta
 
-from .conftest import shipped_model_copy
+from .conftest import refined, shipped_model_copy
 
 
 def _network(offset: float, logit: float, calls: list[str], name: str):
@@ -43,7 +43,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
     )
     assert refiner.has_int8_passes
     image = np.zeros((64, 64, 3), np.uint8)
-    uv, logit = refiner.refine_and_verify(image, np.array([[20.0, 30.0]]))
+    uv, logit = refined(refiner, image, np.array([[20.0, 30.0]]))
     assert calls == ["float", "int8", "int8"]
     np.testing.assert_allclose(logit, [1.5])  # the float file's verification
     # the first pass puts it on its patch's corner (20, 30); each later one half way to its patch's corner
@@ -51,7 +51,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
     np.testing.assert_allclose(uv, [[22.0, 30.0]])
     calls.clear()
     refiner.int8_run = None  # the float file for every pass, as a model without the copy
-    uv, _ = refiner.refine_and_verify(image, np.array([[20.0, 30.0]]))
+    uv, _ = refined(refiner, image, np.array([[20.0, 30.0]]))
     assert calls == ["float"] * 3
     np.testing.assert_allclose(uv, [[20.0, 30.0]])
     assert not Refiner(_network(0, 0, [], "f"), patch_px=16, iterations=2, verifies=True).has_int8_passes

@@ -13,6 +13,8 @@ from rebar_data.perception.inference import detector as infer
 from rebar_data.perception.inference.detector import READINGS, Detector
 from rebar_data.perception.inference.refine import Refiner
 
+from .conftest import refined
+
 
 def _shipped(**kw) -> Detector:
     if not infer.SHIPPED_MODEL.exists():
@@ -87,14 +89,14 @@ def test_the_mirrored_reading_reads_every_second_stage_pass_in_the_int8_copy_and
     )  # fmt: skip
     image = np.zeros((64, 64, 3), np.uint8)
     points = np.array([[20.0, 30.0], [40.0, 33.0]])
-    refiner.refine_and_verify(image, points)
+    refined(refiner, image, points)
     assert calls == [("float", 2), ("int8", 4)]  # the single reading: two views of two patches later
     calls.clear()
-    refiner.refine_and_verify(image, points, mirrored=True)
+    refined(refiner, image, points, mirrored=True)
     assert calls == [("int8", 2), ("int8", 2)]
     calls.clear()
     refiner.int8_run = None  # a model without the copy reads the float file throughout
-    refiner.refine_and_verify(image, points, mirrored=True)
+    refined(refiner, image, points, mirrored=True)
     assert calls == [("float", 2), ("float", 2)]
 
 

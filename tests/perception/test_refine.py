@@ -30,7 +30,7 @@ from rebar_data.perception.training.refine_data import (
 )
 from rebar_data.perception.training.train import load_detector
 
-from .conftest import STILL, TINY_TRAIN
+from .conftest import STILL, TINY_TRAIN, refined
 
 
 def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:
@@ -87,8 +87,6 @@ def test_turned_views_of_a_patch_are_turned_back_to_one_answer():
     """A stand-in network that reads a spot's centroid (offset from the patch centre) and, as its logit,
     how far right the spot lies: every view, turned back, puts the spot where it is, and the logit is the
     plain view's alone."""
-    from rebar_data.perception.inference.refine import VIEWS
-
     size = 24
     point = np.array([40.3, 27.8])
     img = _blob(64, 80, point, sigma=1.5)
@@ -99,9 +97,9 @@ def test_turned_views_of_a_patch_are_turned_back_to_one_answer():
 
     start = np.array([[38.2, 29.1]])
     du = (point - np.floor(start[0] + 0.5))[0]  # the spot's column offset from the patch centre
-    for views in VIEWS:
+    for views in (1, 2, 4, 8):
         r = Refiner(run, patch_px=size, iterations=1, verifies=True, views=views)
-        uv, logit = r.refine_and_verify(img, start)
+        uv, logit = refined(r, img, start)
         np.testing.assert_allclose(uv[0], point, atol=0.05)
         # the flipped views see -du or the row offset there: averaged in, the logit would not be du
         assert logit[0] == pytest.approx(du, abs=0.05)
@@ -124,7 +122,7 @@ def test_a_later_pass_moves_the_point_its_step_of_the_way():
     for iterations, step, want in ((1, 0.5, 21.0), (2, 1.0, 22.0), (2, 0.5, 21.5), (3, 0.5, 22.25)):
         calls.clear()
         r = Refiner(run, patch_px=16, iterations=iterations, verifies=True, step=step)
-        uv, logit = r.refine_and_verify(img, start)
+        uv, logit = refined(r, img, start)
         # the second pass cuts its patch at the corner nearest 21.0 (21), reads 22 and goes half way; the
         # third at the corner nearest 21.5 (22), reads 23 and goes half way from 21.5 (22.25)
         assert uv[0, 0] == pytest.approx(want) and uv[0, 1] == pytest.approx(15.0)
@@ -144,16 +142,18 @@ def test_the_first_pass_reads_its_own_number_of_views():
     start = np.array([[20.0, 15.0], [30.0, 22.0]])
     for first, want in ((1, [2, 4, 4]), (4, [8, 4, 4]), (None, [4, 4, 4])):
         calls.clear()
-        Refiner(
-            run, patch_px=16, iterations=3, verifies=True, views=2, first_pass_views=first
-        ).refine_and_verify(img, start)
+        refined(
+            Refiner(run, patch_px=16, iterations=3, verifies=True, views=2, first_pass_views=first),
+            img,
+            start,
+        )
         assert calls == want
     # ``keep`` says which points the later passes go on moving: only those are read again
     calls.clear()
     r = Refiner(run, patch_px=16, iterations=3, verifies=True, views=1)
-    kept = r.refine_and_verify(img, start, keep=lambda logit: np.array([False, True]))[0]
+    kept = refined(r, img, start, keep=lambda logit: np.array([False, True]))[0]
     assert calls == [2, 1, 1]
-    np.testing.assert_array_equal(kept, r.refine_and_verify(img, start)[0])  # the stand-in never moves them
+    np.testing.assert_array_equal(kept, refined(r, img, start)[0])  # the stand-in never moves them
 
 
 def test_a_refiner_with_sizes_reads_a_large_crossing_again_from_the_shrunk_image():
@@ -180,13 +180,13 @@ def test_a_refiner_with_sizes_reads_a_large_crossing_again_from_the_shrunk_image
         r = Refiner(
             stand_in(box), patch_px=size, iterations=2, verifies=True, sizes=True, shrink_above_px=(50, 90)
         )
-        uv, _ = r.refine_and_verify(img, start)
+        uv, _ = refined(r, img, start)
         np.testing.assert_allclose(uv[0], point, atol=0.1)
         # the spot's spread in the second pass's patch: shrunk with the image
         assert seen[1] / seen[0] == pytest.approx(shrink, rel=0.08)
     without = Refiner(stand_in(120.0), patch_px=size, iterations=2, verifies=True, sizes=True)
     seen.clear()
-    without.refine_and_verify(img, start)
+    refined(without, img, start)
     assert seen[1] == pytest.approx(seen[0], rel=0.02)  # no shrink_above_px: every pass at full resolution
 
 
@@ -207,7 +207,7 @@ def test_the_later_pass_reads_every_resolution_in_one_network_call():
         ).astype(np.float32)
 
     r = Refiner(run, patch_px=size, iterations=2, verifies=True, sizes=True, shrink_above_px=(50, 90))
-    uv, _ = r.refine_and_verify(img, points + [[-1.7, 1.2], [1.4, -1.1], [-0.9, -1.3]])
+    uv, _ = refined(r, img, points + [[-1.7, 1.2], [1.4, -1.1], [-0.9, -1.3]])
     assert calls == [3, 3]
     np.testing.assert_allclose(uv, points, atol=0.15)
 
@@ -412,7 +412,7 @@ def test_the_refiner_learns_to_move_points_onto_crossings(drawn_dataset, tmp_pat
     refiner = eager.refiner(net)
     for s in test:
         start = s.visible + rng.normal(0, 1.5, s.visible.shape)
-        moved = refiner.refine(read_image(s.path), start)
+        moved = refined(refiner, read_image(s.path), start)[0]
         before += list(np.linalg.norm(start - s.visible, axis=1))
         after += list(np.linalg.norm(moved - s.visible, axis=1))
     assert np.median(after) < 0.8 * np.median(before)
@@ -432,7 +432,8 @@ def test_the_refiner_learns_to_move_points_onto_crossings(drawn_dataset, tmp_pat
     after_int8 = []
     for s in test:
         start = s.visible + rng.normal(0, 1.5, s.visible.shape)
-        after_int8 += list(np.linalg.norm(quantized.refine(read_image(s.path), start) - s.visible, axis=1))
+        moved = refined(quantized, read_image(s.path), start)[0]
+        after_int8 += list(np.linalg.norm(moved - s.visible, axis=1))
     assert np.median(after_int8) < 0.8 * np.median(before), (np.median(after_int8), np.median(before))
     assert np.median(after_int8) < np.median(after) + 0.3, (np.median(after_int8), np.median(after))
 
@@ -452,9 +453,8 @@ def test_onnx_refiner_gives_what_pytorch_gives(tmp_path):
     onnx_refiner = model_file.read_refiner(path, threads=1)
     assert onnx_refiner.patch_px == 16
     np.testing.assert_allclose(
-        onnx_refiner.refine(image, points), eager.refiner(net).refine(image, points), atol=1e-4
+        refined(onnx_refiner, image, points)[0], refined(eager.refiner(net), image, points)[0], atol=1e-4
     )
-    assert onnx_refiner.refine(image, np.zeros((0, 2))).shape == (0, 2)
 
 
 def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_run, drawn_dataset, tmp_path):
@@ -474,7 +474,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     with det.first_stage_only():
         first = det.detect(rgb, threshold=0.01)
     # the same detections, moved, their scores lowered by the verification and cut at the threshold
-    uv, logit = det.refiner.refine_and_verify(rgb, first[:, :2])
+    uv, logit = refined(det.refiner, rgb, first[:, :2])
     expected = np.c_[uv, verified_score(first[:, 2], logit, power=det.verify_power)]
     expected = expected[expected[:, 2] >= 0.01]
     np.testing.assert_allclose(both, expected[np.argsort(-expected[:, 2], kind="stable")])
@@ -581,8 +581,8 @@ def test_the_second_stage_learns_to_tell_crossings_from_mined_negatives(drawn_da
     on, off = [], []
     for s, middles in zip(test, _bar_middles(test), strict=True):
         rgb = read_image(s.path)
-        on += list(refiner.refine_and_verify(rgb, s.visible)[1])
-        off += list(refiner.refine_and_verify(rgb, middles)[1])
+        on += list(refined(refiner, rgb, s.visible)[1])
+        off += list(refined(refiner, rgb, middles)[1])
     assert np.median(on) > 0 > np.median(off), (np.median(on), np.median(off))
     assert np.mean(np.array(on) > 0) > 0.8 and np.mean(np.array(off) < 0) > 0.8
     # a stage interrupted after its fifth epoch resumes with the negatives it was given: not asked again

@@ -16,9 +16,9 @@ import cv2
 import numpy as np
 
 from rebar_data.errors import ConfigError
+from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.checks import DepthCheck, LineCheck, as_depth_m
 from rebar_data.perception.inference.image import Camera, flatten_behind, focal_scale, resample, scaled_camera
-from rebar_data.perception.inference.model_file import META_KEY, load_stages, onnx_session, resolve_runtime
 from rebar_data.perception.inference.refine import CrossingPoint, Refiner, accepted
 
 STRIDE = 4
@@ -107,7 +107,9 @@ class Detector:
         self.refiner: Refiner | None = None
         self.depth_check: DepthCheck | None = None
         self.crossing_point: CrossingPoint | None = None
-        self.line_check: LineCheck | None = None
+        self.line_check = (
+            LineCheck.from_meta(meta["line_check"], str(path)) if meta.get("line_check") else None
+        )
         self.focal_px: float | None = float(meta["focal_px"]) if meta.get("focal_px") else None
         self.resample = True
         self.flatten_behind = False
@@ -130,31 +132,20 @@ class Detector:
                 f"{p}: Detector.load reads .onnx files; accepted: a .onnx file, or a .pt checkpoint through "
                 "rebar_data.perception.training.train.load_detector"
             )
-        runtime = resolve_runtime(runtime)
-        sess = onnx_session(p, threads, runtime)
-        raw = sess.get_modelmeta().custom_metadata_map.get(META_KEY)
-        names = [i.name for i in sess.get_inputs()]
-
-        def run_batch(images: np.ndarray, rays: np.ndarray) -> np.ndarray:
-            feed = {names[0]: images}
-            if len(names) > 1:  # a first stage with ray channels
-                feed[names[1]] = rays
-            return sess.run(None, feed)[0]
-
+        runtime = model_file.resolve_runtime(runtime)
+        sess = model_file.onnx_session(p, threads, runtime)
+        raw = sess.get_modelmeta().custom_metadata_map.get(model_file.META_KEY)
+        run_batch = model_file.session_run(sess)  # images, and rays where the first stage reads them
         meta = json.loads(raw) if raw else {}
         det = cls(
             lambda image, rays: run_batch(image[None], rays[None])[0], meta=meta, backend=runtime, path=p
         )
         det._run_pair = run_batch if runtime == "openvino" else None  # compiled for two; ONNX Runtime: one
-        det.refiner, det.depth_check, det.crossing_point = load_stages(p, det.meta, threads, runtime)
-        det.attach_line_check()
+        det.refiner, det.depth_check, det.crossing_point = model_file.load_stages(
+            p, det.meta, threads, runtime
+        )
         det.reading = reading
         return det
-
-    def attach_line_check(self, wanted: bool = True) -> None:
-        """Load the line check the model's meta names (``wanted``: False leaves it out)."""
-        if wanted and self.meta.get("line_check"):
-            self.line_check = LineCheck.from_meta(self.meta["line_check"], str(self.path))
 
     @contextmanager
     def first_stage_only(self) -> Iterator[Detector]:
@@ -251,7 +242,9 @@ class Detector:
             image = flatten_behind(image, depth_m)
         lc = self.line_check
         floor, checked_from = (lc.floor, lc.checked_from) if lc else (threshold, threshold)
-        seen = self._line_pass(image, self.raw(image, camera=camera), floor, checked_from, lc, threshold)
+        seen = self.line_pass(
+            image, self.raw(image, camera=camera), floor, checked_from, check=lc, threshold=threshold
+        )
         det = np.c_[seen.placed, seen.scores]
         det = det[det[:, 2] >= threshold]  # the depth check only lowers: it reads only these
         if depth_m is not None and self.depth_check is not None and len(det):
@@ -266,57 +259,40 @@ class Detector:
         det[:, 1] /= sy
         return det
 
-    def line_inputs(
-        self, rgb: np.ndarray, floor: float, checked_from: float, *, camera: Camera | None = None
-    ) -> LineInputs:
-        """What a line check with these first-stage scores reads in an image without depth (to fit one)."""
-        image = _check_image(rgb)
-        out = self.raw(image, camera=self._camera(image, camera))
-        return self._line_pass(image, out, floor, checked_from, None, 0.0)
-
-    def _line_pass(
+    def line_pass(
         self,
         image: np.ndarray,
         out: np.ndarray,
         floor: float,
         checked_from: float,
-        check: LineCheck | None,
-        threshold: float,
+        *,
+        check: LineCheck | None = None,
+        threshold: float = 0.0,
     ) -> LineInputs:
-        """The RGB stages and the line check ``check`` (None: none) on the first stage's output ``out``: the
-        candidates scoring ``floor`` or more inside the frame are evidence, those scoring ``checked_from`` or
-        more are verified and checked; the later passes move those scoring ``threshold`` or more."""
+        """The RGB stages and the line check ``check`` (None: none) on the first stage's output ``out`` for
+        ``image``: the candidates scoring ``floor`` or more inside the frame are evidence, those scoring
+        ``checked_from`` or more are verified and checked; the later passes move those scoring ``threshold``
+        or more. Without a check, what a line check with these first-stage scores reads (to fit one)."""
         det = decode(out[0] + self.score_bias, out[1:], threshold=floor)
         h, w = image.shape[:2]
         det = det[(det[:, 0] >= 0) & (det[:, 0] < w) & (det[:, 1] >= 0) & (det[:, 1] < h)]
         evidence = det[:, 2].copy()
         checked = np.flatnonzero(evidence >= checked_from)
-        scores: list[np.ndarray] = []
-
-        def read(verify_logit: np.ndarray | None) -> np.ndarray:
-            if verify_logit is not None:
-                evidence[checked] = shifted_score(
-                    det[checked, 2], self.verify_power * log_probability(verify_logit)
-                )
-            if check is None:
-                scores.append(evidence[checked])
-            else:
-                scores.append(check.scores(image, det[:, :2], evidence, checked, threshold=threshold))
-            return scores[-1]
-
-        placed = det[checked, :2]
-        if self.refiner is not None and len(checked):
-            placed, verify = self.refiner.refine_and_verify(
-                image,
-                placed,
-                keep=lambda logit: read(logit) >= threshold,
-                mirrored=self.reading == "mirrored",
-            )
-            if not scores:
-                read(verify)
-        elif not scores:
-            read(None)
-        return LineInputs(det[:, :2], evidence, checked, placed, scores[-1])
+        placed, verify, box = det[checked, :2], None, None
+        refiner, mirrored = self.refiner if len(checked) else None, self.reading == "mirrored"
+        if refiner is not None:
+            placed, verify, box = refiner.first_pass(image, placed, mirrored=mirrored)
+        if verify is not None:
+            evidence[checked] = shifted_score(det[checked, 2], self.verify_power * log_probability(verify))
+        if check is None:
+            scores = evidence[checked]
+        else:
+            scores = check.scores(image, det[:, :2], evidence, checked, threshold=threshold)
+        if refiner is not None:  # the later passes spare what can no longer reach the threshold
+            moving = scores >= threshold if verify is not None else slice(None)
+            box = None if box is None else box[moving]
+            placed[moving] = refiner.later_passes(image, placed[moving], box, mirrored=mirrored)
+        return LineInputs(det[:, :2], evidence, checked, placed, scores)
 
 
 @dataclass(frozen=True)

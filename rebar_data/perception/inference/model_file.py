@@ -238,6 +238,13 @@ def refiner_passes(entry: dict[str, Any]) -> dict[str, Any]:
     }
 
 
+def depth_check_settings(entry: dict[str, Any]) -> dict[str, float]:
+    """How the depth check reads a patch and vetoes a score, as its meta entry says (older files: the
+    veto's defaults)."""
+    veto = {"power": entry.get("veto_power", VETO_POWER), "margin": entry.get("veto_margin", VETO_MARGIN)}
+    return {k: float(v) for k, v in {"scale_m": entry["scale_m"], "clip": entry["clip"], **veto}.items()}
+
+
 def load_stages(
     model: Path, meta: dict[str, Any], threads: int, runtime: str
 ) -> tuple[Refiner | None, DepthCheck | None, CrossingPoint | None]:
@@ -251,26 +258,16 @@ def load_stages(
         passes = refiner_passes(found[1])
         refiner = read_refiner(found[0], threads=threads, runtime=runtime, int8_path=int8, **passes)
     if found := stage_file(model, meta, "depth_check", depth_check_path):
-        d = found[1]
-        depth = read_depth_check(
-            found[0],
-            threads=threads,
-            runtime=runtime,
-            scale_m=float(d["scale_m"]),
-            clip=float(d["clip"]),
-            power=float(d.get("veto_power", VETO_POWER)),
-            margin=float(d.get("veto_margin", VETO_MARGIN)),
-        )
+        depth = read_depth_check(found[0], threads=threads, runtime=runtime, **depth_check_settings(found[1]))
     if found := stage_file(model, meta, "crossing_point", crossing_point_path):
         crossing = read_crossing_point(found[0], threads=threads, runtime=runtime)
     return refiner, depth, crossing
 
 
-def _patch_stage(path: Path, threads: int, runtime: str, size_axis: int) -> tuple[Any, Callable, int]:
-    """A session of a one-input patch stage's file, a call of it, and its patch size."""
-    sess = onnx_session(path, threads, runtime)
-    name = sess.get_inputs()[0].name
-    return sess, lambda x: sess.run(None, {name: x})[0], sess.get_inputs()[0].shape[size_axis]
+def session_run(sess: Any) -> Callable[..., np.ndarray]:
+    """A call of a session: its inputs in order (any given beyond them left out), its first output back."""
+    names = [i.name for i in sess.get_inputs()]
+    return lambda *inputs: sess.run(None, dict(zip(names, inputs, strict=False)))[0]
 
 
 def read_refiner(
@@ -278,23 +275,21 @@ def read_refiner(
 ) -> Refiner:
     """The second stage in an ONNX file, its ``passes`` as :class:`Refiner` takes them (one iteration by
     default); ``int8_path``: an int8 copy for the later passes (ONNX Runtime)."""
-    sess, run, size = _patch_stage(path, threads, runtime, 1)
-    int8_run = None if int8_path is None else _patch_stage(int8_path, threads, "onnxruntime", 1)[1]
+    sess = onnx_session(path, threads, runtime)
+    int8_run = None if int8_path is None else session_run(onnx_session(int8_path, threads, "onnxruntime"))
     columns = sess.get_outputs()[0].shape[-1]  # offsets, then the verification logit, then the log box side
-    passes = {"iterations": 1, **passes}
+    run, size, passes = session_run(sess), sess.get_inputs()[0].shape[1], {"iterations": 1, **passes}
     return Refiner(run, patch_px=size, verifies=columns >= 3, sizes=columns == 4, int8_run=int8_run, **passes)
 
 
 def read_crossing_point(path: Path, *, threads: int, runtime: str = "onnxruntime") -> CrossingPoint:
     sess = onnx_session(path, threads, runtime)
-    patches, rays = (i.name for i in sess.get_inputs())
-    size = sess.get_inputs()[0].shape[1]
-    return CrossingPoint(lambda x, r: sess.run(None, {patches: x, rays: r})[0], patch_px=size)
+    return CrossingPoint(session_run(sess), patch_px=sess.get_inputs()[0].shape[1])
 
 
 def read_depth_check(
     path: Path, *, threads: int, runtime: str = "onnxruntime", **settings: float
 ) -> DepthCheck:
     """The depth check in ``path``; ``settings``: :class:`DepthCheck`'s scale_m, clip, power and margin."""
-    _, run, size = _patch_stage(path, threads, runtime, -1)
-    return DepthCheck(run, patch_px=size, **settings)
+    sess = onnx_session(path, threads, runtime)
+    return DepthCheck(session_run(sess), patch_px=sess.get_inputs()[0].shape[-1], **settings)

@@ -17,7 +17,6 @@ BORDERS = ("mirror", "mask")  # how a patch shows what lies beyond the image's b
 # as it is, turned half a turn, mirrored left to right, upside down; then each of those transposed
 _FLIPS = ((False, False), (True, True), (False, True), (True, False))
 SYMMETRIES = tuple((rows, cols, swap) for swap in (False, True) for rows, cols in _FLIPS)
-VIEWS = (1, 2, 4, 8)
 SHRINKS = (1.0, 0.75, 0.5)  # a later pass's resolution by the crossing's size against ``shrink_above_px``
 
 
@@ -96,11 +95,11 @@ def shrunk_around(
 
 
 class Refiner:
-    """The second stage: ``refine_and_verify(image, uv)`` moves each point onto its crossing and gives the
-    first pass's verification logit. Each of the ``iterations`` - 1 later passes moves ``step`` of the way to
-    where the patch at the point places it, read by ``int8_run`` where given; ``views`` > 1 averages the
-    offsets over turned and flipped patches (:data:`SYMMETRIES`); with ``sizes`` and ``shrink_above_px`` a
-    later pass reads a large crossing from the image shrunk (:data:`SHRINKS`)."""
+    """The second stage: :meth:`first_pass` moves each point onto its crossing and gives its verification
+    logit; each of the ``iterations`` - 1 :meth:`later_passes` moves ``step`` of the way to where the patch at
+    the point places it, read by ``int8_run`` where given; ``views`` > 1 averages the offsets over turned and
+    flipped patches (:data:`SYMMETRIES`); with ``sizes`` and ``shrink_above_px`` a later pass reads a large
+    crossing from the image shrunk (:data:`SHRINKS`)."""
 
     def __init__(
         self,
@@ -130,41 +129,28 @@ class Refiner:
     def has_int8_passes(self) -> bool:
         return self.int8_run is not None
 
-    def refine(self, image: np.ndarray, uv: np.ndarray) -> np.ndarray:
-        """(N, 2) refined positions of the points ``uv`` (N, 2)."""
-        return self.refine_and_verify(image, uv)[0]
-
-    def refine_and_verify(
-        self,
-        image: np.ndarray,
-        uv: np.ndarray,
-        *,
-        keep: Callable[[np.ndarray], np.ndarray] | None = None,
-        mirrored: bool = False,
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """(N, 2) refined positions and (N,) first-pass verification logits (None without verification).
-        ``keep`` maps those logits to the points the later passes go on moving; ``mirrored`` (the mirrored
-        reading) has the first pass read the int8 copy too and the later passes one view."""
-        uv = np.asarray(uv, np.float64).reshape(-1, 2).copy()
-        if not len(uv):
-            return uv, (np.zeros(0) if self.verifies else None)
-        first_run = self.int8_run if mirrored and self.int8_run is not None else self._run
+    def first_pass(
+        self, image: np.ndarray, uv: np.ndarray, *, mirrored: bool = False
+    ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+        """(N, 2) positions of the N >= 1 points ``uv`` moved onto their crossings, their (N,) verification
+        logits and (N,) box sides (each None where the stage has no such output). ``mirrored`` (the mirrored
+        reading) reads the int8 copy where there is one."""
         x, corners = patches(image, uv, self.patch_px, border="mask")
-        out = self._read(x, self.first_pass_views, first_run)
-        logit = out[:, 2].copy() if self.verifies else None
+        run = self.int8_run if mirrored and self.int8_run is not None else self._run
+        out = self._read(x, self.first_pass_views, run)
+        logit = out[:, 2] if self.verifies else None
         box = self.patch_px * np.exp(out[:, 3]) if self.shrink_above_px is not None else None
-        uv = corners + out[:, :2]
-        moving = slice(None)
-        if self.iterations > 1 and keep is not None and logit is not None:
-            moving = np.asarray(keep(logit), bool)
+        return corners + out[:, :2], logit, box
+
+    def later_passes(
+        self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, *, mirrored: bool = False
+    ) -> np.ndarray:
+        """``uv`` (N, 2) moved by the later passes, reading each point at the size its ``box`` side calls
+        for; ``mirrored`` reads one view."""
         views = 1 if mirrored else self.views
-        moved, box = uv[moving], None if box is None else box[moving]
-        for _ in range(1, self.iterations):
-            if not len(moved):
-                break
-            moved = moved + self.step * (self._placed_at_size(image, moved, box, views) - moved)
-        uv[moving] = moved
-        return uv, logit
+        for _ in range(1, self.iterations if len(uv) else 1):
+            uv = uv + self.step * (self._placed_at_size(image, uv, box, views) - uv)
+        return uv
 
     def _placed_at_size(
         self, image: np.ndarray, uv: np.ndarray, box: np.ndarray | None, views: int

@@ -41,15 +41,15 @@ def refiner(net: PatchNet, *, iterations: int = 1, **passes: Any) -> Refiner:
     )
 
 
-def depth_check(net: DepthNet, *, scale_m: float, clip: float) -> DepthCheck:
-    """A depth check that runs ``net``."""
+def depth_check(net: DepthNet, **settings: float) -> DepthCheck:
+    """A depth check that runs ``net``; ``settings``: :class:`DepthCheck`'s scale_m, clip, power and margin."""
     net = net.eval()
 
     def run(x: np.ndarray) -> np.ndarray:
         with torch.inference_mode():
             return net(torch.from_numpy(x)).numpy()
 
-    return DepthCheck(run, patch_px=net.patch_px, scale_m=scale_m, clip=clip)
+    return DepthCheck(run, patch_px=net.patch_px, **settings)
 
 
 def crossing_point(net: CrossingNet) -> CrossingPoint:

@@ -1,7 +1,7 @@
 """Fitting the line check (:mod:`rebar_data.perception.inference.checks`) to a trained detector.
 
 The detector, without depth and line check, reads each fitting image as the check would
-(``Detector.line_inputs``); a checked candidate within the scorer's gate of a visible crossing (matched
+(``Detector.line_pass``); a checked candidate within the scorer's gate of a visible crossing (matched
 one-to-one) is a positive, one matched to an ignored crossing is left out, every other a negative. A
 logistic regression is fitted on their features, and its bias moved so that score 0.5 is the best F1 on
 the validation images."""
@@ -32,11 +32,11 @@ def fitting_rows(
     detector: Detector, samples: Sequence[Sample], cfg: LineCheckConfig, *, progress: bool = False
 ) -> tuple[np.ndarray, np.ndarray]:
     """The line check's features (M, F) of every candidate the detector checks in ``samples``
-    (``Detector.line_inputs``), and whether each is a crossing (M,)."""
+    (``Detector.line_pass``), and whether each is a crossing (M,)."""
     xs, ys = [], []
     for k, s in enumerate(samples):
         rgb = read_sample_image(s)
-        seen = detector.line_inputs(rgb, cfg.floor, cfg.checked_from, camera=s.camera)
+        seen = detector.line_pass(rgb, detector.raw(rgb, camera=s.camera), cfg.floor, cfg.checked_from)
         if not len(seen.checked):
             continue
         truth = truth_of(s)

@@ -569,11 +569,10 @@ def load_detector(path: str | Path | None = None, **kwargs: Any):
     if (found := model_file.stage_file(p, det.meta, "refiner", model_file.refiner_path)) is not None:
         det.refiner = eager.refiner(refine.load(found[0])[0], **model_file.refiner_passes(found[1]))
     if (found := model_file.stage_file(p, det.meta, "depth_check", model_file.depth_check_path)) is not None:
-        scale_m, clip = float(found[1]["scale_m"]), float(found[1]["clip"])
-        det.depth_check = eager.depth_check(depth_check.load(found[0])[0], scale_m=scale_m, clip=clip)
+        settings = model_file.depth_check_settings(found[1])
+        det.depth_check = eager.depth_check(depth_check.load(found[0])[0], **settings)
     found = model_file.stage_file(p, det.meta, "crossing_point", model_file.crossing_point_path)
     if found is not None:
         det.crossing_point = eager.crossing_point(crossing_point.load(found[0])[0])
-    det.attach_line_check(kwargs.get("line_check", True))
     det.reading = kwargs.get("reading", "mirrored")
     return det
