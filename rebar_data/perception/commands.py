@@ -313,12 +313,8 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
             torch = detector.backend == "torch"
             runtime = "PyTorch, float32" if torch else runtime_description(detector.backend)
             record = dict(split=args.split, dataset=str(root), truth=args.truth, point=point, runtime=runtime)
-            record |= {
-                "reading": detector.reading,
-                "resample": detector.resample,
-                WRITTEN_BY: DETECT,
-                **metrics,
-            }
+            record |= dict(reading=detector.reading, resample=detector.resample)
+            record |= {WRITTEN_BY: DETECT, **metrics}
             if census is not None:
                 record["false_detections"] = census
             text = json.dumps(record, indent=2) + "\n"
