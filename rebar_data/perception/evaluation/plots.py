@@ -135,11 +135,6 @@ def plot_pr_modes(
     return _save(fig, path)
 
 
-def plot_pr(ap: APResult, px: PixelResult, path: str | Path, *, title: str = "") -> Path:
-    """A training run's precision-recall figure: :func:`plot_pr_modes` of its detections."""
-    return plot_pr_modes({"detections": (ap, px)}, path, title=title)
-
-
 def draw_overlay(
     rgb: np.ndarray,
     predictions: np.ndarray,

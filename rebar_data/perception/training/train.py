@@ -398,9 +398,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
 
 
 def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
-    keys: list[str] = []
-    for row in history:
-        keys += [k for k in row if k not in keys]
+    keys = list(dict.fromkeys(k for row in history for k in row))
 
     def write(tmp: Path) -> None:
         with tmp.open("w", newline="") as f:
@@ -548,12 +546,9 @@ def _finish(
     if split:
         samples, preds = curves[split]
         truths = [truth_of(s) for s in samples]
-        plots.plot_pr(
-            keypoint_ap(truths, preds, sigma=sigma),
-            pixel_metrics(truths, preds),
-            out / "pr_curve.png",
-            title=f"{split} split, OKS sigma {sigma:g}",
-        )
+        curve = (keypoint_ap(truths, preds, sigma=sigma), pixel_metrics(truths, preds))
+        title = f"{split} split, OKS sigma {sigma:g}"
+        plots.plot_pr_modes({"detections": curve}, out / "pr_curve.png", title=title)
         plots.plot_prediction_grid(samples, preds, out / "predictions.png")
     return TrainResult(out, state["best_epoch"], state["epoch"], state["stopped"], state["history"], results)
 
