@@ -247,8 +247,9 @@ def write_card(
     scored: its stages, score biases and weights are what the card states."""
     res = json.loads((run_dir / "results.json").read_text())
     tc = json.loads((run_dir / "config.json").read_text())["train_config"]
-    table = table_rows(rows, _default_input(detector))
-    meta = model_index(table, res["dataset"], default_input=_default_input(detector))
+    default_input = "with depth" if detector.depth_check is not None else "RGB"
+    table = table_rows(rows, default_input)
+    meta = model_index(table, res["dataset"], default_input=default_input)
     later = sum(res.get(f"{k}_seconds", 0.0) for k in ("adapt", "refine", "depth_check", "crossing_point"))
     text = _template().render(
         # the lists and maps of plain values on one line each
@@ -276,10 +277,6 @@ def write_card(
         machine=machine_description(),
     )
     return replace_file(path, lambda tmp: tmp.write_text(text))
-
-
-def _default_input(detector: Detector) -> str:
-    return "with depth" if detector.depth_check is not None else "RGB"
 
 
 def _rgb_path(detector: Detector) -> str:
