@@ -201,9 +201,9 @@ def run_detect(args: argparse.Namespace) -> int:
                 f"--metrics {args.metrics}: images given as files have no labels to score; accepted: "
                 "--metrics with a dataset"
             )
-        _image_files(target)
+        files = _image_files(target)
         _images_out(target, args)
-        _camera_of(args.camera)
+        camera = _camera_of(args.camera)
     resolve_model_path(args.model)  # a wrong --model is named before anything loads
     from rebar_data.perception.training.train import load_detector
 
@@ -212,7 +212,7 @@ def run_detect(args: argparse.Namespace) -> int:
     detector.flatten_behind = args.flatten_behind
     if dataset:
         return _detect_dataset(detector, target, args)
-    return _detect_images(detector, target, args)
+    return _detect_images(detector, target, files, camera, args)
 
 
 def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
@@ -352,14 +352,12 @@ def _images_out(target: Path, args: argparse.Namespace) -> Path:
     return out
 
 
-def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
+def _detect_images(detector, target: Path, files: list[Path], camera, args: argparse.Namespace) -> int:
     """Overlays, detections.parquet and cameras.json of every image, in a folder swapped in whole at the
     end; an image that cannot be read is named and skipped, and the command then ends with status 1."""
     from rebar_data.perception.evaluation.data import read_image
     from rebar_data.perception.inference.detector import OPERATING_THRESHOLD
 
-    files = _image_files(target)
-    camera = _camera_of(args.camera)
     threshold = args.threshold if args.threshold is not None else OPERATING_THRESHOLD
     final = Path(args.out)
     unread: list[Path] = []
