@@ -75,6 +75,7 @@ NEWER_FIELDS = {"other_renderer_repeats": 0}  # settings newer than some run fol
 STAGES = {"refine": "refine", "depth_check": "depth", "crossing_point": "crossing"}
 RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "line_check", *STAGES}
 STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
+DEPTH_CHECK_META = {"patch_px", "scale_m", "clip", "veto_power", "veto_margin"}  # its entry's settings
 
 
 @dataclass
@@ -275,11 +276,9 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
         "parameters": count_parameters(net),
     }
     (out / "config.json").write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
-    val_sub = run.val
-    if len(val_sub) > cfg.val_max_images:
-        val_sub = [
-            val_sub[i] for i in np.linspace(0, len(val_sub) - 1, cfg.val_max_images).round().astype(int)
-        ]
+    # an even spread of at most val_max_images (all of them when there are no more)
+    spread = np.linspace(0, len(run.val) - 1, min(len(run.val), cfg.val_max_images)).round().astype(int)
+    val_sub = [run.val[i] for i in spread]
     val_images = [read_image(s.path) for s in val_sub] if cfg.cache_images else None
     base_meta = {
         "dataset": run.dataset,
@@ -449,16 +448,9 @@ def _finish(
             meta["refiner"]["int8_sha256"] = sha256_file(later)
             calibrated_on = [f"{run.dataset.get('name')} train"] + _names(run.dataset["supplements"])
             meta["refiner"]["int8_calibrated_on"] = {"data": calibrated_on, "patches": len(patches)}
-    if "depth_check" in files:
-        entry = cfg.depth_check.model_dump(
-            include={"patch_px", "scale_m", "clip", "veto_power", "veto_margin"}
-        )
-        meta["depth_check"] = entry | {"sha256": sha256_file(files["depth_check"])}
-    if "crossing_point" in files:
-        meta["crossing_point"] = {
-            "patch_px": cfg.crossing_point.patch_px,
-            "sha256": sha256_file(files["crossing_point"]),
-        }
+    for key, kept in (("depth_check", DEPTH_CHECK_META), ("crossing_point", {"patch_px"})):
+        if key in files:
+            meta[key] = getattr(cfg, key).model_dump(include=kept) | {"sha256": sha256_file(files[key])}
     detector = Detector.load(
         export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
     )
