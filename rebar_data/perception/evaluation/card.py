@@ -329,9 +329,8 @@ def evaluation_rows(
         }
         if with_depth:  # from RGB alone as well, split by scene: where the RGB path's errors lie
             seen.modes["RGB only"] = rgb = predict(detector, test, depth=False, progress=progress)
-            for part, m in evaluate.breakdown(root, test, rgb, sigma=sigma).items():
-                if part.startswith("scenes"):
-                    rows[f"{name} test, without depth, {part}"] = m
+            parts = evaluate.breakdown(root, test, rgb, sigma=sigma).items()
+            rows |= {f"{name} test, without depth, {p}": m for p, m in parts if p.startswith("scenes")}
         if (flat := _flattened(detector, test, progress=progress)) is not None:
             rows[f"{name} test, {FLATTENED}"] = score(test, flat, sigma=sigma)
     if random_split and built:
@@ -359,9 +358,8 @@ def evaluation_rows(
         seen.modes["RGB only"] = preds
         census = false_detection_census(path, samples, preds)
         rows[f"{label}, RGB only"] = {**score(samples, preds, sigma=sigma), "false_detections": census}
-        for part, m in evaluate.breakdown(path, samples, preds, sigma=sigma).items():
-            if part.startswith("scenes"):  # where its misses and false detections lie
-                rows[f"{label}, RGB only, {part}"] = m
+        parts = evaluate.breakdown(path, samples, preds, sigma=sigma).items()  # where its errors lie
+        rows |= {f"{label}, RGB only, {p}": m for p, m in parts if p.startswith("scenes")}
         if (flat := _flattened(detector, samples, progress=progress)) is not None:
             seen.modes["with depth"] = predict(detector, samples, progress=progress)  # as an RGB-D camera
             rows[f"{label}, with depth"] = score(samples, seen.modes["with depth"], sigma=sigma)
