@@ -110,8 +110,7 @@ def run_train(args: argparse.Namespace) -> None:
 
 
 def _stage_inputs(args: argparse.Namespace, command: str, owned, datasets) -> tuple:
-    """What `rebar adapt` and `rebar add-crossing-point` read: ``--out`` (new, empty or the command's own,
-    outside every input), the dataset, model file, ``--config`` (or None), every image of ``datasets``."""
+    """Checked inputs of `rebar adapt` and `rebar add-crossing-point`: out, dataset, model, config, images."""
     from rebar_data.config import read_yaml
     from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
     from rebar_data.perception.inference.detector import resolve_model_path
@@ -232,8 +231,7 @@ def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
 
 
 def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path | None]:
-    """``--out`` and ``--metrics`` of a dataset's predictions: each new or `rebar detect`'s own, outside the
-    dataset, and not the same file."""
+    """``--out`` and ``--metrics`` of a dataset's predictions, each checked as `rebar detect` may write it."""
     out = Path(args.out)
     if out.suffix != ".parquet":
         raise ConfigError(

@@ -284,8 +284,7 @@ def _rgb_path(detector: Detector) -> str:
 
 
 def _flattened(detector: Detector, samples: Sequence, *, progress: bool) -> list | None:
-    """The detections with each sample's depth image and what lies behind the bars in front flattened, or
-    None when the detector has no depth check or a sample has no depth image."""
+    """The detections with depth and what lies behind the front bars flattened; None where it cannot be."""
     if detector.depth_check is None or not samples or any(s.depth_path is None for s in samples):
         return None
     with detector.flattening():

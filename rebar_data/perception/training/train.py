@@ -253,8 +253,7 @@ def _check_same_supplements(payload: dict[str, Any], run: _Run, path: Path) -> N
 
 
 def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
-    """Train the first stage's epochs (resuming from ``last.pt``), keeping the best in ``best.pt``; returns
-    the run's state (epochs run, best epoch and score, whether it stopped early, history)."""
+    """Train the first stage's epochs (resuming ``last.pt``), the best in ``best.pt``; returns the state."""
     cfg, out = run.cfg, run.out
     torch.manual_seed(cfg.seed)
     # channels-last: the depthwise convolutions train faster on a CPU in that layout
@@ -332,8 +331,7 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
 
 
 def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[str, tuple[Any, list]]:
-    """Train the second stage, the depth check and the crossing-point stage, as the settings enable them;
-    returns each one's network (None when off) and history."""
+    """Train the later stages the settings enable; returns each one's network (None when off) and history."""
     cfg, out = run.cfg, run.out
     # what the later stages' negatives come from: a changed first stage trains them again
     negatives_from = [f"first stage: epoch {state['best_epoch']}"]
@@ -350,8 +348,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
         return refine.negatives_in(found[id(samples)], samples, cfg.refine)  # the first stage's misses
 
     def depth_negatives() -> list[np.ndarray]:
-        """The second stage's mined negatives kept in its checkpoint, or mined now when it has none, with
-        the lower mat's crossings."""
+        """The second stage's mined negatives (its checkpoint's, else mined now) and the lower mat's."""
         mined = None
         if (out / "refine_last.pt").exists():
             mined = refine.load(out / "refine_last.pt")[2].get("negatives")
@@ -413,8 +410,7 @@ def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
 def _finish(
     run: _Run, state: dict[str, Any], first_path: Path, stages: dict[str, tuple[Any, list]]
 ) -> TrainResult:
-    """Export the first stage (``first_path``: the best epoch, or its adapted weights) and the later stages
-    to ONNX, score them on val and test, draw the plots."""
+    """Export ``first_path`` (best or adapted) and the later stages to ONNX, score them, draw the plots."""
     from rebar_data.perception.evaluation import plots
 
     cfg, out, sigma, val_samples, test_samples = run.cfg, run.out, run.sigma, run.val, run.test
