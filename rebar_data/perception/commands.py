@@ -110,8 +110,7 @@ def run_train(args: argparse.Namespace) -> None:
 
 
 def _stage_inputs(args: argparse.Namespace, command: str, owned, datasets) -> tuple:
-    """What `rebar adapt` and `rebar add-crossing-point` read: ``--out`` (new, empty or the command's own,
-    outside every input), the dataset, model file, ``--config`` (or None), every image of ``datasets``."""
+    """Checked inputs of `rebar adapt` and `rebar add-crossing-point`: out, dataset, model, config, images."""
     from rebar_data.config import read_yaml
     from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
     from rebar_data.perception.inference.detector import resolve_model_path
@@ -201,9 +200,9 @@ def run_detect(args: argparse.Namespace) -> int:
                 f"--metrics {args.metrics}: images given as files have no labels to score; accepted: "
                 "--metrics with a dataset"
             )
-        _image_files(target)
+        files = _image_files(target)
         _images_out(target, args)
-        _camera_of(args.camera)
+        camera = _camera_of(args.camera)
     resolve_model_path(args.model)  # a wrong --model is named before anything loads
     from rebar_data.perception.training.train import load_detector
 
@@ -212,7 +211,7 @@ def run_detect(args: argparse.Namespace) -> int:
     detector.flatten_behind = args.flatten_behind
     if dataset:
         return _detect_dataset(detector, target, args)
-    return _detect_images(detector, target, args)
+    return _detect_images(detector, target, files, camera, args)
 
 
 def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
@@ -232,8 +231,7 @@ def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
 
 
 def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path | None]:
-    """``--out`` and ``--metrics`` of a dataset's predictions: each new or `rebar detect`'s own, outside the
-    dataset, and not the same file."""
+    """``--out`` and ``--metrics`` of a dataset's predictions, each checked as `rebar detect` may write it."""
     out = Path(args.out)
     if out.suffix != ".parquet":
         raise ConfigError(
@@ -313,12 +311,8 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
             torch = detector.backend == "torch"
             runtime = "PyTorch, float32" if torch else runtime_description(detector.backend)
             record = dict(split=args.split, dataset=str(root), truth=args.truth, point=point, runtime=runtime)
-            record |= {
-                "reading": detector.reading,
-                "resample": detector.resample,
-                WRITTEN_BY: DETECT,
-                **metrics,
-            }
+            record |= dict(reading=detector.reading, resample=detector.resample)
+            record |= {WRITTEN_BY: DETECT, **metrics}
             if census is not None:
                 record["false_detections"] = census
             text = json.dumps(record, indent=2) + "\n"
@@ -356,14 +350,12 @@ def _images_out(target: Path, args: argparse.Namespace) -> Path:
     return out
 
 
-def _detect_images(detector, target: Path, args: argparse.Namespace) -> int:
+def _detect_images(detector, target: Path, files: list[Path], camera, args: argparse.Namespace) -> int:
     """Overlays, detections.parquet and cameras.json of every image, in a folder swapped in whole at the
     end; an image that cannot be read is named and skipped, and the command then ends with status 1."""
     from rebar_data.perception.evaluation.data import read_image
     from rebar_data.perception.inference.detector import OPERATING_THRESHOLD
 
-    files = _image_files(target)
-    camera = _camera_of(args.camera)
     threshold = args.threshold if args.threshold is not None else OPERATING_THRESHOLD
     final = Path(args.out)
     unread: list[Path] = []

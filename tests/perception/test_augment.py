@@ -132,12 +132,12 @@ def test_a_frame_from_another_focal_length_is_cropped_at_the_models_with_the_sam
         Sample("a", Path("a.png"), 10, 10, np.zeros((0, 2)), np.zeros(0), camera=(f, f, 5.0, 5.0))
         for f in (1050.0, near, 525.0)
     ]
-    assert TrainingImages(samples, cache=False, occluded="ignore", progress=False, focal_px=525.0).gains == [
+    assert TrainingImages(samples, cache=False, occluded="ignore", focal_px=525.0).gains == [
         0.5,
         1.0,
         1.0,
     ]
-    assert TrainingImages(samples, cache=False, occluded="ignore", progress=False).gains == [1.0] * 3
+    assert TrainingImages(samples, cache=False, occluded="ignore").gains == [1.0] * 3
 
 
 def test_mosaic_puts_every_positive_on_its_spot_and_marks_seam_points_ignored():

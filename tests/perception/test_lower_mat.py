@@ -145,8 +145,8 @@ def test_training_images_know_their_distractors_pixels_only_when_the_gain_is_on(
         crop_px=128,
         augment={"mosaic_epochs": 0, "distractor_gain": [1.3, 1.3], "distractor_gain_probability": 1.0},
     )
-    data = TrainingImages(samples, cache=True, occluded="ignore", progress=False, distractors=True)
-    plain = TrainingImages(samples, cache=True, occluded="ignore", progress=False)
+    data = TrainingImages(samples, cache=True, occluded="ignore", distractors=True)
+    plain = TrainingImages(samples, cache=True, occluded="ignore")
     src = data.pick(np.random.default_rng(0))
     s = next(x for x in samples if np.array_equal(x.visible, src.positives))
     instance = cv2.imread(str(s.instance_path), cv2.IMREAD_UNCHANGED).astype(np.int32) - INSTANCE_OFFSET

@@ -24,7 +24,7 @@ from .conftest import TINY_TRAIN
 
 def test_loss_falls_when_a_tiny_model_trains_a_few_steps(drawn_dataset):
     cfg = TrainConfig.model_validate({**TINY_TRAIN, "crop_px": 96})
-    data = TrainingImages(load_split(drawn_dataset, "train"), cache=True, occluded="ignore", progress=False)
+    data = TrainingImages(load_split(drawn_dataset, "train"), cache=True, occluded="ignore")
     rng = np.random.default_rng(0)
     torch.manual_seed(0)
     net = KeypointNet(cfg.model)
@@ -43,7 +43,7 @@ def test_loss_falls_when_a_tiny_model_trains_a_few_steps(drawn_dataset):
 
 def test_a_batch_holds_crops_rays_and_targets(drawn_dataset):
     cfg = TrainConfig.model_validate(TINY_TRAIN)
-    data = TrainingImages(load_split(drawn_dataset, "train"), cache=False, occluded="ignore", progress=False)
+    data = TrainingImages(load_split(drawn_dataset, "train"), cache=False, occluded="ignore")
     x, rays, heat, hw, off, ow = make_batch(data, np.random.default_rng(1), cfg, mosaic=True)
     assert x.shape == (4, 3, 64, 64) and rays.shape == (4, 2, 16, 16)
     assert heat.shape == hw.shape == ow.shape == (4, 16, 16) and off.shape == (4, 2, 16, 16)

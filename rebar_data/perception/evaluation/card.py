@@ -247,8 +247,9 @@ def write_card(
     scored: its stages, score biases and weights are what the card states."""
     res = json.loads((run_dir / "results.json").read_text())
     tc = json.loads((run_dir / "config.json").read_text())["train_config"]
-    table = table_rows(rows, _default_input(detector))
-    meta = model_index(table, res["dataset"], default_input=_default_input(detector))
+    default_input = "with depth" if detector.depth_check is not None else "RGB"
+    table = table_rows(rows, default_input)
+    meta = model_index(table, res["dataset"], default_input=default_input)
     later = sum(res.get(f"{k}_seconds", 0.0) for k in ("adapt", "refine", "depth_check", "crossing_point"))
     text = _template().render(
         # the lists and maps of plain values on one line each
@@ -278,17 +279,12 @@ def write_card(
     return replace_file(path, lambda tmp: tmp.write_text(text))
 
 
-def _default_input(detector: Detector) -> str:
-    return "with depth" if detector.depth_check is not None else "RGB"
-
-
 def _rgb_path(detector: Detector) -> str:
     return "the RGB stages and the line check" if detector.line_check else "the RGB stages alone"
 
 
 def _flattened(detector: Detector, samples: Sequence, *, progress: bool) -> list | None:
-    """The detections with each sample's depth image and what lies behind the bars in front flattened, or
-    None when the detector has no depth check or a sample has no depth image."""
+    """The detections with depth and what lies behind the front bars flattened; None where it cannot be."""
     if detector.depth_check is None or not samples or any(s.depth_path is None for s in samples):
         return None
     with detector.flattening():
@@ -332,9 +328,8 @@ def evaluation_rows(
         }
         if with_depth:  # from RGB alone as well, split by scene: where the RGB path's errors lie
             seen.modes["RGB only"] = rgb = predict(detector, test, depth=False, progress=progress)
-            for part, m in evaluate.breakdown(root, test, rgb, sigma=sigma).items():
-                if part.startswith("scenes"):
-                    rows[f"{name} test, without depth, {part}"] = m
+            parts = evaluate.breakdown(root, test, rgb, sigma=sigma).items()
+            rows |= {f"{name} test, without depth, {p}": m for p, m in parts if p.startswith("scenes")}
         if (flat := _flattened(detector, test, progress=progress)) is not None:
             rows[f"{name} test, {FLATTENED}"] = score(test, flat, sigma=sigma)
     if random_split and built:
@@ -362,9 +357,8 @@ def evaluation_rows(
         seen.modes["RGB only"] = preds
         census = false_detection_census(path, samples, preds)
         rows[f"{label}, RGB only"] = {**score(samples, preds, sigma=sigma), "false_detections": census}
-        for part, m in evaluate.breakdown(path, samples, preds, sigma=sigma).items():
-            if part.startswith("scenes"):  # where its misses and false detections lie
-                rows[f"{label}, RGB only, {part}"] = m
+        parts = evaluate.breakdown(path, samples, preds, sigma=sigma).items()  # where its errors lie
+        rows |= {f"{label}, RGB only, {p}": m for p, m in parts if p.startswith("scenes")}
         if (flat := _flattened(detector, samples, progress=progress)) is not None:
             seen.modes["with depth"] = predict(detector, samples, progress=progress)  # as an RGB-D camera
             rows[f"{label}, with depth"] = score(samples, seen.modes["with depth"], sigma=sigma)

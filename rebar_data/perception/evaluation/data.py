@@ -16,7 +16,6 @@ from typing import TypeVar
 import cv2
 import numpy as np
 import pyarrow.parquet as pq
-from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
@@ -86,15 +85,10 @@ def read_distractors(sample: Sample) -> np.ndarray | None:
     return read_uint16(sample.instance_path, "a 16-bit instance PNG") == DISTRACTOR_ID + INSTANCE_OFFSET
 
 
-def per_file(samples: list[Sample], read: Callable[[Sample], T], *, progress: str | None = None) -> list[T]:
-    """``read`` of each sample, called once per file (a sample listed more than once shares the first one's
-    result); ``progress`` names a progress bar over the files."""
-    first: dict[str, Sample] = {}
-    for s in samples:
-        first.setdefault(str(s.path), s)
-    files = tqdm(first.items(), desc=progress, unit="img", disable=progress is None, leave=False)
-    done = {key: read(s) for key, s in files}
-    return [done[str(s.path)] for s in samples]
+def per_file(samples: list[Sample], read: Callable[[Sample], T]) -> list[T]:
+    """``read`` of each sample, called once per file (a file listed again shares the first call's result)."""
+    of = per_file_lazily(samples, read)
+    return [of(i) for i in range(len(samples))]
 
 
 def per_file_lazily(samples: list[Sample], read: Callable[[Sample], T]) -> Callable[[int], T]:
@@ -161,9 +155,9 @@ def read_depth(path: str | Path) -> np.ndarray:
     return raw.astype(np.float32) / MM_PER_M
 
 
-def read_images(samples: list[Sample], *, progress: str | None = None) -> list[np.ndarray]:
+def read_images(samples: list[Sample]) -> list[np.ndarray]:
     """Each sample's image, decoded once per file (:func:`per_file`)."""
-    return per_file(samples, read_sample_image, progress=progress)
+    return per_file(samples, read_sample_image)
 
 
 def read_info(root: str | Path) -> dict:

@@ -84,11 +84,8 @@ def measure(detector: Detector, root: str | Path) -> dict[str, dict[str, float]]
     """Mode -> the gate's figures (``FIGURES``) of ``detector`` on the built set at ``root``."""
     samples, _ = load_gate_set(root)
     truths, sigma = [truth_of(s) for s in samples], stated_oks_sigma(root)
-    out = {}
-    for mode, preds in gate_predictions(detector, samples).items():
-        m = summary(truths, preds, sigma=sigma)
-        out[mode] = {f: m[f] for f in FIGURES}
-    return out
+    found = {mode: summary(truths, p, sigma=sigma) for mode, p in gate_predictions(detector, samples).items()}
+    return {mode: {f: m[f] for f in FIGURES} for mode, m in found.items()}
 
 
 def bootstrap_se(

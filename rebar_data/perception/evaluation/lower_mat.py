@@ -92,19 +92,12 @@ def lower_mat_places(root: str | Path, samples: list[Sample]) -> list[dict[str, 
 def lower_mat_of(samples: list[Sample]) -> list[np.ndarray]:
     """:func:`lower_mat_crossings` of samples from any datasets (each sample's ``dataset``), each image
     file placed once however often it is listed; a sample that names no dataset has none."""
-    first: dict[str, Sample] = {}
+    by_root: dict[Path | None, dict[str, Sample]] = {}  # each file's first sample, by dataset
     for s in samples:
-        first.setdefault(str(s.path), s)
-    found: dict[str, np.ndarray] = {}
-    by_root: dict[Path, list[Sample]] = {}
-    for s in first.values():
-        if s.dataset is None:
-            found[str(s.path)] = np.zeros((0, 2))
-        else:
-            by_root.setdefault(s.dataset, []).append(s)
+        by_root.setdefault(s.dataset, {}).setdefault(str(s.path), s)
+    found = {path: np.zeros((0, 2)) for path in by_root.pop(None, {})}
     for root, these in by_root.items():
-        for s, uv in zip(these, lower_mat_crossings(root, these), strict=True):
-            found[str(s.path)] = uv
+        found.update(zip(these, lower_mat_crossings(root, list(these.values())), strict=True))
     return [found[str(s.path)] for s in samples]
 
 

@@ -107,12 +107,8 @@ def keypoint_ap(
     for truth, pred in zip(truths, predictions, strict=True):
         pred = np.asarray(pred, float).reshape(-1, 3)
         pred = pred[np.argsort(-pred[:, 2], kind="mergesort")]
-        gt_uv = np.r_[
-            np.asarray(truth.uv, float).reshape(-1, 2), np.asarray(truth.ignore_uv, float).reshape(-1, 2)
-        ]
-        gt_box = np.r_[
-            np.asarray(truth.box_size_px, float).reshape(-1), np.asarray(truth.ignore_box_size_px, float)
-        ]
+        gt_uv = np.r_[np.reshape(truth.uv, (-1, 2)), np.reshape(truth.ignore_uv, (-1, 2))].astype(float)
+        gt_box = np.r_[np.ravel(truth.box_size_px), np.ravel(truth.ignore_box_size_px)].astype(float)
         gt_ignore = np.r_[np.zeros(len(truth.uv), bool), np.ones(len(truth.ignore_uv), bool)]
         n_gt += len(truth.uv)
         if len(pred) == 0:

@@ -37,12 +37,12 @@ def _col(rows: Sequence[dict], key: str) -> np.ndarray:
     return np.array([float(r.get(key, np.nan)) for r in rows])
 
 
-def _save(fig, path: str | Path) -> Path:
-    """Save a figure and close it; one over ``MAX_FIGURE_BYTES`` is a bug in its layout."""
+def _save(fig, path: str | Path, *, dpi: int = 100, limited: bool = True) -> Path:
+    """Save a figure and close it; a ``limited`` one over ``MAX_FIGURE_BYTES`` is a bug in its layout."""
     fig.tight_layout()
-    fig.savefig(path, dpi=100)
+    fig.savefig(path, dpi=dpi)
     plt.close(fig)
-    if Path(path).stat().st_size > MAX_FIGURE_BYTES:
+    if limited and Path(path).stat().st_size > MAX_FIGURE_BYTES:
         raise RuntimeError(f"{path}: {Path(path).stat().st_size} bytes, over {MAX_FIGURE_BYTES}")
     return Path(path)
 
@@ -135,11 +135,6 @@ def plot_pr_modes(
     return _save(fig, path)
 
 
-def plot_pr(ap: APResult, px: PixelResult, path: str | Path, *, title: str = "") -> Path:
-    """A training run's precision-recall figure: :func:`plot_pr_modes` of its detections."""
-    return plot_pr_modes({"detections": (ap, px)}, path, title=title)
-
-
 def draw_overlay(
     rgb: np.ndarray,
     predictions: np.ndarray,
@@ -183,10 +178,7 @@ def plot_prediction_grid(
         found = int((p[:, 2] >= OPERATING_THRESHOLD).sum())
         ax.set_title(f"{s.image_id}: {len(s.visible)} visible crossings, {found} found", fontsize=9)
     fig.suptitle("green: ground truth (blue: occluded), red: predictions", fontsize=10)
-    fig.tight_layout()
-    fig.savefig(path, dpi=90)
-    plt.close(fig)
-    return Path(path)
+    return _save(fig, path, dpi=90, limited=False)  # a run's own figure, not shipped
 
 
 def write_frame(

@@ -90,10 +90,7 @@ def export_onnx(net: nn.Module, path: str | Path, meta: dict[str, Any] | None = 
             inputs = (torch.zeros((4, 2, size, size), dtype=torch.float32),)
         elif isinstance(net, CrossingNet):
             module, names, output = UInt8Input(net), ["patches", "rays"], "offset"
-            inputs = (
-                torch.zeros((4, size, size, 3), dtype=torch.uint8),
-                torch.zeros((4, 2), dtype=torch.float32),
-            )
+            inputs = (torch.zeros((4, size, size, 3), dtype=torch.uint8), torch.zeros((4, 2)))
         else:
             raise TypeError(f"{type(net).__name__} is not one of the detector's networks")
         axes = {**{n: {0: "n"} for n in names}, output: {0: "n"}}

@@ -8,6 +8,7 @@ after the last epoch, in ``best.pt``'s format)."""
 from __future__ import annotations
 
 import math
+from contextlib import suppress
 from pathlib import Path
 from typing import Any
 
@@ -60,10 +61,8 @@ def adapt_first_stage(
     path = out / ADAPT_LAST
     saved = None
     if path.exists():
-        try:
+        with suppress(ConfigError):  # unreadable: trained afresh
             saved = files.read_checkpoint(path, fmt=FORMAT, what="adapt")
-        except ConfigError:  # unreadable: trained afresh
-            saved = None
     if saved is not None and saved["want"] == want:
         state = restore(saved, net, avg, opt)
         if state["epoch"] >= a.epochs and (out / ADAPTED).exists():

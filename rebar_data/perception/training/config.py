@@ -26,14 +26,12 @@ def _without_retired(values: Any, retired: dict[str, Any], section: str) -> Any:
     if not isinstance(values, dict):
         return values
     for key, kept in retired.items():
-        if key in values:
-            if values[key] != kept:
-                raise ValueError(
-                    f"{section}.{key} = {values[key]!r} is no longer supported; accepted: {kept!r} or "
-                    "leaving it out"
-                )
-            values = {k: v for k, v in values.items() if k != key}
-    return values
+        if key in values and values[key] != kept:
+            raise ValueError(
+                f"{section}.{key} = {values[key]!r} is no longer supported; accepted: {kept!r} or "
+                "leaving it out"
+            )
+    return {k: v for k, v in values.items() if k not in retired}
 
 
 class AugmentConfig(Strict):

@@ -79,7 +79,6 @@ class TrainingImages:
         *,
         cache: bool,
         occluded: str,
-        progress: bool,
         distractors: bool = False,
         focal_px: float | None = None,
     ):
@@ -87,7 +86,7 @@ class TrainingImages:
         # each image's crops drawn at the focal length focal_px (None: as it comes), as the detector reads it
         self.gains = [1.0 if s.camera is None else focal_scale(focal_px, s.camera) for s in samples]
         self.ignore_occluded = occluded == "ignore"
-        self.images = read_images(samples, progress="load images" if progress else None) if cache else None
+        self.images = read_images(samples) if cache else None
         self.distractors = distractors
         self.masks = per_file(samples, read_distractors) if distractors and cache else None
 
@@ -137,7 +136,6 @@ class BatchStream(torch.utils.data.IterableDataset):
             self.samples,
             cache=self.cfg.cache_images,
             occluded=self.cfg.occluded,
-            progress=False,
             distractors=self.cfg.augment.scales_distractors,
             focal_px=self.focal_px,
         )

@@ -7,6 +7,7 @@ import sys
 import time
 from collections import defaultdict
 from collections.abc import Callable, Iterator
+from contextlib import suppress
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -81,10 +82,8 @@ def train_stage(
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     payload = None
     if last.exists():
-        try:
+        with suppress(ConfigError):  # an older layout: trained afresh
             _, saved, payload = stage.load(last)
-        except ConfigError:  # an older layout: trained afresh
-            payload = None
     same = payload is not None and stage.settings(saved) == stage.settings(cfg)
     if same and payload.get("data", []) == data:
         net.load_state_dict(payload["state_dict"])

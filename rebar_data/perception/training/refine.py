@@ -46,16 +46,14 @@ FILE = StageFile(
 save, load = FILE.save, FILE.load
 
 
-def calibration_patches(
-    samples: list[Sample], cfg: RefineConfig, *, seed: int, images_used: int = 64
-) -> np.ndarray:
+def calibration_patches(samples: list[Sample], cfg: RefineConfig, *, seed: int) -> np.ndarray:
     """(``cfg.calibration_patches``, P, P, C) uint8 patches cut as at inference around jittered visible
-    crossings of an even spread of ``images_used`` images, to set the int8 file's value ranges."""
+    crossings of an even spread of 64 images, to set the int8 file's value ranges."""
     from rebar_data.perception.inference.refine import patches
 
     rng = np.random.default_rng(np.random.SeedSequence([seed, 4099]))
     used = [s for s in samples if len(s.visible)]
-    spread = np.unique(np.linspace(0, len(used) - 1, min(images_used, len(used))).astype(int))
+    spread = np.unique(np.linspace(0, len(used) - 1, min(64, len(used))).astype(int))
     used = [used[i] for i in spread]
     each = -(-cfg.calibration_patches // max(1, len(used)))
     out = []

@@ -38,9 +38,8 @@ def training_patch(
     error from the Gaussian alone (for a mined negative); the ``distractors`` pixels get
     ``AugmentConfig.distractor_gain``'s factor; a ``cfg.border_fraction`` of patches get a straight border of
     their own within ``cfg.border_reach_px`` of the crossing."""
-    gain = augment.draw_gain(
-        rng, geometry, distractors
-    )  # first: the patch's other draws stay those without it
+    # first: the patch's other draws stay those without it
+    gain = augment.draw_gain(rng, geometry, distractors)
     if uniform and rng.uniform() < cfg.jitter_uniform_fraction:
         error = rng.uniform(-cfg.jitter_uniform_px, cfg.jitter_uniform_px, 2)
     else:
@@ -52,7 +51,7 @@ def training_patch(
     offset = augment.apply_affine(crossing, patch_from_image)[0] - size / 2
     scale = float(np.sqrt(abs(np.linalg.det(patch_from_image[:, :2]))))
     if gain is not None:
-        image, patch_from_image = _gained_around(image, distractors, patch_from_image, (0.0, size), gain)
+        image, patch_from_image = _gained_around(image, distractors, patch_from_image, size, gain)
     c = np.arange(size) + 0.5  # the patch's pixel centres, mapped into the image
     qx, qy = np.meshgrid(c, c, indexing="xy")
     inv = cv2.invertAffineTransform(patch_from_image)
@@ -71,16 +70,11 @@ def training_patch(
 
 
 def _gained_around(
-    image: np.ndarray,
-    distractors: np.ndarray,
-    patch_from_image: np.ndarray,
-    span: tuple[float, float],
-    gain: float,
+    image: np.ndarray, distractors: np.ndarray, patch_from_image: np.ndarray, size: int, gain: float
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The part of ``image`` that the square ``span`` (patch pixels) of ``patch_from_image`` reads, a margin
-    wider, its distractors scaled by ``gain`` (cheaper than the whole frame's), and its map to the patch."""
-    a, b = span
-    corners = np.array([[a, a], [b, a], [a, b], [b, b]], float)
+    """The part of ``image`` that the ``size`` square patch of ``patch_from_image`` reads, a margin wider, its
+    distractors scaled by ``gain`` (cheaper than the whole frame's), and its map to the patch."""
+    corners = np.array([[0, 0], [size, 0], [0, size], [size, size]], float)
     pts = augment.apply_affine(corners, cv2.invertAffineTransform(patch_from_image))
     h, w = image.shape[:2]
     x0, y0 = np.clip(np.floor(pts.min(0)).astype(int) - 2, 0, [w - 1, h - 1])
@@ -141,12 +135,7 @@ def patch_batch(
     size = x.shape[1]
     j, i = np.clip(np.floor(size / 2 + y[:, :2]).astype(np.int64), 0, size - 1).T
     crossing &= x[np.arange(len(x)), i, j, 3] > 0
-    return (
-        torch.from_numpy(x),
-        torch.from_numpy(y).float(),
-        torch.from_numpy(positive),
-        torch.from_numpy(crossing),
-    )
+    return tuple(torch.from_numpy(a) for a in (x, y.astype(np.float32), positive, crossing))
 
 
 def patch_batches(

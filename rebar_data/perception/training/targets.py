@@ -52,8 +52,7 @@ def encode(
                 d2 = dx * dx + dy * dy
                 if d2 < best_d2[ci, cj]:  # a cell between two crossings points at the nearer one
                     best_d2[ci, cj] = d2
-                    offset[0, ci, cj] = dx
-                    offset[1, ci, cj] = dy
+                    offset[:, ci, cj] = dx, dy
                     offset_weight[ci, cj] = 1.0
     heat_weight[heat >= 1.0] = 1.0  # a crossing next to an ignored one is still a positive
     return heat, heat_weight, offset, offset_weight

@@ -75,6 +75,7 @@ NEWER_FIELDS = {"other_renderer_repeats": 0}  # settings newer than some run fol
 STAGES = {"refine": "refine", "depth_check": "depth", "crossing_point": "crossing"}
 RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "line_check", *STAGES}
 STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
+DEPTH_CHECK_META = {"patch_px", "scale_m", "clip", "veto_power", "veto_margin"}  # its entry's settings
 
 
 @dataclass
@@ -252,8 +253,7 @@ def _check_same_supplements(payload: dict[str, Any], run: _Run, path: Path) -> N
 
 
 def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
-    """Train the first stage's epochs (resuming from ``last.pt``), keeping the best in ``best.pt``; returns
-    the run's state (epochs run, best epoch and score, whether it stopped early, history)."""
+    """Train the first stage's epochs (resuming ``last.pt``), the best in ``best.pt``; returns the state."""
     cfg, out = run.cfg, run.out
     torch.manual_seed(cfg.seed)
     # channels-last: the depthwise convolutions train faster on a CPU in that layout
@@ -275,11 +275,9 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
         "parameters": count_parameters(net),
     }
     (out / "config.json").write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
-    val_sub = run.val
-    if len(val_sub) > cfg.val_max_images:
-        val_sub = [
-            val_sub[i] for i in np.linspace(0, len(val_sub) - 1, cfg.val_max_images).round().astype(int)
-        ]
+    # an even spread of at most val_max_images (all of them when there are no more)
+    spread = np.linspace(0, len(run.val) - 1, min(len(run.val), cfg.val_max_images)).round().astype(int)
+    val_sub = [run.val[i] for i in spread]
     val_images = [read_image(s.path) for s in val_sub] if cfg.cache_images else None
     base_meta = {
         "dataset": run.dataset,
@@ -333,8 +331,7 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
 
 
 def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[str, tuple[Any, list]]:
-    """Train the second stage, the depth check and the crossing-point stage, as the settings enable them;
-    returns each one's network (None when off) and history."""
+    """Train the later stages the settings enable; returns each one's network (None when off) and history."""
     cfg, out = run.cfg, run.out
     # what the later stages' negatives come from: a changed first stage trains them again
     negatives_from = [f"first stage: epoch {state['best_epoch']}"]
@@ -351,8 +348,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
         return refine.negatives_in(found[id(samples)], samples, cfg.refine)  # the first stage's misses
 
     def depth_negatives() -> list[np.ndarray]:
-        """The second stage's mined negatives kept in its checkpoint, or mined now when it has none, with
-        the lower mat's crossings."""
+        """The second stage's mined negatives (its checkpoint's, else mined now) and the lower mat's."""
         mined = None
         if (out / "refine_last.pt").exists():
             mined = refine.load(out / "refine_last.pt")[2].get("negatives")
@@ -398,9 +394,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
 
 
 def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
-    keys: list[str] = []
-    for row in history:
-        keys += [k for k in row if k not in keys]
+    keys = list(dict.fromkeys(k for row in history for k in row))
 
     def write(tmp: Path) -> None:
         with tmp.open("w", newline="") as f:
@@ -416,8 +410,7 @@ def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
 def _finish(
     run: _Run, state: dict[str, Any], first_path: Path, stages: dict[str, tuple[Any, list]]
 ) -> TrainResult:
-    """Export the first stage (``first_path``: the best epoch, or its adapted weights) and the later stages
-    to ONNX, score them on val and test, draw the plots."""
+    """Export ``first_path`` (best or adapted) and the later stages to ONNX, score them, draw the plots."""
     from rebar_data.perception.evaluation import plots
 
     cfg, out, sigma, val_samples, test_samples = run.cfg, run.out, run.sigma, run.val, run.test
@@ -451,16 +444,9 @@ def _finish(
             meta["refiner"]["int8_sha256"] = sha256_file(later)
             calibrated_on = [f"{run.dataset.get('name')} train"] + _names(run.dataset["supplements"])
             meta["refiner"]["int8_calibrated_on"] = {"data": calibrated_on, "patches": len(patches)}
-    if "depth_check" in files:
-        entry = cfg.depth_check.model_dump(
-            include={"patch_px", "scale_m", "clip", "veto_power", "veto_margin"}
-        )
-        meta["depth_check"] = entry | {"sha256": sha256_file(files["depth_check"])}
-    if "crossing_point" in files:
-        meta["crossing_point"] = {
-            "patch_px": cfg.crossing_point.patch_px,
-            "sha256": sha256_file(files["crossing_point"]),
-        }
+    for key, kept in (("depth_check", DEPTH_CHECK_META), ("crossing_point", {"patch_px"})):
+        if key in files:
+            meta[key] = getattr(cfg, key).model_dump(include=kept) | {"sha256": sha256_file(files[key])}
     detector = Detector.load(
         export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
     )
@@ -548,12 +534,9 @@ def _finish(
     if split:
         samples, preds = curves[split]
         truths = [truth_of(s) for s in samples]
-        plots.plot_pr(
-            keypoint_ap(truths, preds, sigma=sigma),
-            pixel_metrics(truths, preds),
-            out / "pr_curve.png",
-            title=f"{split} split, OKS sigma {sigma:g}",
-        )
+        curve = (keypoint_ap(truths, preds, sigma=sigma), pixel_metrics(truths, preds))
+        title = f"{split} split, OKS sigma {sigma:g}"
+        plots.plot_pr_modes({"detections": curve}, out / "pr_curve.png", title=title)
         plots.plot_prediction_grid(samples, preds, out / "predictions.png")
     return TrainResult(out, state["best_epoch"], state["epoch"], state["stopped"], state["history"], results)
 
