@@ -11,13 +11,14 @@ import torch
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_depth, read_image
 from rebar_data.perception.inference import model_file
-from rebar_data.perception.inference.checks import DepthCheck, as_depth_m, encode
+from rebar_data.perception.inference.checks import VETO_MARGIN, VETO_POWER, DepthCheck, as_depth_m, encode
 from rebar_data.perception.inference.detector import Detector, shifted_score
 from rebar_data.perception.inference.refine import patches
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx
 from rebar_data.perception.training.config import DepthCheckConfig
 from rebar_data.perception.training.depth_check import PaddedDepth, build, patch_batches, train_depth_check
+from rebar_data.perception.training.train import load_detector
 from tests.perception.conftest import TINY_TRAIN
 
 
@@ -207,3 +208,20 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
         shutil.copy(out / name, lone / name)
     with pytest.raises(ConfigError, match="best.depth.onnx is missing"):
         Detector.load(lone / "best.onnx")
+
+
+def test_a_checkpoint_reads_its_depth_check_as_its_onnx_file_does(trained_run):
+    """A run's .pt checkpoint and .onnx file take the depth check's patch and veto from the same meta entry;
+    an older entry without the veto's settings takes the defaults."""
+    out = trained_run.out_dir
+    from_files, from_checkpoint = Detector.load(out, threads=1), load_detector(out / "best.pt")
+
+    def settings(check: DepthCheck) -> tuple:
+        return check.patch_px, check.scale_m, check.clip, check.power, check.margin
+
+    assert settings(from_checkpoint.depth_check) == settings(from_files.depth_check)
+    entry = {"patch_px": 32, "scale_m": 0.05, "clip": 4.0, "veto_power": 0.8, "veto_margin": 1}
+    want = {"scale_m": 0.05, "clip": 4.0, "power": 0.8, "margin": 1.0}
+    assert model_file.depth_check_settings(entry) == want
+    older = model_file.depth_check_settings({"scale_m": 0.05, "clip": 4.0, "power": 1.0})
+    assert (older["power"], older["margin"]) == (VETO_POWER, VETO_MARGIN)

@@ -230,9 +230,8 @@ class Detector:
         camera = self._camera(image, camera)
         depth_m = as_depth_m(depth, (h, w)) if depth is not None else None
         sx = sy = 1.0
-        if (
-            self.resample and (scale := focal_scale(self.focal_px, camera)) != 1.0
-        ):  # read at the trained scale
+        scale = focal_scale(self.focal_px, camera) if self.resample else 1.0
+        if scale != 1.0:  # read at the trained scale
             h, w = max(1, round(h * scale)), max(1, round(w * scale))
             sx, sy = w / image.shape[1], h / image.shape[0]
             image, camera = resample(image, (h, w)), scaled_camera(camera, sx, sy)
@@ -255,8 +254,7 @@ class Detector:
         det = drop_duplicates(det[inside], DUPLICATE_PX)
         if point == "crossing" and len(det):
             det[:, :2] = self.crossing_point.points(as_it_comes, det[:, :2], camera)
-        det[:, 0] /= sx
-        det[:, 1] /= sy
+        det[:, :2] /= (sx, sy)
         return det
 
     def line_pass(
