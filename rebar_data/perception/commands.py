@@ -270,11 +270,11 @@ def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> 
 
 
 def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
+    from rebar_data.perception.evaluation.bench import runtime_description
     from rebar_data.perception.evaluation.data import SPLITS, stated_oks_sigma
     from rebar_data.perception.evaluation.evaluate import LOW_THRESHOLD, load_splits, predict, score
     from rebar_data.perception.evaluation.false_detections import false_detection_census, format_census
     from rebar_data.perception.evaluation.metrics import format_summary
-    from rebar_data.perception.inference.model_file import runtime_description
 
     samples = load_splits(root, SPLITS if args.split == "all" else (args.split,), truth=args.truth)
     if not samples:

@@ -3,6 +3,7 @@ from __future__ import annotations
 import numpy as np
 
 from rebar_data.perception.evaluation.bench import detector_latency
+from rebar_data.perception.evaluation.evaluate import first_stage_only
 from rebar_data.perception.inference.detector import Detector
 from tests.perception.synthetic import drawn_frame
 
@@ -14,7 +15,7 @@ def test_latency_counts_the_later_stages_candidates_apart_from_what_they_keep(tr
     rgb, depth = drawn_frame()
     frames = [(rgb, depth), (rgb[:, ::-1].copy(), depth[:, ::-1].copy())]
     lat = detector_latency(det, frames, repeats=6)
-    with det.first_stage_only():
+    with first_stage_only(det):
         candidates = np.mean([len(det.detect(c, depth=d)) for c, d in frames])
     kept = np.mean([len(det.detect(c, depth=d)) for c, d in frames])  # the depth check counts too
     assert lat.frames == 2 and lat.candidates == candidates and lat.crossings == kept

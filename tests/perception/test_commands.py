@@ -46,7 +46,7 @@ def test_detect_on_a_dataset_split_writes_one_row_per_prediction(
     assert census["recall"] == 0.97 and census["false"] == sum(census[p] for p in PLACES)
     assert f"{census['false']} false detections above" in printed.err
     # the metrics say what ran the model (its figures may move a little with the runtime)
-    from rebar_data.perception.inference.model_file import runtime_description
+    from rebar_data.perception.evaluation.bench import runtime_description
 
     assert json.loads(metrics.read_text())["runtime"] == runtime_description("auto")
     with pytest.raises(SystemExit) as e:  # argparse names the accepted runtimes

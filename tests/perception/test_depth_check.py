@@ -10,6 +10,7 @@ import torch
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_depth, read_image
+from rebar_data.perception.evaluation.evaluate import first_stage_only
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.checks import VETO_MARGIN, VETO_POWER, DepthCheck, as_depth_m, encode
 from rebar_data.perception.inference.detector import Detector, shifted_score
@@ -199,7 +200,7 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
     np.testing.assert_allclose(det.detect(rgb, threshold=1e-4, depth=np.zeros_like(depth)), without)
     with pytest.raises(ConfigError, match="registered to the colour image"):
         det.detect(rgb, depth=depth[:-1])
-    with det.first_stage_only():
+    with first_stage_only(det):
         assert det.depth_check is None
     assert det.depth_check is not None
     lone = tmp_path / "lone"

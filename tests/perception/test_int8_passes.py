@@ -41,7 +41,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
         step=0.5,
         int8_run=_network(2.0, -9.0, calls, "int8"),
     )
-    assert refiner.has_int8_passes
+    assert refiner.int8_run is not None
     image = np.zeros((64, 64, 3), np.uint8)
     uv, logit = refined(refiner, image, np.array([[20.0, 30.0]]))
     assert calls == ["float", "int8", "int8"]
@@ -54,7 +54,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
     uv, _ = refined(refiner, image, np.array([[20.0, 30.0]]))
     assert calls == ["float"] * 3
     np.testing.assert_allclose(uv, [[20.0, 30.0]])
-    assert not Refiner(_network(0, 0, [], "f"), patch_px=16, iterations=2, verifies=True).has_int8_passes
+    assert Refiner(_network(0, 0, [], "f"), patch_px=16, iterations=2, verifies=True).int8_run is None
 
 
 def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, tmp_path):
@@ -65,7 +65,7 @@ def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, t
     assert out.is_file() and out.stat().st_size < model.stat().st_size
     assert onnx_meta(model)["refiner"]["quantize"] == "later"
     det = Detector.load(model, threads=1, reading="single")  # the first pass in float (the mirrored: int8)
-    assert det.refiner.has_int8_passes
+    assert det.refiner.int8_run is not None
     assert ("second stage, int8 copy", f"`{out.name}`") in [row[:2] for row in stage_rows(model, det, {})]
     moved = []
     for s in load_split(drawn_dataset, "test"):
@@ -95,6 +95,6 @@ def test_the_shipped_files_stay_within_five_megabytes():
     files = sorted(infer.MODELS_DIR.glob(f"{infer.SHIPPED_MODEL.stem}*.onnx"))
     det = Detector.load(None, threads=1)
     loaded = [infer.SHIPPED_MODEL, model_file.refiner_path(infer.SHIPPED_MODEL)]
-    loaded += [int8_passes_path(infer.SHIPPED_MODEL)] if det.refiner.has_int8_passes else []
+    loaded += [int8_passes_path(infer.SHIPPED_MODEL)] if det.refiner.int8_run is not None else []
     assert set(loaded) <= set(files)
     assert sum(f.stat().st_size for f in files) <= 5_000_000, [(f.name, f.stat().st_size) for f in files]

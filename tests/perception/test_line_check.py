@@ -11,7 +11,7 @@ from rebar_data.perception.inference.checks import FEATURES, LineCheck
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks.files import update_onnx_meta
 from rebar_data.perception.training.config import LineCheckConfig
-from rebar_data.perception.training.line_check import fit_line_check
+from rebar_data.perception.training.line_check import fit_line_check, line_check_meta
 
 from .conftest import shipped_model_copy
 
@@ -104,7 +104,7 @@ def test_line_check_settings_keep_the_checked_candidates_among_the_evidence():
 
 
 def test_a_check_fitted_on_other_features_is_refused():
-    entry = _random_check(0).to_meta()
+    entry = line_check_meta(_random_check(0))
     assert LineCheck.from_meta(entry, "m.onnx").weights.tolist() == entry["weights"]
     with pytest.raises(ConfigError, match="line check reads"):
         LineCheck.from_meta({**entry, "features": entry["features"][:-1]}, "m.onnx")

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
+from rebar_data.perception.evaluation.evaluate import first_stage_only
 from rebar_data.perception.evaluation.metrics import match
 from rebar_data.perception.inference import detector as infer
 from rebar_data.perception.inference.detector import READINGS, Detector
@@ -60,7 +61,7 @@ def test_the_mirror_image_lands_on_the_cells_of_the_image_at_any_size(width, hei
 
     det = _shipped()
     rgb = np.ascontiguousarray(drawn_frame()[0][:height, :width])
-    with det.first_stage_only():
+    with first_stage_only(det):
         det.reading = "single"
         single = det.detect(rgb, threshold=0.5)
         det.reading = "mirrored"

@@ -10,6 +10,7 @@ import torch
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_image
+from rebar_data.perception.evaluation.evaluate import first_stage_only
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.detector import Detector, log_probability, shifted_score
 from rebar_data.perception.inference.refine import Refiner, patches, shrunk, shrunk_around
@@ -462,7 +463,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     assert (out / "best.refine.onnx").is_file() and (out / "best.refine.pt").is_file()
     det = Detector.load(out)
     assert det.refiner is not None and det.meta["refiner"]["patch_px"] == TINY_TRAIN["refine"]["patch_px"]
-    assert det.meta["refiner"]["quantize"] == "later" and det.refiner.has_int8_passes
+    assert det.meta["refiner"]["quantize"] == "later" and det.refiner.int8_run is not None
     assert any(n.op_type == "QLinearConv" for n in onnx.load(out / "best.refine.int8.onnx").graph.node)
     results = json.loads((out / "results.json").read_text())
     assert "test" in results["results_first_stage"] and results["refiner_parameters"] > 0
@@ -471,7 +472,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     assert results["refine_history"][-1]["verify_positives_right"] > 0.5
     rgb = read_image(load_split(drawn_dataset, "test")[0].path)
     both = det.detect(rgb, threshold=0.01)
-    with det.first_stage_only():
+    with first_stage_only(det):
         first = det.detect(rgb, threshold=0.01)
     # the same detections, moved, their scores lowered by the verification and cut at the threshold
     uv, logit = refined(det.refiner, rgb, first[:, :2])

@@ -203,7 +203,7 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     card = (tmp_path / "models" / CARD_NAME).read_text()
     assert "`drawn-second` v0.0.0 (6 images)" in card and "; the second supplements 3 times |" in card
     shipped = Detector.load(tmp_path / "models" / "rebar_keypoint.onnx")
-    assert shipped.refiner.has_int8_passes
+    assert shipped.refiner.int8_run is not None
     name = read_info(drawn_dataset)["name"]
     assert shipped.meta["refiner"]["int8_calibrated_on"]["data"] == [f"{name} train"]
     assert "`rebar_keypoint.refine.int8.onnx`" in card
@@ -265,7 +265,7 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     assert "the second ones" not in card  # the first epochs did not see them
     assert '"lower_mat_negatives": 16' in card  # the depth check's, in the settings
     # the latency names what ran it (the default runtime), the figures the runtime training fits on
-    from rebar_data.perception.inference.model_file import runtime_description
+    from rebar_data.perception.evaluation.bench import runtime_description
 
     assert f"2 CPU threads, {runtime_description('auto')}, end to end" in card
     assert "The figures are ONNX Runtime's in float32" in card

@@ -17,6 +17,15 @@ RENDERED_FRAMES = 8
 Frame = tuple[np.ndarray, np.ndarray | None]  # RGB (H, W, 3) uint8 and its depth (H, W) metres, 0 = none
 
 
+def runtime_description(runtime: str) -> str:
+    """How ``runtime`` runs here, in words (for the bench, the model card and `rebar detect`)."""
+    from rebar_data.perception.inference import model_file
+
+    if model_file.resolve_runtime(runtime) == "onnxruntime":
+        return "ONNX Runtime, float32"
+    return f"OpenVINO, {'bfloat16' if model_file.openvino_bf16() else 'float32'}"
+
+
 def _time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 5) -> np.ndarray:
     for _ in range(warmup):
         fn()
@@ -81,6 +90,8 @@ class DetectorLatency:
 def detector_latency(det, frames: list[Frame], *, repeats: int) -> DetectorLatency:
     """Time ``det.detect`` on ``frames`` with their depth (``repeats`` calls in all), and right after each
     frame its first stage alone when it has later ones."""
+    from rebar_data.perception.evaluation.evaluate import first_stage_only
+
     each = max(3, -(-repeats // len(frames)))
     two_stages = det.refiner is not None or det.depth_check is not None
     ours, first, kept, candidates = [], [], [], []
@@ -91,7 +102,7 @@ def detector_latency(det, frames: list[Frame], *, repeats: int) -> DetectorLaten
 
         ours.append(_time_ms(call, repeats=each, warmup=2))
         kept.append(len(call()))
-        with det.first_stage_only():
+        with first_stage_only(det):
             if two_stages:
                 first.append(_time_ms(call, repeats=each, warmup=2))
             candidates.append(len(call()))
@@ -111,7 +122,6 @@ def run(repeats: int = 100) -> list[str]:
     import torch
 
     from rebar_data.perception.inference.detector import Detector, ray_grid
-    from rebar_data.perception.inference.model_file import runtime_description
     from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
 
     threads_before = torch.get_num_threads()

@@ -20,7 +20,12 @@ import yaml
 from rebar_data.config import ConfigError
 from rebar_data.outputs import replace_file
 from rebar_data.perception.evaluation import data, evaluate
-from rebar_data.perception.evaluation.bench import DetectorLatency, detector_latency, latency_frames
+from rebar_data.perception.evaluation.bench import (
+    DetectorLatency,
+    detector_latency,
+    latency_frames,
+    runtime_description,
+)
 from rebar_data.perception.evaluation.false_detections import false_detection_census, format_census
 from rebar_data.perception.evaluation.metrics import keypoint_ap, oks_radius_px, pixel_metrics
 from rebar_data.perception.inference import model_file
@@ -125,7 +130,7 @@ def stage_rows(model: Path, detector: Detector, res: dict) -> list[tuple[str, ..
     if detector.refiner is not None:
         second = "the patch network (`refine` below)"
         rows.append(("second stage", model_file.refiner_path(model), res.get("refiner_parameters"), second))
-        if detector.refiner.has_int8_passes:
+        if detector.refiner.int8_run is not None:
             cal = detector.meta["refiner"].get("int8_calibrated_on", {})
             sets = ", ".join(f"`{d}`" for d in cal.get("data", [])) or "the training images"
             int8 = f"read by the later passes; calibrated on {cal.get('patches', '?')} patches of {sets}"
@@ -287,8 +292,11 @@ def _flattened(detector: Detector, samples: Sequence, *, progress: bool) -> list
     """The detections with depth and what lies behind the front bars flattened; None where it cannot be."""
     if detector.depth_check is None or not samples or any(s.depth_path is None for s in samples):
         return None
-    with detector.flattening():
+    before, detector.flatten_behind = detector.flatten_behind, True
+    try:
         return evaluate.predict(detector, samples, progress=progress)
+    finally:
+        detector.flatten_behind = before
 
 
 def evaluation_rows(
@@ -428,7 +436,7 @@ def ship(
         figures=figures,
         latency=detector_latency(fast, frames, repeats=64),
         latency_source=latency_source,
-        latency_runtime=model_file.runtime_description(fast.backend),
+        latency_runtime=runtime_description(fast.backend),
         load_average=load,
     )
     return dst

@@ -2,7 +2,8 @@
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -162,3 +163,14 @@ def calibrate_score_bias(samples: Sequence[Sample], predictions: Sequence[np.nda
     logit = np.log(s / (1 - s))
     cut = logit[best] if best + 1 == len(logit) else 0.5 * (logit[best] + logit[best + 1])
     return float(np.clip(-cut, -MAX_SCORE_BIAS, MAX_SCORE_BIAS))
+
+
+@contextmanager
+def first_stage_only(detector: Detector) -> Iterator[Detector]:
+    """Within the block, ``detector.detect`` gives its first stage's detections alone."""
+    stages = detector.refiner, detector.depth_check, detector.line_check
+    detector.refiner = detector.depth_check = detector.line_check = None
+    try:
+        yield detector
+    finally:
+        detector.refiner, detector.depth_check, detector.line_check = stages

@@ -264,7 +264,8 @@ def line_features(image: np.ndarray, uv: np.ndarray, evidence: np.ndarray, which
 @dataclass(frozen=True)
 class LineCheck:
     """A fitted line check: its logistic regression's ``weights`` (per :data:`FEATURES`) and ``bias``, and the
-    first-stage scores it was fitted with (``floor``, ``checked_from``)."""
+    first-stage scores it was fitted with (``floor``, ``checked_from``); :meth:`from_meta` reads it from a model
+    file's meta entry (:func:`~rebar_data.perception.training.line_check.line_check_meta` writes it)."""
 
     weights: np.ndarray
     bias: float
@@ -301,16 +302,6 @@ class LineCheck:
         hi = np.ones(len(FEATURES) - 1)
         hi[[FEATURES.index(f"{bar}_count") - 1 for bar in ("better_bar", "other_bar")]] = 2 * STEPS
         return float(np.maximum(0.0, self.weights[1:] * hi).sum())
-
-    def to_meta(self) -> dict[str, Any]:
-        return {
-            "features": list(FEATURES),
-            "weights": [float(w) for w in self.weights],
-            "bias": float(self.bias),
-            "floor": self.floor,
-            "checked_from": self.checked_from,
-            "reading": dict(READING),
-        }
 
     @classmethod
     def from_meta(cls, entry: dict[str, Any], source: str) -> LineCheck:

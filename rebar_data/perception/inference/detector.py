@@ -6,8 +6,7 @@ the checks (:mod:`.checks`) score them again."""
 from __future__ import annotations
 
 import json
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal, get_args
@@ -146,25 +145,6 @@ class Detector:
         )
         det.reading = reading
         return det
-
-    @contextmanager
-    def first_stage_only(self) -> Iterator[Detector]:
-        """Within the block, ``detect`` gives the first stage's detections alone."""
-        stages = self.refiner, self.depth_check, self.line_check
-        self.refiner = self.depth_check = self.line_check = None
-        try:
-            yield self
-        finally:
-            self.refiner, self.depth_check, self.line_check = stages
-
-    @contextmanager
-    def flattening(self) -> Iterator[Detector]:
-        """Within the block, ``flatten_behind`` is on."""
-        before, self.flatten_behind = self.flatten_behind, True
-        try:
-            yield self
-        finally:
-            self.flatten_behind = before
 
     def default_camera(self, height: int, width: int) -> Camera:
         """The principal point at the centre and the training data's focal length for this width."""

@@ -72,13 +72,6 @@ def openvino_bf16() -> bool:
     return core is not None and "BF16" in core.get_property("CPU", "OPTIMIZATION_CAPABILITIES")
 
 
-def runtime_description(runtime: str) -> str:
-    """How ``runtime`` runs here, in words (for the bench and `rebar detect`)."""
-    if resolve_runtime(runtime) == "onnxruntime":
-        return "ONNX Runtime, float32"
-    return f"OpenVINO, {'bfloat16' if openvino_bf16() else 'float32'}"
-
-
 @cache
 def _openvino_core() -> Any:
     try:

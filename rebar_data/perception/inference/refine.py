@@ -125,10 +125,6 @@ class Refiner:
         self.verifies = verifies
         self.shrink_above_px = tuple(shrink_above_px) if sizes and shrink_above_px is not None else None
 
-    @property
-    def has_int8_passes(self) -> bool:
-        return self.int8_run is not None
-
     def first_pass(
         self, image: np.ndarray, uv: np.ndarray, *, mirrored: bool = False
     ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:

@@ -19,13 +19,25 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, read_sample_image
 from rebar_data.perception.evaluation.evaluate import calibrate_score_bias, predict, truth_of
 from rebar_data.perception.evaluation.metrics import GATE_PX, match
-from rebar_data.perception.inference.checks import LineCheck, line_features
+from rebar_data.perception.inference.checks import FEATURES, READING, LineCheck, line_features
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.training.config import LineCheckConfig
 
 
 class UnfitLineCheck(ConfigError):
     """The fitting images give the line check nothing to learn from: no candidates, or only one kind."""
+
+
+def line_check_meta(check: LineCheck) -> dict[str, Any]:
+    """A fitted check's entry in the model file's meta, as :meth:`LineCheck.from_meta` reads it."""
+    return {
+        "features": list(FEATURES),
+        "weights": [float(w) for w in check.weights],
+        "bias": float(check.bias),
+        "floor": check.floor,
+        "checked_from": check.checked_from,
+        "reading": dict(READING),
+    }
 
 
 def fitting_rows(
@@ -93,7 +105,7 @@ def fit_line_check(
             detector.line_check = before
         check = LineCheck(check.weights, check.bias + shift, cfg.floor, cfg.checked_from)
     entry = {
-        **check.to_meta(),
+        **line_check_meta(check),
         "regularization": cfg.regularization,
         "fitted_on": list(data),
         "images": len(samples),

@@ -46,6 +46,7 @@ from rebar_data.perception.evaluation.evaluate import (
     CALIBRATION_FLOOR,
     at_crossing_points,
     calibrate_score_bias,
+    first_stage_only,
     load_splits,
     predict,
     score,
@@ -476,7 +477,7 @@ def _finish(
             curves[split] = (samples, preds)
     first_stage: dict[str, dict[str, float]] = {}
     if detector.refiner is not None and test_samples:  # what the second stage adds, on the reported split
-        with detector.first_stage_only():
+        with first_stage_only(detector):
             first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
         run.log(f"first stage alone on test: {format_summary(first_stage['test'])}")
     without_depth: dict[str, dict[str, float]] = {}
