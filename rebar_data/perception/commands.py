@@ -110,8 +110,9 @@ def run_train(args: argparse.Namespace) -> None:
 
 
 def _stage_inputs(args: argparse.Namespace, command: str, owned, datasets) -> tuple:
-    """What `rebar adapt` and `rebar add-crossing-point` read, checked: ``--out`` (new, empty or the command's
-    own, outside every input), the dataset, model file, ``--config`` (or None), every image of ``datasets``."""
+    """What `rebar adapt` and `rebar add-crossing-point` read, checked: ``--out`` (new, empty or the
+    command's own, outside every input), the dataset, model file, ``--config`` (or None), every image of
+    ``datasets``."""
     from rebar_data.config import read_yaml
     from rebar_data.perception.evaluation.data import check_dataset, load_split, read_info
     from rebar_data.perception.inference.detector import resolve_model_path

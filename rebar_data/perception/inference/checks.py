@@ -264,8 +264,8 @@ def line_features(image: np.ndarray, uv: np.ndarray, evidence: np.ndarray, which
 @dataclass(frozen=True)
 class LineCheck:
     """A fitted line check: its logistic regression's ``weights`` (per :data:`FEATURES`) and ``bias``, and the
-    first-stage scores it was fitted with (``floor``, ``checked_from``); :meth:`from_meta` reads it from a model
-    file's meta entry (:func:`~rebar_data.perception.training.line_check.line_check_meta` writes it)."""
+    first-stage scores it was fitted with (``floor``, ``checked_from``); :meth:`from_meta` reads it from a
+    model file's meta entry (:func:`~rebar_data.perception.training.line_check.line_check_meta` writes it)."""
 
     weights: np.ndarray
     bias: float

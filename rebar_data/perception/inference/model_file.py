@@ -238,22 +238,28 @@ def depth_check_settings(entry: dict[str, Any]) -> dict[str, float]:
     return {k: float(v) for k, v in {"scale_m": entry["scale_m"], "clip": entry["clip"], **veto}.items()}
 
 
+def stage_entries(model: Path, meta: dict[str, Any]) -> dict[str, tuple[Path, dict[str, Any]]]:
+    """The file and meta entry (:func:`stage_file`) of each later stage ``model``'s meta names, by key."""
+    beside = {"refiner": refiner_path, "depth_check": depth_check_path, "crossing_point": crossing_point_path}
+    return {key: found for key, f in beside.items() if (found := stage_file(model, meta, key, f))}
+
+
 def load_stages(
     model: Path, meta: dict[str, Any], threads: int, runtime: str
 ) -> tuple[Refiner | None, DepthCheck | None, CrossingPoint | None]:
     """The second stage (with its int8 copy where it has one), the depth check and the crossing-point stage
     ``model``'s meta names; None for each it does not."""
     refiner = depth = crossing = None
-    if found := stage_file(model, meta, "refiner", refiner_path):
+    found = stage_entries(model, meta)
+    if f := found.get("refiner"):
         int8 = None
-        if found[1].get("quantize") == "later":
+        if f[1].get("quantize") == "later":
             int8, _ = stage_file(model, meta, "refiner", int8_passes_path, sha_key="int8_sha256")
-        passes = refiner_passes(found[1])
-        refiner = read_refiner(found[0], threads=threads, runtime=runtime, int8_path=int8, **passes)
-    if found := stage_file(model, meta, "depth_check", depth_check_path):
-        depth = read_depth_check(found[0], threads=threads, runtime=runtime, **depth_check_settings(found[1]))
-    if found := stage_file(model, meta, "crossing_point", crossing_point_path):
-        crossing = read_crossing_point(found[0], threads=threads, runtime=runtime)
+        refiner = read_refiner(f[0], threads=threads, runtime=runtime, int8_path=int8, **refiner_passes(f[1]))
+    if f := found.get("depth_check"):
+        depth = read_depth_check(f[0], threads=threads, runtime=runtime, **depth_check_settings(f[1]))
+    if f := found.get("crossing_point"):
+        crossing = read_crossing_point(f[0], threads=threads, runtime=runtime)
     return refiner, depth, crossing
 
 

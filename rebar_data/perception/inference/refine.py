@@ -144,7 +144,7 @@ class Refiner:
         """``uv`` (N, 2) moved by the later passes, reading each point at the size its ``box`` side calls
         for; ``mirrored`` reads one view."""
         views = 1 if mirrored else self.views
-        for _ in range(1, self.iterations if len(uv) else 1):
+        for _ in range(self.iterations - 1 if len(uv) else 0):
             uv = uv + self.step * (self._placed_at_size(image, uv, box, views) - uv)
         return uv
 

@@ -42,7 +42,7 @@ def refiner(net: PatchNet, *, iterations: int = 1, **passes: Any) -> Refiner:
 
 
 def depth_check(net: DepthNet, **settings: float) -> DepthCheck:
-    """A depth check that runs ``net``; ``settings``: :class:`DepthCheck`'s scale_m, clip, power and margin."""
+    """A depth check that runs ``net``; ``settings``: :class:`DepthCheck`'s scale_m, clip, power, margin."""
     net = net.eval()
 
     def run(x: np.ndarray) -> np.ndarray:

@@ -550,13 +550,14 @@ def load_detector(path: str | Path | None = None, **kwargs: Any):
         return Detector.load(p, **kwargs)
     net, meta, _ = load_checkpoint(p)
     det = eager.detector(net, meta=meta, path=p)
-    if (found := model_file.stage_file(p, det.meta, "refiner", model_file.refiner_path)) is not None:
-        det.refiner = eager.refiner(refine.load(found[0])[0], **model_file.refiner_passes(found[1]))
-    if (found := model_file.stage_file(p, det.meta, "depth_check", model_file.depth_check_path)) is not None:
-        settings = model_file.depth_check_settings(found[1])
-        det.depth_check = eager.depth_check(depth_check.load(found[0])[0], **settings)
-    found = model_file.stage_file(p, det.meta, "crossing_point", model_file.crossing_point_path)
-    if found is not None:
-        det.crossing_point = eager.crossing_point(crossing_point.load(found[0])[0])
+    found = model_file.stage_entries(p, det.meta)
+    if f := found.get("refiner"):
+        det.refiner = eager.refiner(refine.load(f[0])[0], **model_file.refiner_passes(f[1]))
+    if f := found.get("depth_check"):
+        det.depth_check = eager.depth_check(
+            depth_check.load(f[0])[0], **model_file.depth_check_settings(f[1])
+        )
+    if f := found.get("crossing_point"):
+        det.crossing_point = eager.crossing_point(crossing_point.load(f[0])[0])
     det.reading = kwargs.get("reading", "mirrored")
     return det
