@@ -24,6 +24,7 @@ IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 DETECT = "rebar detect"
 ADAPT = "rebar adapt"
 ADD_CROSSING_POINT = "rebar add-crossing-point"
+SHIPPED = "shipped"  # `rebar train --init` without a model: the shipped one
 WRITTEN_BY = "written_by"  # the key naming the command, in a Parquet file's metadata and a JSON record
 PREDICTION_COLUMNS = ["image_id", "u", "v", "score"]
 EPOCHS = bounded(int, 1)
@@ -84,6 +85,12 @@ def run_train(args: argparse.Namespace) -> None:
         check_dataset(path)
     settings = read_yaml(args.config) if args.config else None
     config = resolve_config(settings, {}, source=str(args.config or "train settings"))
+    init = None
+    if args.init is not None:  # the model's settings, the file's laid over them
+        from rebar_data.perception.training.init import read_model, settings_from
+
+        init = read_model(None if args.init == SHIPPED else args.init)
+        config = settings_from(init, settings, source=str(args.config or "train settings"))
     out = Path(args.out or Path("runs/train") / str(read_info(root).get("name") or root.parent.name))
     check_run_folder(out)
     inputs = [root, *(args.eval or ()), *(args.supplement or ()), *(args.refine_supplement or ())]
@@ -98,6 +105,8 @@ def run_train(args: argparse.Namespace) -> None:
         line_supplements=args.line_supplement or (),
         resume=not args.fresh,
         progress=not args.quiet,
+        init=init,
+        stages=args.stages,
     )
     if args.ship:
         from rebar_data.perception.evaluation.card import ship
@@ -430,6 +439,20 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     t.add_argument("--line-supplement", **repeatable, help="a dataset the line check is also fitted on")
     t.add_argument("--fresh", action="store_true", help="start afresh instead of resuming the run in --out")
+    t.add_argument(
+        "--init",
+        nargs="?",
+        const=SHIPPED,
+        metavar="MODEL",
+        help="start every stage from this model's weights (.onnx or run folder; the shipped model when none "
+        "is named), with its settings and the init section's epochs",
+    )
+    t.add_argument(
+        "--stages",
+        metavar="LIST",
+        help="with --init: the stages to train, of first,refine,depth_check,crossing_point (default all); "
+        "the others are the model's",
+    )
     t.add_argument(
         "--ship", action="store_true", help="then copy the best model and its card into the package"
     )

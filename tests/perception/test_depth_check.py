@@ -18,7 +18,13 @@ from rebar_data.perception.inference.refine import patches
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx
 from rebar_data.perception.training.config import DepthCheckConfig
-from rebar_data.perception.training.depth_check import PaddedDepth, build, patch_batches, train_depth_check
+from rebar_data.perception.training.depth_check import (
+    PaddedDepth,
+    build,
+    epoch_depth,
+    patch_batches,
+    train_depth_check,
+)
 from rebar_data.perception.training.train import load_detector
 from tests.perception.conftest import TINY_TRAIN
 
@@ -130,7 +136,11 @@ def test_depth_batches_hold_every_crossing_and_negative_once_an_epoch(drawn_data
     samples = load_split(drawn_dataset, "train")[:3]
     negatives = [np.array([[5.0, 5.0]]), np.zeros((0, 2)), np.array([[50.0, 40.0], [60.0, 20.0]])]
     cfg = DepthCheckConfig(patch_px=16, batch_size=16, epochs=2)
-    depths = [PaddedDepth(read_depth(s.depth_path), cfg.patch_px) for s in samples]
+    fixed = [PaddedDepth(read_depth(s.depth_path), cfg.patch_px) for s in samples]
+
+    def depths(epoch):
+        return fixed
+
     batches = list(patch_batches(depths, samples, negatives, cfg, seed=0, first=1))
     per_epoch = -(-(sum(len(s.visible) for s in samples) + 3) // 16)
     assert len(batches) == 2 * per_epoch
@@ -226,3 +236,19 @@ def test_a_checkpoint_reads_its_depth_check_as_its_onnx_file_does(trained_run):
     assert model_file.depth_check_settings(entry) == want
     older = model_file.depth_check_settings({"scale_m": 0.05, "clip": 4.0, "power": 1.0})
     assert (older["power"], older["margin"]) == (VETO_POWER, VETO_MARGIN)
+
+
+def test_each_epoch_gives_an_image_its_own_sensor_depth_or_a_drawn_sensors(drawn_dataset):
+    """The depth check learns from every sensor model: over epochs an image's depth is its dataset's, exact, or
+    a drawn sensor's (holes where the exact depth has none), the same for the same (seed, epoch, image)."""
+    s = load_split(drawn_dataset, "train")[0]
+    exact = read_depth(s.depth_path)
+    cfg = DepthCheckConfig(dataset_share=0.0)
+    seen = [epoch_depth(s, 0, epoch, cfg, seed=3) for epoch in range(1, 13)]
+    holes = [float(np.mean((d == 0) & (exact > 0))) for d in seen]
+    assert max(holes) > 0.001  # a drawn sensor lost measurements the exact depth has
+    assert len({round(h, 4) for h in holes}) >= 3  # and the sensors differ from epoch to epoch
+    assert not all(np.array_equal(seen[0], d) for d in seen[1:])
+    np.testing.assert_array_equal(epoch_depth(s, 0, 5, cfg, seed=3), seen[4])
+    own = DepthCheckConfig(drawn_sensors=())  # none drawn: the dataset's own depth every epoch
+    np.testing.assert_array_equal(epoch_depth(s, 0, 1, own, seed=3), exact)

@@ -160,22 +160,44 @@ def check_model_file(model: str | Path) -> Path:
     return model
 
 
-def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
-    """The first stage of an ONNX file from :func:`export_onnx` back in PyTorch, and its ``meta``, so that
-    training can go on from a shipped model (with its batch norms frozen, as the adapt epochs do). The export
-    folds each batch norm into the convolution before it: each such convolution gets the folded kernel, its
-    batch norm the folded bias with unit scale, mean 0 and variance 1 - eps. ConfigError when the file is not
-    a detector's or its layers do not match its model config."""
+def _read_onnx(path: Path):
+    """The ONNX model at ``path``; ConfigError when it cannot be read as one."""
     import onnx
-    from onnx import numpy_helper
 
-    path = Path(path)
     try:
-        model = onnx.load(str(path))
+        return onnx.load(str(path))
     except Exception as e:
         raise ConfigError(f"{path}: cannot be read as an ONNX file ({type(e).__name__})") from None
+
+
+def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
+    """The first stage of an ONNX file from :func:`export_onnx` back in PyTorch, and its ``meta``
+    (:func:`weights_from_onnx`). ConfigError when the file is not a detector's or its layers do not match its
+    model config."""
+    path = Path(path)
+    model = _read_onnx(path)
     full = json.loads(_meta_entry(model, path).value)
     net = KeypointNet(ModelConfig.model_validate(full["model_config"])).eval()
+    _fill(net, model, path)
+    meta = {k: v for k, v in full.items() if k not in ("format", "format_version", "model_config")}
+    return net, meta
+
+
+def weights_from_onnx(net: nn.Module, path: str | Path) -> nn.Module:
+    """``net`` (any of the detector's networks, built from the settings the file was trained with) given the
+    weights of the ONNX file at ``path``, so that training can go on from a shipped model. The export folds
+    each batch norm into the convolution before it: each such convolution gets the folded kernel, its batch
+    norm the folded bias with unit scale, mean 0 and variance 1 - eps, so train it with its batch norms
+    frozen, as the adapt epochs do. ConfigError when the file's layers do not match the network's."""
+    path = Path(path)
+    _fill(net, _read_onnx(path), path)
+    return net.eval()
+
+
+def _fill(net: nn.Module, model, path: Path) -> None:
+    """Copy the weights of the loaded ONNX ``model`` (from ``path``) into ``net``'s layers."""
+    from onnx import numpy_helper
+
     weights = {i.name: torch.from_numpy(numpy_helper.to_array(i).copy()) for i in model.graph.initializer}
     nodes = {op: [n for n in model.graph.node if n.op_type == op] for op in ("Conv", "Gemm")}
     convs = [m for m in net.modules() if isinstance(m, torch.nn.Conv2d)]
@@ -187,36 +209,34 @@ def network_from_onnx(path: str | Path) -> tuple[KeypointNet, dict[str, Any]]:
         for a, b in zip(list(seq.children()), list(seq.children())[1:], strict=False)
         if isinstance(a, torch.nn.Conv2d) and isinstance(b, torch.nn.BatchNorm2d)
     }
+    accepted = "accepted: a file exported by `rebar train` from a network of these settings"
     if len(nodes["Conv"]) != len(convs) or len(nodes["Gemm"]) != len(linears):
         raise ConfigError(
             f"{path}: holds {len(nodes['Conv'])} convolutions and {len(nodes['Gemm'])} linear layers where "
-            f"its model config has {len(convs)} and {len(linears)}; accepted: a file exported by "
-            "`rebar train`"
+            f"its settings give {len(convs)} and {len(linears)}; {accepted}"
         )
     with torch.no_grad():
         # the export traces the layers in the order the modules were made (the linear layers matched apart)
-        for node, conv in zip(nodes["Conv"], convs, strict=True):
+        for node, layer in [
+            *zip(nodes["Conv"], convs, strict=True),
+            *zip(nodes["Gemm"], linears, strict=True),
+        ]:
             w = weights[node.input[1]]
             b = weights[node.input[2]] if len(node.input) > 2 else torch.zeros(w.shape[0])
-            if w.shape != conv.weight.shape:
+            if w.shape != layer.weight.shape:
                 raise ConfigError(
-                    f"{path}: a convolution of shape {tuple(w.shape)} where its model config has "
-                    f"{tuple(conv.weight.shape)}; accepted: a file exported by `rebar train`"
+                    f"{path}: a layer of shape {tuple(w.shape)} where its settings give "
+                    f"{tuple(layer.weight.shape)}; {accepted}"
                 )
-            conv.weight.copy_(w)
-            norm = norm_after.get(id(conv))
+            layer.weight.copy_(w)
+            norm = norm_after.get(id(layer))
             if norm is None:
-                conv.bias.copy_(b)
+                layer.bias.copy_(b)
             else:
                 norm.weight.fill_(1.0)
                 norm.bias.copy_(b)
                 norm.running_mean.zero_()
                 norm.running_var.fill_(1.0 - norm.eps)
-        for node, lin in zip(nodes["Gemm"], linears, strict=True):
-            lin.weight.copy_(weights[node.input[1]])
-            lin.bias.copy_(weights[node.input[2]])
-    meta = {k: v for k, v in full.items() if k not in ("format", "format_version", "model_config")}
-    return net, meta
 
 
 def quantize_onnx(src: Path, dst: Path, calibration: np.ndarray) -> Path:

@@ -18,6 +18,7 @@ PatchPx = Annotated[int, Field(ge=16, multiple_of=8)]
 Power = Annotated[float, Field(gt=0.0, le=1.0)]
 Between = Annotated[float, Field(gt=0.0, lt=1.0)]
 Widths = tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt]
+DepthModel = Literal["exact", "structured_light", "active_stereo", "time_of_flight"]
 
 
 def _without_retired(values: Any, retired: dict[str, Any], section: str) -> Any:
@@ -156,6 +157,9 @@ class DepthCheckConfig(Strict):
     veto_power: Power = 0.5  # how hard its doubt lowers a score
     veto_margin: NonNegative = 2.0  # logit above which it lowers no score
     lower_mat_negatives: NonNegativeInt = 16  # lower-mat crossings a training image gives as negatives
+    # depth models drawn anew (random parameters) for an image's depth each epoch; none: the dataset's alone
+    drawn_sensors: tuple[DepthModel, ...] = ("exact", "structured_light", "active_stereo", "time_of_flight")
+    dataset_share: Fraction = 0.4  # share of the images an epoch that give their dataset's sensor depth
 
     @model_validator(mode="before")
     @classmethod
@@ -222,6 +226,17 @@ class AdaptConfig(Strict):
         return _without_retired(values, {"lower_mat_weight": 1.0}, "adapt")
 
 
+class InitConfig(Strict):
+    """Training that starts from a model's weights (``rebar train --init``): fewer epochs at a lower rate,
+    the batch norms frozen (:mod:`rebar_data.perception.training.init`)."""
+
+    epochs: PositiveInt = 4  # first-stage epochs from the model's weights
+    lr: Positive = 1e-3  # their peak learning rate
+    warmup_epochs: NonNegative = 0.05  # their linear warm-up
+    stage_epochs: PositiveInt = 3  # each later stage's epochs from its weights
+    stage_lr_scale: Positive = 0.25  # the later stages' peak learning rates, times their own
+
+
 class TrainConfig(Strict):
     """One training run (``rebar train --config``)."""
 
@@ -250,6 +265,7 @@ class TrainConfig(Strict):
     depth_check: DepthCheckConfig = DepthCheckConfig()  # the depth check
     crossing_point: CrossingPointConfig = CrossingPointConfig()  # the crossing-point stage
     line_check: LineCheckConfig = LineCheckConfig()  # the line check
+    init: InitConfig = InitConfig()  # training from a model's weights (--init)
 
 
 def resolve_config(

@@ -127,9 +127,12 @@ def train_crossing_point(
     *,
     seed: int,
     progress: bool = False,
+    init: CrossingNet | None = None,
+    data: list[str] | None = None,
 ) -> tuple[CrossingNet, list[dict[str, float]]]:
     """Train the crossing-point stage on the visible crossings of ``samples``, resumable in
-    ``out/crossing_last.pt``; returns the network and one row per epoch (L1 loss in pixels, seconds)."""
+    ``out/crossing_last.pt``; returns the network and one row per epoch (L1 loss in pixels, seconds).
+    ``init``: trained weights to start from, ``data`` naming them."""
     torch.manual_seed(seed)
     found: list[PatchSet] = []
 
@@ -149,12 +152,13 @@ def train_crossing_point(
         cfg,
         out / "crossing_last.pt",
         name="crossing point",
-        data=None,
+        data=data,
         prepare=prepare,
         loss=loss,
         summary=lambda tally, steps: {"loss_px": tally["loss"] / steps},
         describe=lambda row: f"L1 {row['loss_px']:.3f} px ({len(found[0])} patches, {row['seconds']:.0f} s)",
         progress=progress,
+        init=init,
     )
 
 

@@ -1,6 +1,10 @@
 """Training and model files of the depth check (:mod:`rebar_data.perception.inference.checks`): depth
 patches around the visible crossings are its positives, the first stage's false detections
-(:func:`~rebar_data.perception.training.refine.negatives_in`) its negatives."""
+(:func:`~rebar_data.perception.training.refine.negatives_in`) its negatives.
+
+Each epoch every image gives the depth of one sensor: its dataset's own (``sensor_depth/``, for
+``dataset_share`` of the images) or one of ``drawn_sensors`` drawn anew, with random parameters, over its
+exact depth, so the check learns what every camera's holes, noise and misregistration look like."""
 
 from __future__ import annotations
 
@@ -21,6 +25,9 @@ from rebar_data.perception.networks.stages import DepthNet
 from rebar_data.perception.training.config import DepthCheckConfig
 from rebar_data.perception.training.later_stages import StageFile, classed_rightly, count_classes, train_stage
 from rebar_data.perception.training.refine_data import patch_keys, steps_per_epoch
+from rebar_data.render.depth_sensor import sense_depth
+from rebar_data.scene.config import DepthSensorConfig
+from rebar_data.scene.sample import sample_depth_sensor
 
 
 def build(cfg: DepthCheckConfig) -> DepthNet:
@@ -65,8 +72,20 @@ class PaddedDepth:
         return self._padded[v : v + self.size, u : u + self.size].astype(np.float32) / MM_PER_M
 
 
+def epoch_depth(s: Sample, index: int, epoch: int, cfg: DepthCheckConfig, *, seed: int) -> np.ndarray:
+    """Sample ``s``'s (the ``index``-th) depth image in ``epoch``: its dataset's sensor depth, or a drawn
+    sensor's image of its exact depth (from a generator seeded by (seed, epoch, index) alone)."""
+    rng = np.random.default_rng(np.random.SeedSequence([seed, 7933, epoch, index]))
+    own = rng.random() < cfg.dataset_share and s.sensor_depth_path is not None
+    if own or not cfg.drawn_sensors:
+        return sample_depth(s, "sensor")
+    model = cfg.drawn_sensors[int(rng.integers(len(cfg.drawn_sensors)))]
+    sensor = sample_depth_sensor(DepthSensorConfig(models={model: 1.0}), rng)
+    return sense_depth(sample_depth(s, "exact"), sensor, rng, fx=s.camera[0])
+
+
 def patch_batches(
-    depths: list[PaddedDepth],
+    depths: Callable[[int], list[PaddedDepth]],
     samples: list[Sample],
     negatives: list[np.ndarray],
     cfg: DepthCheckConfig,
@@ -75,11 +94,13 @@ def patch_batches(
     first: int,
 ) -> Iterator[tuple[torch.Tensor, torch.Tensor]]:
     """Every batch of epochs ``first`` to ``cfg.epochs``: encoded patches (B, 2, P, P) and whether each
-    shows a crossing (B,). Each epoch's from a generator seeded by (seed, epoch) alone."""
+    shows a crossing (B,), cut from ``depths(epoch)``. Each epoch's from a generator seeded by (seed, epoch)
+    alone."""
     keys = patch_keys(samples, negatives)
     steps = steps_per_epoch(samples, negatives, cfg)
     for epoch in range(first, cfg.epochs + 1):
         rng = np.random.default_rng(np.random.SeedSequence([seed, 7927, epoch]))
+        images = depths(epoch)
         order = rng.permutation(len(keys))
         for b in range(steps):
             rows = keys[order[b * cfg.batch_size : (b + 1) * cfg.batch_size]]
@@ -87,7 +108,7 @@ def patch_batches(
             cut = np.empty((len(rows), cfg.patch_px, cfg.patch_px), np.float32)
             for j, (i, k, positive) in enumerate(rows):
                 centre = samples[i].visible[k] if positive else negatives[i][k]
-                cut[j] = depths[i].patch(centre + jitter[j])
+                cut[j] = images[i].patch(centre + jitter[j])
             turns = rng.integers(0, 4, len(rows))
             flips = rng.uniform(size=len(rows)) < 0.5
             for t in range(1, 4):
@@ -106,19 +127,27 @@ def train_depth_check(
     seed: int,
     data: list[str] | None = None,
     progress: bool = False,
+    init: DepthNet | None = None,
 ) -> tuple[DepthNet, list[dict[str, float]]]:
-    """Train the depth check on the sensor depth images of ``samples`` (their exact depth where a dataset has
-    none), resumable in ``out/depth_last.pt``; returns it and one row per epoch. ``negatives`` (each sample's
-    (M, 2) points) may be a function giving them, called only when there is training; ``data``: whence."""
+    """Train the depth check on depth images of ``samples`` (:func:`epoch_depth`; their exact depth where a
+    dataset has no sensor depth and ``cfg`` draws none), resumable in ``out/depth_last.pt``; returns it and one row per epoch. ``negatives`` (each sample's
+    (M, 2) points) may be a function giving them, called only when there is training; ``data``: whence;
+    ``init``: trained weights to start from."""
     check_depth(samples)
     torch.manual_seed(seed)
 
     def prepare(payload, first):
         found = negatives() if callable(negatives) else negatives
-        depths = [
-            PaddedDepth(sample_depth(s, "sensor"), cfg.patch_px)
-            for s in tqdm(samples, desc="depth images", disable=not progress, leave=False, file=sys.stderr)
-        ]
+
+        def depths(epoch: int) -> list[PaddedDepth]:
+            each = tqdm(
+                samples, desc=f"depth images {epoch}", disable=not progress, leave=False, file=sys.stderr
+            )
+            return [
+                PaddedDepth(epoch_depth(s, i, epoch, cfg, seed=seed), cfg.patch_px)
+                for i, s in enumerate(each)
+            ]
+
         batches = patch_batches(depths, samples, found, cfg, seed=seed, first=first)
         return batches, steps_per_epoch(samples, found, cfg), {}
 
@@ -150,4 +179,5 @@ def train_depth_check(
         summary=summary,
         describe=describe,
         progress=progress,
+        init=init,
     )

@@ -72,13 +72,17 @@ def train_stage(
     summary: Callable[[dict[str, Any], int], dict[str, float]],
     describe: Callable[[dict[str, float]], str],
     progress: bool,
+    init: nn.Module | None = None,
 ) -> tuple[nn.Module, list[dict[str, float]]]:
     """Train ``net`` for ``cfg.epochs``; returns it (eval mode) and a row per epoch. ``last`` is saved after
     every epoch; one with the same training settings and ``data`` (what it trained on beyond the run's own
     images) goes on where it stopped. ``prepare(payload, first)`` gives the batches from epoch ``first`` on,
     the steps an epoch and what else the checkpoint keeps; ``loss`` adds to an epoch's tally, from which
-    ``summary`` makes its row and ``describe`` its log line."""
+    ``summary`` makes its row and ``describe`` its log line. ``init``: a trained network of the same shape
+    whose weights ``net`` starts from (say so in ``data``), its batch norms then frozen."""
     data = data or []
+    if init is not None:
+        net.load_state_dict(init.state_dict())
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     payload = None
     if last.exists():
@@ -100,6 +104,9 @@ def train_stage(
         warm = max(1, round(0.03 * total))
         for epoch in range(first, cfg.epochs + 1):
             net.train()
+            for m in net.modules() if init is not None else ():
+                if isinstance(m, nn.modules.batchnorm._BatchNorm):
+                    m.eval()  # trained weights: their batch norms keep what they learned
             t0, tally = time.perf_counter(), defaultdict(float)
             bar = batch_bar(steps, f"{name} {epoch}/{cfg.epochs}", progress=progress)
             for b in bar:

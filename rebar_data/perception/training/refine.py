@@ -127,11 +127,13 @@ def train_refiner(
     negatives_of: Callable[[list[Sample], list[np.ndarray]], list[np.ndarray]] | None = None,
     data: list[str] | None = None,
     progress: bool = False,
+    init: PatchNet | None = None,
 ) -> tuple[PatchNet, list[dict[str, float]]]:
     """Train the refiner on the visible crossings of ``samples``, resumable in ``out/refine_last.pt``; returns
     it and one row per epoch. With ``cfg.verify``, ``negatives_of(samples, images)`` gives each sample's
     (M, 2) negatives (:func:`negatives_in`; called only when there is training to do, its answer kept in
-    the checkpoint); without it the verification learns from positives alone."""
+    the checkpoint); without it the verification learns from positives alone. ``init``: trained weights to
+    start from (:func:`~.later_stages.train_stage`)."""
     if not any(len(s.visible) for s in samples):
         raise ConfigError(
             "the train split has no visible crossings; accepted: a dataset with labelled crossings"
@@ -203,4 +205,5 @@ def train_refiner(
         summary=summary,
         describe=describe,
         progress=progress,
+        init=init,
     )

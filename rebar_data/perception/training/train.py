@@ -17,9 +17,12 @@ The weights evaluated and saved are an exponential moving average of the trained
 
 from __future__ import annotations
 
+import copy
 import csv
+import hashlib
 import json
 import math
+import shutil
 import sys
 import time
 from collections.abc import Sequence
@@ -60,18 +63,32 @@ from rebar_data.perception.evaluation.metrics import (
     pixel_metrics,
 )
 from rebar_data.perception.inference import model_file
+from rebar_data.perception.inference.checks import LineCheck
 from rebar_data.perception.inference.detector import Detector, resolve_model_path
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, quantize_onnx, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
 from rebar_data.perception.training import crossing_point, depth_check, epochs, refine
 from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage
-from rebar_data.perception.training.config import TrainConfig, resolve_config
+from rebar_data.perception.training.config import InitConfig, TrainConfig, resolve_config
+from rebar_data.perception.training.init import (
+    SCORING_STAGES,
+    STAGE_NAMES,
+    InitModel,
+    first_stage_settings,
+    parse_stages,
+    read_model,
+    settings_from,
+    stage_settings,
+)
 from rebar_data.perception.training.line_check import UnfitLineCheck, fit_line_check, fitted_on
+from rebar_data.resume import Steps, key_of
 
 COMMAND = "rebar train"
+STEPS_FILE = "steps.json"  # the finishing steps done: the int8 copy, operating point, line check, scores
 EARLY_STOP_METRIC = "val_oks_ap"
-NEWER_FIELDS = {"other_renderer_repeats": 0}  # settings newer than some run folders, at their old value
+# settings newer than some run folders, at their old value
+NEWER_FIELDS = {"other_renderer_repeats": 0, "init": InitConfig().model_dump(mode="json")}
 # the later stages' files: best.<name>.pt
 STAGES = {"refine": "refine", "depth_check": "depth", "crossing_point": "crossing"}
 RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "line_check", *STAGES}
@@ -107,12 +124,32 @@ class _Run:
     line_extra: list[Sample]
     line_supplements: list[dict[str, Any]]
     progress: bool
+    init: InitModel | None = None  # the model whose weights the run starts from (--init)
+    steps: Steps | None = None  # the finishing steps done (steps.json)
+    stages: tuple[str, ...] = STAGE_NAMES  # the stages it trains; the others are the init model's
     started: float = 0.0  # when the first stage's epochs began
     train_seconds: float = 0.0  # from then until the later stages were trained
 
     def log(self, msg: str) -> None:
         if self.progress:
             tqdm.write(msg, file=sys.stderr)
+
+    def trains(self, stage: str) -> bool:
+        """Whether the run trains ``stage`` (one of :data:`~.init.STAGE_NAMES`) rather than keep the init
+        model's."""
+        return stage in self.stages
+
+    def kept(self, stage: str) -> bool:
+        """Whether ``stage`` is the init model's, kept as it is."""
+        return (
+            self.init is not None
+            and not self.trains(stage)
+            and (stage == "first" or stage in self.init.stages)
+        )
+
+    @property
+    def init_record(self) -> dict[str, Any] | None:
+        return None if self.init is None else self.init.record(self.stages)
 
 
 def is_run_folder(folder: Path) -> bool:
@@ -137,6 +174,8 @@ def train(
     line_supplements: Sequence[str | Path] = (),
     resume: bool = True,
     progress: bool = True,
+    init: str | Path | InitModel | None = None,
+    stages: str | Sequence[str] | None = None,
 ) -> TrainResult:
     """Train (or resume training) a detector and write the run folder.
 
@@ -152,7 +191,19 @@ def train(
         line_supplements: Datasets whose every image the line check is fitted on beside the val split.
         resume: Continue from ``out_dir/last.pt`` if it exists (with the same settings but for
             ``RESUMABLE_CHANGES``); False starts afresh.
-        progress: Show a progress bar per epoch and a summary line after it (on stderr)."""
+        progress: Show a progress bar per epoch and a summary line after it (on stderr).
+        init: A model to start from (:mod:`~rebar_data.perception.training.init`): its ``.onnx`` file or an
+            :class:`~.init.InitModel`; its settings are the run's, ``config`` (a dict) laid over them.
+        stages: With ``init``, the stages to train (names in :data:`~.init.STAGE_NAMES`, or a comma-separated
+            list); the others are kept as the model has them. None: every stage."""
+    if init is None and stages is not None:
+        raise ConfigError(
+            "--stages picks what to train from a model; accepted: --stages together with --init"
+        )
+    chosen = parse_stages(stages)
+    model = init if isinstance(init, InitModel) or init is None else read_model(init)
+    if model is not None and not isinstance(config, TrainConfig):
+        config = settings_from(model, config, source="train settings")
     cfg = resolve_config(config, {"epochs": epochs, "batch_size": batch_size})
     root = check_dataset(dataset_path)
     out = check_run_folder(out_dir)
@@ -169,7 +220,11 @@ def train(
         depth_check.check_depth(samples)
     dataset = {**_record(root, info), "supplements": extra_meta, "refine_supplements": refine_meta}
     val, test = load_split(root, "val"), load_split(root, "test")
+    if model is not None:
+        dataset["init"] = model.record(chosen)
     run = _Run(cfg, out, sigma, dataset, samples, val, test, refine_extra, line_extra, line_meta, progress)
+    run.init, run.stages = model, chosen
+    run.steps = Steps(out / STEPS_FILE, log=run.log)
     threads_before = torch.get_num_threads()
     with OutputLock(out, command=COMMAND):
         check_run_folder(out)  # again under the lock: another run may have written there meanwhile
@@ -183,7 +238,7 @@ def train(
                 out,
                 cfg,
                 run.train,
-                refine_extra,
+                refine_extra if run.trains("first") else [],
                 base_epoch=state["best_epoch"],
                 data=_names(refine_meta),
                 log=run.log,
@@ -253,12 +308,36 @@ def _check_same_supplements(payload: dict[str, Any], run: _Run, path: Path) -> N
             )
 
 
+def _kept_first_stage(run: _Run) -> dict[str, Any]:
+    """The init model's first stage as the run's ``best.pt``, untrained; returns the state."""
+    init = run.init
+    meta = {**init.meta, "dataset": run.dataset, "train_config": run.cfg.model_dump(mode="json")}
+    save_checkpoint(run.out / "best.pt", init.first, meta)
+    (run.out / "last.pt").unlink(
+        missing_ok=True
+    )  # epochs of an earlier run in this folder are not this one's
+    config = {"train_config": run.cfg.model_dump(mode="json"), "dataset": run.dataset, "oks_sigma": run.sigma}
+    config["parameters"] = count_parameters(init.first)
+    (run.out / "config.json").write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
+    run.log(f"first stage kept: {init.source}")
+    return dict(
+        epoch=0, step=0, best=-1.0, best_epoch=int(init.meta.get("epoch", 0)), stopped=True, history=[]
+    )
+
+
 def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
-    """Train the first stage's epochs (resuming ``last.pt``), the best in ``best.pt``; returns the state."""
+    """Train the first stage's epochs (resuming ``last.pt``), the best in ``best.pt``; returns the state. From
+    an init model: its first stage trains on (:func:`~.init.first_stage_settings`), or is kept as it is."""
+    if run.kept("first"):
+        return _kept_first_stage(run)
     cfg, out = run.cfg, run.out
+    frozen = run.init is not None
+    if frozen:
+        cfg = first_stage_settings(cfg)
     torch.manual_seed(cfg.seed)
     # channels-last: the depthwise convolutions train faster on a CPU in that layout
-    net = KeypointNet(cfg.model).to(memory_format=torch.channels_last)
+    net = copy.deepcopy(run.init.first) if frozen else KeypointNet(cfg.model)
+    net = net.to(memory_format=torch.channels_last)
     avg = epochs.WeightAverage(net)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     state: dict[str, Any] = dict(epoch=0, step=0, best=-1.0, best_epoch=0, stopped=False, history=[])
@@ -267,6 +346,12 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
         _, _, payload = load_checkpoint(last)
         _check_resumable(payload["train_config"], cfg, last)
         _check_same_supplements(payload, run, last)
+        if payload.get("init") != run.init_record:
+            raise ConfigError(
+                f"{last}: holds a run that started from {_start(payload.get('init'))}, not "
+                f"{_start(run.init_record)}; accepted: the same start to resume, or a fresh start "
+                "(--fresh) or another run folder"
+            )
         state = epochs.restore(payload, net, avg, opt)
         run.log(f"resuming {out} after epoch {state['epoch']}")
     config = {
@@ -287,6 +372,11 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
         "focal_per_width": float(np.median([s.camera[0] / s.width for s in run.train])),
         # the focal length the first stage learns at: `Detector.detect` reads other cameras' frames at it
         "focal_px": float(np.median([0.5 * (s.camera[0] + s.camera[1]) for s in run.train])),
+        **(
+            {k: run.init.meta[k] for k in ("focal_per_width", "focal_px") if k in run.init.meta}
+            if frozen
+            else {}
+        ),
         "train_config": cfg.model_dump(mode="json"),
     }
     # the first epochs' images: the training images, then the second-stage supplements' repeated
@@ -302,7 +392,16 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
         if state["stopped"]:
             break
         row = epochs.train_epoch(
-            net, avg, opt, batches, cfg, state, epoch=epoch, steps=steps, progress=run.progress
+            net,
+            avg,
+            opt,
+            batches,
+            cfg,
+            state,
+            epoch=epoch,
+            steps=steps,
+            progress=run.progress,
+            frozen_norm=frozen,
         )
         line = f"epoch {epoch}/{cfg.epochs}: loss {row['train_loss']:.4f}"
         if val_sub and (epoch % cfg.val_every == 0 or epoch == cfg.epochs):
@@ -323,7 +422,8 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
             state["stopped"] = True
             run.log(f"early stop: no better {EARLY_STOP_METRIC} for {cfg.patience} epochs")
         resumable = epochs.checkpoint_state(net, avg, opt, state)
-        save_checkpoint(last, net, meta, train_config=cfg.model_dump(mode="json"), **resumable)
+        train_config = cfg.model_dump(mode="json")
+        save_checkpoint(last, net, meta, train_config=train_config, init=run.init_record, **resumable)
         _write_history(out / "metrics.csv", state["history"])
     batches = None  # stops the loader process
     if not (out / "best.pt").exists():  # no epoch had a finite validation score: keep the latest weights
@@ -331,11 +431,23 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
     return state
 
 
+def _start(record: dict[str, Any] | None) -> str:
+    """A run's start as an error names it: nothing, or the model and the stages trained from it."""
+    if not record:
+        return "nothing (no --init)"
+    return f"{record['model']} (sha256 {record['sha256'][:16]}, stages {','.join(record['stages'])})"
+
+
 def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[str, tuple[Any, list]]:
     """Train the later stages the settings enable; returns each one's network (None when off) and history."""
     cfg, out = run.cfg, run.out
     # what the later stages' negatives come from: a changed first stage trains them again
     negatives_from = [f"first stage: epoch {state['best_epoch']}"]
+    if run.init is not None:
+        negatives_from = [
+            f"first stage: {run.init.source}"
+            + (f", epoch {state['best_epoch']}" if run.trains("first") else "")
+        ]
     if first_path.name == ADAPTED:
         negatives_from.append(f"adapted: {json.dumps(cfg.adapt.model_dump(mode='json'), sort_keys=True)}")
     found: dict[int, list[np.ndarray]] = {}  # the first stage's detections, run once a sample list
@@ -364,32 +476,54 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
     # the second stage's images: the first's, then each second-stage supplement's, repeated
     refine_samples = run.train + run.refine_extra * cfg.refine.supplement_repeats
     stages: dict[str, tuple[Any, list]] = {k: (None, []) for k in ("refine", "depth_check", "crossing_point")}
-    if cfg.refine.enabled:
-        stages["refine"] = refine.train_refiner(
-            refine_samples,
-            out,
-            cfg.refine,
-            cfg.augment,
-            seed=cfg.seed,
-            negatives_of=negatives_of,
-            data=_names(run.dataset["refine_supplements"]) + negatives_from,
-            progress=run.progress,
-        )
-    if cfg.depth_check.enabled:
-        n = cfg.depth_check.lower_mat_negatives
-        stages["depth_check"] = depth_check.train_depth_check(
-            run.train,
-            depth_negatives,
-            out,
-            cfg.depth_check,
-            seed=cfg.seed,
-            data=negatives_from + ([f"its own lower-mat negatives: {n}"] if n else []) + ["sensor depth"],
-            progress=run.progress,
-        )
-    if cfg.crossing_point.enabled:
-        stages["crossing_point"] = crossing_point.train_crossing_point(
-            run.train, out, cfg.crossing_point, cfg.augment, seed=cfg.seed, progress=run.progress
-        )
+    for key in stages:
+        if not getattr(cfg, key).enabled:
+            continue
+        if run.kept(key):
+            stages[key] = (run.init.stages[key], [])
+            run.log(f"{key} kept: {run.init.source}")
+            continue
+        start = run.init.stages.get(key) if run.init is not None else None
+        settings = getattr(cfg, key) if start is None else stage_settings(cfg, key)
+        since = [] if start is None else [f"from {run.init.source}"]
+        if key == "refine":
+            stages[key] = refine.train_refiner(
+                refine_samples,
+                out,
+                settings,
+                cfg.augment,
+                seed=cfg.seed,
+                negatives_of=negatives_of,
+                data=_names(run.dataset["refine_supplements"]) + negatives_from + since,
+                progress=run.progress,
+                init=start,
+            )
+        elif key == "depth_check":
+            n = settings.lower_mat_negatives
+            stages[key] = depth_check.train_depth_check(
+                run.train,
+                depth_negatives,
+                out,
+                settings,
+                seed=cfg.seed,
+                data=negatives_from
+                + ([f"its own lower-mat negatives: {n}"] if n else [])
+                + ["sensor depth"]
+                + since,
+                progress=run.progress,
+                init=start,
+            )
+        else:
+            stages[key] = crossing_point.train_crossing_point(
+                run.train,
+                out,
+                settings,
+                cfg.augment,
+                seed=cfg.seed,
+                progress=run.progress,
+                init=start,
+                data=since,
+            )
     run.train_seconds = time.perf_counter() - run.started
     return stages
 
@@ -408,28 +542,43 @@ def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
     replace_file(path, write)
 
 
-def _finish(
-    run: _Run, state: dict[str, Any], first_path: Path, stages: dict[str, tuple[Any, list]]
-) -> TrainResult:
-    """Export ``first_path`` (best or adapted) and the later stages to ONNX, score them, draw the plots."""
-    from rebar_data.perception.evaluation import plots
+def _weights_key(net: torch.nn.Module) -> str:
+    """The SHA-256 of a network's weights (what a step that runs it depends on)."""
+    h = hashlib.sha256()
+    for k, v in sorted(net.state_dict().items()):
+        h.update(k.encode())
+        h.update(v.detach().cpu().contiguous().numpy().tobytes())
+    return h.hexdigest()
 
-    cfg, out, sigma, val_samples, test_samples = run.cfg, run.out, run.sigma, run.val, run.test
-    net, meta, _ = load_checkpoint(first_path)
-    stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)  # the second: older files
-    meta = {k: v for k, v in meta.items() if k not in stale}
-    # the run as it finished (its later stages may have trained on other settings or data)
-    meta.update(dataset=run.dataset, train_config=cfg.model_dump(mode="json"))
+
+def _export_stages(run: _Run, stages: dict[str, tuple[Any, list]], meta: dict[str, Any]) -> dict[str, Path]:
+    """Write each later stage's ``.pt`` and ONNX file (a kept stage's file copied from the init model) and its
+    meta entry; returns the ONNX files by stage."""
+    cfg, out = run.cfg, run.out
     for name in STAGES.values():
         for suffix in ("onnx", "pt"):
             (out / f"best.{name}.{suffix}").unlink(missing_ok=True)
-    model_file.int8_passes_path(out / "best.onnx").unlink(missing_ok=True)
-    files = {}  # each later stage's ONNX file
+    int8 = model_file.int8_passes_path(out / "best.onnx")
+    files: dict[str, Path] = {}
     for module, (key, name) in zip((refine, depth_check, crossing_point), STAGES.items(), strict=True):
-        if stages[key][0] is not None:
-            module.save(out / f"best.{name}.pt", stages[key][0], getattr(cfg, key))
-            files[key] = export_onnx(stages[key][0], out / f"best.{name}.onnx")
-    if "refine" in files:
+        net = stages[key][0]
+        if net is None:
+            continue
+        target = out / f"best.{name}.onnx"
+        if run.kept(key):  # byte for byte, so its SHA-256 and int8 copy stay the model's
+            replace_file(target, lambda tmp, src=run.init.files[key]: shutil.copyfile(src, tmp))
+            module.save(out / f"best.{name}.pt", net, getattr(run.init.trained_with, key))
+            files[key] = target
+        else:
+            module.save(out / f"best.{name}.pt", net, getattr(cfg, key))
+            files[key] = export_onnx(net, target)
+    if run.kept("refine") and "refine" in files:
+        meta["refiner"] = dict(run.init.meta["refiner"])
+        if "int8" in run.init.files:
+            replace_file(int8, lambda tmp: shutil.copyfile(run.init.files["int8"], tmp))
+        else:
+            int8.unlink(missing_ok=True)
+    elif "refine" in files:
         r = cfg.refine
         kept = {"patch_px", "iterations", "step", "quantize", "verify_power", "views", "first_pass_views"}
         meta["refiner"] = r.model_dump(include=kept) | {
@@ -438,68 +587,172 @@ def _finish(
             "sha256": sha256_file(files["refine"]),
         }
         if r.quantize == "later":  # an int8 copy beside it for the passes after the first
-            later = model_file.int8_passes_path(out / "best.onnx")
-            patches = refine.calibration_patches(run.train, r, seed=cfg.seed)
-            quantize_onnx(files["refine"], later, patches)
-            run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
-            meta["refiner"]["int8_sha256"] = sha256_file(later)
-            calibrated_on = [f"{run.dataset.get('name')} train"] + _names(run.dataset["supplements"])
-            meta["refiner"]["int8_calibrated_on"] = {"data": calibrated_on, "patches": len(patches)}
+            meta["refiner"] |= _int8_copy(run, files["refine"], int8)
+        else:
+            int8.unlink(missing_ok=True)
+    else:
+        int8.unlink(missing_ok=True)
     for key, kept in (("depth_check", DEPTH_CHECK_META), ("crossing_point", {"patch_px"})):
         if key in files:
-            meta[key] = getattr(cfg, key).model_dump(include=kept) | {"sha256": sha256_file(files[key])}
-    detector = Detector.load(
-        export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
+            own = getattr(run.init.trained_with if run.kept(key) else cfg, key)
+            entry = run.init.meta.get(key) if run.kept(key) else None
+            meta[key] = entry or own.model_dump(include=kept) | {"sha256": sha256_file(files[key])}
+    return files
+
+
+def _int8_copy(run: _Run, refine_file: Path, int8: Path) -> dict[str, Any]:
+    """The second stage's int8 copy for its later passes (a step: reused while its float file and settings
+    are the same); returns its meta entry's part."""
+    r, steps = run.cfg.refine, run.steps
+    key = key_of(
+        sha256_file(refine_file), r.model_dump(mode="json"), run.cfg.seed, _names(run.dataset["supplements"])
     )
-    if val_samples:  # the operating point, chosen on val with the RGB stages' raw scores (depth only lowers)
-        raw = predict(detector, val_samples, threshold=CALIBRATION_FLOOR, depth=False, progress=run.progress)
-        meta["score_bias"] = detector.score_bias = calibrate_score_bias(val_samples, raw)
-        run.log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)")
-    if cfg.line_check.enabled and val_samples:  # on the RGB stages as they now score
-        data = fitted_on(run.dataset.get("name"), run.line_supplements)
-        fitting = val_samples + run.line_extra
+    if (
+        steps.done("int8 copy", key)
+        and int8.exists()
+        and sha256_file(int8) == steps.result("int8 copy")["int8_sha256"]
+    ):
+        run.log("int8 copy: done before, reused")
+        return steps.result("int8 copy")
+    patches = refine.calibration_patches(run.train, r, seed=run.cfg.seed)
+    quantize_onnx(refine_file, int8, patches)
+    run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
+    calibrated_on = [f"{run.dataset.get('name')} train"] + _names(run.dataset["supplements"])
+    entry = {
+        "int8_sha256": sha256_file(int8),
+        "int8_calibrated_on": {"data": calibrated_on, "patches": len(patches)},
+    }
+    steps.keep("int8 copy", key, entry)
+    return entry
+
+
+def _operating_point(run: _Run, detector: Detector, meta: dict[str, Any], model_key: str) -> None:
+    """Place the score bias (score 0.5 = best F1 on val, from the RGB stages' raw scores: depth only lowers)
+    and fit the line check on val, each a step; from an init model whose first and second stage are both
+    kept, the model's own are kept."""
+    cfg, val = run.cfg, run.val
+    if run.init is not None and not any(run.trains(s) for s in SCORING_STAGES):
+        for k in ("score_bias", "line_check"):
+            if k in run.init.meta:
+                meta[k] = run.init.meta[k]
+        detector.score_bias = float(meta.get("score_bias", 0.0))
+        detector.line_check = (
+            LineCheck.from_meta(meta["line_check"], "the init model") if meta.get("line_check") else None
+        )
+        run.log("operating point and line check kept: the init model's (its first and second stage are kept)")
+        return
+    if not val:
+        return
+    ids = [s.image_id for s in val]
+
+    def bias() -> float:
+        raw = predict(detector, val, threshold=CALIBRATION_FLOOR, depth=False, progress=run.progress)
+        return calibrate_score_bias(val, raw)
+
+    meta["score_bias"] = detector.score_bias = run.steps.run("operating point", key_of(model_key, ids), bias)
+    run.log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)")
+    if not cfg.line_check.enabled:
+        return
+    data = fitted_on(run.dataset.get("name"), run.line_supplements)
+
+    def line_check() -> dict[str, Any] | None:
         try:
-            entry, detector.line_check = fit_line_check(
-                detector, fitting, val_samples, cfg.line_check, data=data, progress=run.progress
+            entry, _ = fit_line_check(
+                detector, val + run.line_extra, val, cfg.line_check, data=data, progress=run.progress
             )
         except UnfitLineCheck as e:  # a run too small to have false detections: the model goes without
             run.log(f"no line check: {e}")
-        else:
-            meta["line_check"] = entry
-            run.log(f"line check fitted on {entry['candidates']} candidates of {entry['images']} images")
-    results: dict[str, dict[str, float]] = {}
-    curves = {}
-    for split, samples in (("val", val_samples), ("test", test_samples)):
-        if samples:
-            preds = predict(detector, samples, progress=run.progress)
-            results[split] = score(samples, preds, sigma=sigma)
-            run.log(f"best model (epoch {state['best_epoch']}) on {split}: {format_summary(results[split])}")
-            curves[split] = (samples, preds)
-    first_stage: dict[str, dict[str, float]] = {}
-    if detector.refiner is not None and test_samples:  # what the second stage adds, on the reported split
-        with first_stage_only(detector):
-            first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
-        run.log(f"first stage alone on test: {format_summary(first_stage['test'])}")
-    without_depth: dict[str, dict[str, float]] = {}
-    against_points: dict[str, dict[str, float]] = {}
-    wanted = (detector.depth_check is not None, detector.crossing_point is not None)
-    rgb_only = predict(detector, test_samples, depth=False) if test_samples and any(wanted) else []
-    if detector.depth_check is not None and test_samples:  # what the depth check adds
-        without_depth["test"] = score(test_samples, rgb_only, sigma=sigma)
-        run.log(f"without the depth check on test: {format_summary(without_depth['test'])}")
-    if detector.crossing_point is not None and test_samples and test_samples[0].crossings is not None:
-        # the 3D crossing points as truth, found from RGB alone: the sight points and the stage's output
-        points = [replace(s, visible=s.crossings) for s in test_samples]
-        found = {
-            "sight points": rgb_only,
-            "crossing points": at_crossing_points(detector, test_samples, rgb_only),
+            return None
+        run.log(f"line check fitted on {entry['candidates']} candidates of {entry['images']} images")
+        return entry
+
+    settings = cfg.line_check.model_dump(mode="json")
+    key = key_of(model_key, meta["score_bias"], ids, settings, data, [s.image_id for s in run.line_extra])
+    entry = run.steps.run("line check", key, line_check)
+    if entry is not None:
+        meta["line_check"] = entry
+        detector.line_check = LineCheck.from_meta(entry, str(run.out / "best.onnx"))
+
+
+def _scores(run: _Run, detector: Detector, model_key: str) -> dict[str, Any]:
+    """The shipped detector's figures (a step): each split, the first stage alone and the test split
+    without depth and against the 3D crossing points."""
+    sigma, val_samples, test_samples = run.sigma, run.val, run.test
+
+    def compute() -> dict[str, Any]:
+        results: dict[str, dict[str, float]] = {}
+        for split, samples in (("val", val_samples), ("test", test_samples)):
+            if samples:
+                results[split] = score(
+                    samples, predict(detector, samples, progress=run.progress), sigma=sigma
+                )
+        first_stage: dict[str, dict[str, float]] = {}
+        if detector.refiner is not None and test_samples:  # what the second stage adds, on the reported split
+            with first_stage_only(detector):
+                first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
+        without_depth: dict[str, dict[str, float]] = {}
+        against_points: dict[str, dict[str, float]] = {}
+        wanted = (detector.depth_check is not None, detector.crossing_point is not None)
+        rgb_only = predict(detector, test_samples, depth=False) if test_samples and any(wanted) else []
+        if detector.depth_check is not None and test_samples:  # what the depth check adds
+            without_depth["test"] = score(test_samples, rgb_only, sigma=sigma)
+        if detector.crossing_point is not None and test_samples and test_samples[0].crossings is not None:
+            # the 3D crossing points as truth, found from RGB alone: the sight points and the stage's output
+            points = [replace(s, visible=s.crossings) for s in test_samples]
+            found = {
+                "sight points": rgb_only,
+                "crossing points": at_crossing_points(detector, test_samples, rgb_only),
+            }
+            against_points = {name: score(points, preds, sigma=sigma) for name, preds in found.items()}
+        return {
+            "results": results,
+            "first_stage": first_stage,
+            "without_depth": without_depth,
+            "points": against_points,
         }
-        for name, preds in found.items():
-            against_points[name] = score(points, preds, sigma=sigma)
-            run.log(
-                f"against the 3D crossing points on test, RGB only, {name}: "
-                f"{format_summary(against_points[name])}"
-            )
+
+    ids = [[s.image_id for s in val_samples], [s.image_id for s in test_samples]]
+    found = run.steps.run("scores", key_of(model_key, ids, sigma), compute)
+    for split, m in found["results"].items():
+        run.log(f"the model on {split}: {format_summary(m)}")
+    for name, m in (
+        ("first stage alone", found["first_stage"].get("test")),
+        ("without the depth check", found["without_depth"].get("test")),
+    ):
+        if m:
+            run.log(f"{name} on test: {format_summary(m)}")
+    for name, m in found["points"].items():
+        run.log(f"against the 3D crossing points on test, RGB only, {name}: {format_summary(m)}")
+    return found
+
+
+def _finish(
+    run: _Run, state: dict[str, Any], first_path: Path, stages: dict[str, tuple[Any, list]]
+) -> TrainResult:
+    """Export ``first_path`` (best or adapted) and the later stages to ONNX, place the operating point, score
+    them, draw the plots. The int8 copy, the operating point, the line check and the scores are steps kept in
+    ``steps.json``: run again after a kill, the run reuses every one whose inputs are the same."""
+    from rebar_data.perception.evaluation import plots
+
+    cfg, out, sigma, test_samples = run.cfg, run.out, run.sigma, run.test
+    net, meta, _ = load_checkpoint(first_path)
+    stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)  # the second: older files
+    meta = {k: v for k, v in meta.items() if k not in stale}
+    # the run as it finished (its later stages may have trained on other settings or data)
+    meta.update(dataset=run.dataset, train_config=cfg.model_dump(mode="json"))
+    files = _export_stages(run, stages, meta)
+    detector = Detector.load(
+        export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
+    )
+    # what the steps below read: the first stage's weights and every later stage's file
+    stage_keys = {k: sha256_file(f) for k, f in files.items()}
+    int8 = model_file.int8_passes_path(out / "best.onnx")
+    if int8.exists():
+        stage_keys["int8"] = sha256_file(int8)
+    model_key = key_of(_weights_key(net), stage_keys, meta.get("refiner"), meta.get("depth_check"))
+    _operating_point(run, detector, meta, model_key)
+    found = _scores(run, detector, key_of(model_key, meta.get("score_bias"), meta.get("line_check")))
+    results = found["results"]
     meta = {**meta, "results": results}
     save_checkpoint(first_path, net, meta)
     export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
@@ -518,9 +771,9 @@ def _finish(
         ),
         "adapt_epochs": len(stages["adapt"][1]),
         "results": results,
-        "results_against_crossing_points": against_points,
-        "results_first_stage": first_stage,
-        "results_without_depth": without_depth,
+        "results_against_crossing_points": found["points"],
+        "results_first_stage": found["first_stage"],
+        "results_without_depth": found["without_depth"],
     }
     for key, (stage_net, history) in stages.items():
         if key != "adapt":
@@ -531,9 +784,10 @@ def _finish(
     (out / "results.json").write_text(json.dumps(summary_doc, indent=2, sort_keys=True) + "\n")
     if state["history"]:
         plots.plot_history(state["history"], out / "curves.png", mosaic_epochs=cfg.augment.mosaic_epochs)
-    split = "test" if "test" in curves else ("val" if "val" in curves else None)
+    split = "test" if test_samples else ("val" if run.val else None)
     if split:
-        samples, preds = curves[split]
+        samples = test_samples if split == "test" else run.val
+        preds = predict(detector, samples, progress=run.progress)
         truths = [truth_of(s) for s in samples]
         curve = (keypoint_ap(truths, preds, sigma=sigma), pixel_metrics(truths, preds))
         title = f"{split} split, OKS sigma {sigma:g}"
