@@ -344,14 +344,14 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
     last = out / "last.pt"
     if resume and last.exists():
         _, _, payload = load_checkpoint(last)
-        _check_resumable(payload["train_config"], cfg, last)
-        _check_same_supplements(payload, run, last)
         if payload.get("init") != run.init_record:
             raise ConfigError(
                 f"{last}: holds a run that started from {_start(payload.get('init'))}, not "
                 f"{_start(run.init_record)}; accepted: the same start to resume, or a fresh start "
                 "(--fresh) or another run folder"
             )
+        _check_resumable(payload["train_config"], cfg, last)
+        _check_same_supplements(payload, run, last)
         state = epochs.restore(payload, net, avg, opt)
         run.log(f"resuming {out} after epoch {state['epoch']}")
     config = {
@@ -614,6 +614,7 @@ def _int8_copy(run: _Run, refine_file: Path, int8: Path) -> dict[str, Any]:
     ):
         run.log("int8 copy: done before, reused")
         return steps.result("int8 copy")
+    run.log("int8 copy ...")
     patches = refine.calibration_patches(run.train, r, seed=run.cfg.seed)
     quantize_onnx(refine_file, int8, patches)
     run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
