@@ -17,6 +17,8 @@ from typing import Any
 
 from rebar_data.outputs import replace_file
 
+STEPS_FILE = "steps.json"  # a run folder's record of its finished steps
+
 
 def key_of(*parts: Any) -> str:
     """The SHA-256 of ``parts`` as sorted JSON: the key of what a step reads."""
@@ -46,14 +48,15 @@ def _unplain(value: Any) -> Any:
 
 
 class Steps:
-    """The record of a command's finished steps in ``path`` (created on the first step kept)."""
+    """The record of a command's finished steps in ``path`` (created on the first step kept; None: kept in
+    memory alone)."""
 
-    def __init__(self, path: Path, *, log: Callable[[str], None] | None = None):
-        self.path = Path(path)
+    def __init__(self, path: Path | None, *, log: Callable[[str], None] | None = None):
+        self.path = None if path is None else Path(path)
         self.log = log
         self._done: dict[str, dict[str, Any]] = {}
         try:
-            found = json.loads(self.path.read_text())
+            found = json.loads(self.path.read_text()) if self.path is not None else {}
         except (OSError, ValueError):
             found = {}  # none yet, or a damaged record: every step is computed again
         if isinstance(found, dict):
@@ -69,6 +72,8 @@ class Steps:
     def keep(self, name: str, key: str, result: Any = None) -> None:
         """Record step ``name`` as finished on ``key`` with ``result`` (numbers, strings, lists, dicts)."""
         self._done[name] = {"key": key, "result": _plain(result)}
+        if self.path is None:
+            return
         text = json.dumps(self._done, indent=1, sort_keys=True, allow_nan=False) + "\n"
         self.path.parent.mkdir(parents=True, exist_ok=True)
         replace_file(self.path, lambda tmp: tmp.write_text(text))

@@ -100,9 +100,12 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     the projected 3D crossing points; one from the project's renderer keeps its single row."""
     import json
     import shutil
+    from unittest import mock
 
     from rebar_data.dataset.build import build_dataset
+    from rebar_data.perception.evaluation import evaluate
     from rebar_data.perception.evaluation.card import evaluation_rows
+    from rebar_data.resume import Steps
     from tests.dataset.conftest import TINY, write_config
 
     own = build_dataset(write_config(tmp_path, {**TINY, "name": "own"}), tmp_path / "data", workers=1)
@@ -113,10 +116,24 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     (other / "meta/info.json").write_text(json.dumps(info))
     det = Detector.load(trained_run.out_dir)
     held_out = {}
+    steps = Steps(tmp_path / "steps.json")
     rows = evaluation_rows(
-        det, trained_run.out_dir, evaluate_on=[own, other], random_split=False, held_out=held_out
+        det, trained_run.out_dir, evaluate_on=[own, other], random_split=False, held_out=held_out, steps=steps
     )
     assert "own v0.0.1 (all splits)" in rows
+    # each set's scoring is a step: a ship run again after a kill takes it from the record, detecting nothing
+    again = {}
+    with mock.patch.object(evaluate, "predict", side_effect=AssertionError("detected again")):
+        kept = evaluation_rows(
+            det,
+            trained_run.out_dir,
+            evaluate_on=[own, other],
+            random_split=False,
+            held_out=again,
+            steps=Steps(tmp_path / "steps.json"),
+        )
+    assert json.dumps(kept, sort_keys=True) == json.dumps(rows, sort_keys=True)
+    assert {k: sorted(h.modes) for k, h in again.items()} == {k: sorted(h.modes) for k, h in held_out.items()}
     # each held-out set's detections per input mode, for its PR figure: one figure a set
     assert {k: sorted(h.modes) for k, h in held_out.items()} == {
         "drawn test": ["RGB only", "with depth"],

@@ -82,10 +82,9 @@ from rebar_data.perception.training.init import (
     stage_settings,
 )
 from rebar_data.perception.training.line_check import UnfitLineCheck, fit_line_check, fitted_on
-from rebar_data.resume import Steps, key_of
+from rebar_data.resume import STEPS_FILE, Steps, key_of
 
 COMMAND = "rebar train"
-STEPS_FILE = "steps.json"  # the finishing steps done: the int8 copy, operating point, line check, scores
 EARLY_STOP_METRIC = "val_oks_ap"
 # settings newer than some run folders, at their old value
 NEWER_FIELDS = {"other_renderer_repeats": 0, "init": InitConfig().model_dump(mode="json")}
