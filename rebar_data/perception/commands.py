@@ -107,6 +107,7 @@ def run_train(args: argparse.Namespace) -> None:
         progress=not args.quiet,
         init=init,
         stages=args.stages,
+        device=args.device,
     )
     if args.ship:
         from rebar_data.perception.evaluation.card import ship
@@ -455,6 +456,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     )
     t.add_argument(
         "--ship", action="store_true", help="then copy the best model and its card into the package"
+    )
+    t.add_argument(
+        "--device",
+        choices=("auto", "cpu", "cuda"),
+        default="auto",
+        help="where the networks train: auto (default) is the GPU where PyTorch sees one, else the CPU",
     )
     t.add_argument("--eval", **repeatable, help="with --ship: also score the model on this dataset")
     t.add_argument("--quiet", action="store_true", help=quiet)

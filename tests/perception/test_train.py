@@ -366,3 +366,15 @@ def test_a_run_from_before_other_renderer_repeats_resumes_only_without_them(tmp_
     _check_resumable(saved, TrainConfig(other_renderer_repeats=0), tmp_path / "last.pt")
     with pytest.raises(ConfigError, match="other_renderer_repeats = 0, not 2"):
         _check_resumable(saved, TrainConfig(), tmp_path / "last.pt")  # the default
+
+
+def test_the_training_device_is_the_gpu_where_there_is_one_and_a_bad_one_is_refused():
+    from rebar_data.perception.training.epochs import training_device
+
+    assert training_device("cpu").type == "cpu"
+    assert training_device("auto").type == ("cuda" if torch.cuda.is_available() else "cpu")
+    with pytest.raises(ConfigError, match="accepted: one of auto, cpu, cuda"):
+        training_device("tpu")
+    if not torch.cuda.is_available():
+        with pytest.raises(ConfigError, match="sees no GPU"):
+            training_device("cuda")

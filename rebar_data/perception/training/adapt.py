@@ -43,6 +43,7 @@ def adapt_first_stage(
     data: list[str],
     log=None,
     progress: bool = False,
+    device: torch.device | str = "cpu",
 ) -> tuple[Path, list[dict[str, Any]]]:
     """Train the adapt epochs from ``out/best.pt`` (epoch ``base_epoch``) on ``samples`` and ``extra``
     (repeated), or take them from the run folder when they trained on the same settings, ``data`` and best
@@ -54,7 +55,7 @@ def adapt_first_stage(
         return out / "best.pt", []
     want = {"adapt": a.model_dump(mode="json"), "base_epoch": base_epoch, "data": list(data)}
     net, meta, _ = files.load_checkpoint(out / "best.pt")
-    net = net.to(memory_format=torch.channels_last)
+    net = net.to(device, memory_format=torch.channels_last)
     avg = WeightAverage(net)
     opt = torch.optim.AdamW(net.parameters(), lr=a.lr, weight_decay=cfg.weight_decay)
     state: dict[str, Any] = {"epoch": 0, "step": 0, "history": []}
@@ -82,7 +83,17 @@ def adapt_first_stage(
     batches = batch_stream(mix, run, first=first, last=a.epochs, steps=steps, focal_px=focal_px)
     for epoch in range(state["epoch"] + 1, a.epochs + 1):
         row = train_epoch(
-            net, avg, opt, batches, run, state, epoch=epoch, steps=steps, progress=progress, frozen_norm=True
+            net,
+            avg,
+            opt,
+            batches,
+            run,
+            state,
+            epoch=epoch,
+            steps=steps,
+            progress=progress,
+            frozen_norm=True,
+            device=device,
         )
         if log:
             log(f"adapt epoch {epoch}/{a.epochs}: loss {row['train_loss']:.4f}")

@@ -129,6 +129,7 @@ def train_crossing_point(
     progress: bool = False,
     init: CrossingNet | None = None,
     data: list[str] | None = None,
+    device: torch.device | str = "cpu",
 ) -> tuple[CrossingNet, list[dict[str, float]]]:
     """Train the crossing-point stage on the visible crossings of ``samples``, resumable in
     ``out/crossing_last.pt``; returns the network and one row per epoch (L1 loss in pixels, seconds).
@@ -159,6 +160,7 @@ def train_crossing_point(
         describe=lambda row: f"L1 {row['loss_px']:.3f} px ({len(found[0])} patches, {row['seconds']:.0f} s)",
         progress=progress,
         init=init,
+        device=device,
     )
 
 

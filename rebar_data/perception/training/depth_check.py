@@ -128,6 +128,7 @@ def train_depth_check(
     data: list[str] | None = None,
     progress: bool = False,
     init: DepthNet | None = None,
+    device: torch.device | str = "cpu",
 ) -> tuple[DepthNet, list[dict[str, float]]]:
     """Train the depth check on depth images of ``samples`` (:func:`epoch_depth`; their exact depth where a
     dataset has no sensor depth and ``cfg`` draws none), resumable in ``out/depth_last.pt``; returns it and one row per epoch. ``negatives`` (each sample's
@@ -180,4 +181,5 @@ def train_depth_check(
         describe=describe,
         progress=progress,
         init=init,
+        device=device,
     )

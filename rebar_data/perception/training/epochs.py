@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, per_file, read_distractors, read_image, read_images
 from rebar_data.perception.inference.detector import STRIDE
 from rebar_data.perception.inference.image import focal_scale
@@ -180,6 +181,19 @@ def batch_stream(
     )
 
 
+DEVICES = ("auto", "cpu", "cuda")  # what --device takes
+
+
+def training_device(name: str = "auto") -> torch.device:
+    """The device ``name`` trains on: ``auto`` is the GPU where PyTorch sees one, else the CPU; ConfigError
+    for a name not in :data:`DEVICES`, or ``cuda`` where there is none."""
+    if name not in DEVICES:
+        raise ConfigError(f"--device {name!r} is not accepted; accepted: one of {', '.join(DEVICES)}")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ConfigError("--device cuda: PyTorch sees no GPU here; accepted: --device cpu or auto")
+    return torch.device("cuda" if name != "cpu" and torch.cuda.is_available() else "cpu")
+
+
 def warmup_cosine(step: int, *, peak: float, warm: float, total: float) -> float:
     """Linear warm-up over the first ``warm`` steps, then cosine decay to 2% of ``peak`` at ``total``."""
     if step < warm:
@@ -205,10 +219,12 @@ def train_epoch(
     steps: int,
     progress: bool,
     frozen_norm: bool = False,
+    device: torch.device | str = "cpu",
 ) -> dict[str, Any]:
     """One epoch of ``steps`` batches; ``state["step"]`` counts the steps (the learning rate's clock).
     ``frozen_norm`` keeps the batch norms in eval mode, normalising by their running statistics and keeping
-    them: for epochs that go on from trained weights with other data."""
+    them: for epochs that go on from trained weights with other data. ``net``, ``avg`` and ``opt`` live on
+    ``device``; the batches are moved there."""
     mosaic = epoch <= cfg.augment.mosaic_epochs
     net.train()
     for m in net.modules() if frozen_norm else ():
@@ -222,7 +238,7 @@ def train_epoch(
         lr = warmup_cosine(state["step"], peak=cfg.lr, warm=warm, total=cfg.epochs * steps)
         for g in opt.param_groups:
             g["lr"] = lr
-        x, rays, heat, hw, off, ow = next(batches)
+        x, rays, heat, hw, off, ow = (t.to(device, non_blocking=True) for t in next(batches))
         x = x.contiguous(memory_format=torch.channels_last)
         total, h, o = detection_loss(net(x, rays), heat, hw, off, ow, offset_weight_factor=cfg.offset_weight)
         opt.zero_grad(set_to_none=True)

@@ -73,16 +73,19 @@ def train_stage(
     describe: Callable[[dict[str, float]], str],
     progress: bool,
     init: nn.Module | None = None,
+    device: torch.device | str = "cpu",
 ) -> tuple[nn.Module, list[dict[str, float]]]:
     """Train ``net`` for ``cfg.epochs``; returns it (eval mode) and a row per epoch. ``last`` is saved after
     every epoch; one with the same training settings and ``data`` (what it trained on beyond the run's own
     images) goes on where it stopped. ``prepare(payload, first)`` gives the batches from epoch ``first`` on,
     the steps an epoch and what else the checkpoint keeps; ``loss`` adds to an epoch's tally, from which
     ``summary`` makes its row and ``describe`` its log line. ``init``: a trained network of the same shape
-    whose weights ``net`` starts from (say so in ``data``), its batch norms then frozen."""
+    whose weights ``net`` starts from (say so in ``data``), its batch norms then frozen. It trains on
+    ``device``, each batch's tensors moved there."""
     data = data or []
     if init is not None:
         net.load_state_dict(init.state_dict())
+    net = net.to(device)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     payload = None
     if last.exists():
@@ -113,7 +116,7 @@ def train_stage(
                 lr = warmup_cosine((epoch - 1) * steps + b, peak=cfg.lr, warm=warm, total=total)
                 for g in opt.param_groups:
                     g["lr"] = lr
-                x = loss(net, next(batches), tally)
+                x = loss(net, tuple(t.to(device, non_blocking=True) for t in next(batches)), tally)
                 opt.zero_grad(set_to_none=True)
                 x.backward()
                 opt.step()
@@ -125,15 +128,15 @@ def train_stage(
             stage.save(last, net, cfg, optimizer=opt.state_dict(), history=history, data=data, **keep)
     finally:
         torch.set_num_threads(threads_before)
-    return copy.deepcopy(net).to(memory_format=torch.contiguous_format).eval(), history
+    return copy.deepcopy(net).cpu().to(memory_format=torch.contiguous_format).eval(), history
 
 
 def count_classes(tally: dict[str, Any], logit: torch.Tensor, truth: torch.Tensor) -> None:
     """Add to an epoch's tally how many patches of each class (no crossing, crossing) ``logit`` classed
     rightly (``right``) of how many it saw (``seen``)."""
-    label = truth.numpy().astype(np.int64)
+    label = truth.cpu().numpy().astype(np.int64)
     tally["seen"] += np.bincount(label, minlength=2)
-    tally["right"] += np.bincount(label[((logit.detach() > 0) == truth).numpy()], minlength=2)
+    tally["right"] += np.bincount(label[((logit.detach() > 0) == truth).cpu().numpy()], minlength=2)
 
 
 def classed_rightly(tally: dict[str, Any]) -> tuple[float, float]:

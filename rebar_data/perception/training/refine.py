@@ -128,6 +128,7 @@ def train_refiner(
     data: list[str] | None = None,
     progress: bool = False,
     init: PatchNet | None = None,
+    device: torch.device | str = "cpu",
 ) -> tuple[PatchNet, list[dict[str, float]]]:
     """Train the refiner on the visible crossings of ``samples``, resumable in ``out/refine_last.pt``; returns
     it and one row per epoch. With ``cfg.verify``, ``negatives_of(samples, images)`` gives each sample's
@@ -206,4 +207,5 @@ def train_refiner(
         describe=describe,
         progress=progress,
         init=init,
+        device=device,
     )

@@ -71,6 +71,7 @@ from rebar_data.perception.networks.keypoint_net import KeypointNet, count_param
 from rebar_data.perception.training import crossing_point, depth_check, epochs, refine
 from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage
 from rebar_data.perception.training.config import InitConfig, TrainConfig, resolve_config
+from rebar_data.perception.training.epochs import training_device
 from rebar_data.perception.training.init import (
     SCORING_STAGES,
     STAGE_NAMES,
@@ -125,6 +126,7 @@ class _Run:
     progress: bool
     init: InitModel | None = None  # the model whose weights the run starts from (--init)
     steps: Steps | None = None  # the finishing steps done (steps.json)
+    device: torch.device = torch.device("cpu")  # where the networks train
     stages: tuple[str, ...] = STAGE_NAMES  # the stages it trains; the others are the init model's
     started: float = 0.0  # when the first stage's epochs began
     train_seconds: float = 0.0  # from then until the later stages were trained
@@ -175,6 +177,7 @@ def train(
     progress: bool = True,
     init: str | Path | InitModel | None = None,
     stages: str | Sequence[str] | None = None,
+    device: str = "auto",
 ) -> TrainResult:
     """Train (or resume training) a detector and write the run folder.
 
@@ -194,7 +197,9 @@ def train(
         init: A model to start from (:mod:`~rebar_data.perception.training.init`): its ``.onnx`` file or an
             :class:`~.init.InitModel`; its settings are the run's, ``config`` (a dict) laid over them.
         stages: With ``init``, the stages to train (names in :data:`~.init.STAGE_NAMES`, or a comma-separated
-            list); the others are kept as the model has them. None: every stage."""
+            list); the others are kept as the model has them. None: every stage.
+        device: Where the networks train (:func:`~.epochs.training_device`: ``auto`` is the GPU where there
+            is one); detection, scoring and export stay on the CPU, as the run time reads the model."""
     if init is None and stages is not None:
         raise ConfigError(
             "--stages picks what to train from a model; accepted: --stages together with --init"
@@ -222,7 +227,7 @@ def train(
     if model is not None:
         dataset["init"] = model.record(chosen)
     run = _Run(cfg, out, sigma, dataset, samples, val, test, refine_extra, line_extra, line_meta, progress)
-    run.init, run.stages = model, chosen
+    run.init, run.stages, run.device = model, chosen, training_device(device)
     run.steps = Steps(out / STEPS_FILE, log=run.log)
     threads_before = torch.get_num_threads()
     with OutputLock(out, command=COMMAND):
@@ -242,6 +247,7 @@ def train(
                 data=_names(refine_meta),
                 log=run.log,
                 progress=progress,
+                device=run.device,
             )
             stages = _later_stages(run, state, first_path)
             return _finish(run, state, first_path, {"adapt": (None, adapt_history), **stages})
@@ -336,7 +342,7 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
     torch.manual_seed(cfg.seed)
     # channels-last: the depthwise convolutions train faster on a CPU in that layout
     net = copy.deepcopy(run.init.first) if frozen else KeypointNet(cfg.model)
-    net = net.to(memory_format=torch.channels_last)
+    net = net.to(run.device, memory_format=torch.channels_last)
     avg = epochs.WeightAverage(net)
     opt = torch.optim.AdamW(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
     state: dict[str, Any] = dict(epoch=0, step=0, best=-1.0, best_epoch=0, stopped=False, history=[])
@@ -401,10 +407,12 @@ def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
             steps=steps,
             progress=run.progress,
             frozen_norm=frozen,
+            device=run.device,
         )
         line = f"epoch {epoch}/{cfg.epochs}: loss {row['train_loss']:.4f}"
         if val_sub and (epoch % cfg.val_every == 0 or epoch == cfg.epochs):
-            m = score(val_sub, predict(eager.detector(avg.net), val_sub, images=val_images), sigma=run.sigma)
+            on_cpu = copy.deepcopy(avg.net).cpu()  # the run time's numpy path reads CPU tensors
+            m = score(val_sub, predict(eager.detector(on_cpu), val_sub, images=val_images), sigma=run.sigma)
             row.update({f"val_{k}": v for k, v in m.items() if k not in ("oks_sigma", "threshold")})
             line += f"; val {format_summary(m)}"
         run.log(line)
@@ -496,6 +504,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
                 data=_names(run.dataset["refine_supplements"]) + negatives_from + since,
                 progress=run.progress,
                 init=start,
+                device=run.device,
             )
         elif key == "depth_check":
             n = settings.lower_mat_negatives
@@ -511,6 +520,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
                 + since,
                 progress=run.progress,
                 init=start,
+                device=run.device,
             )
         else:
             stages[key] = crossing_point.train_crossing_point(
@@ -522,6 +532,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
                 progress=run.progress,
                 init=start,
                 data=since,
+                device=run.device,
             )
     run.train_seconds = time.perf_counter() - run.started
     return stages
