@@ -457,7 +457,7 @@ def finalize(
     keypoints = keypoints_table(plan, records, rm)
     write_tables(staging, samples, keypoints)
     write_yolo(staging, samples, keypoints)
-    write_data_yaml(staging, final, oks_sigma=ds.oks_sigma)
+    write_data_yaml(staging, oks_sigma=ds.oks_sigma)
     info = make_info(cfg, plan, records)
     coco_info = {"description": f"{cfg.name} v{cfg.version}", "version": cfg.version}
     write_coco(staging, samples, keypoints, coco_info)

@@ -12,8 +12,9 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 
 # 2.1: info.json records the renderer; 2.2: data.yaml has kpt_oks_sigmas and flip_idx; 2.3: sensor_depth/
-# beside depth/, with the samples table's sensor_depth_file and sensor_depth_* columns
-SCHEMA_VERSION = "2.3.0"
+# beside depth/, with the samples table's sensor_depth_file and sensor_depth_* columns; 2.4: data.yaml has no
+# path (Ultralytics takes the file's own folder, wherever the dataset is copied)
+SCHEMA_VERSION = "2.4.0"
 SPLITS = ("train", "val", "test")
 KEYPOINT_NAMES = ["intersection"]
 CATEGORY = "rebar_crossing"

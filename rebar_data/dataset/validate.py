@@ -198,6 +198,9 @@ def _check_manifest(path: Path, f: Failures) -> dict[str, str]:
 # data.yaml keys a dataset of an earlier 2.x schema does not have: noted, not failed (the dataset was right
 # when built); a rebuild adds them
 DATA_YAML_SINCE = {"kpt_oks_sigmas": (2, 2), "flip_idx": (2, 2)}
+# data.yaml's ``path``: before schema 2.4 the absolute folder it was built in (an absent one is accepted); from
+# 2.4 there is none, so Ultralytics resolves the splits against the folder of data.yaml wherever it is copied
+PATH_UNTIL = (2, 4)
 
 
 def _schema_minor(info: dict) -> tuple[int, int]:
@@ -232,6 +235,12 @@ def _check_data_yaml(path: Path, info: dict, f: Failures, note: Callable[[str], 
             f"note: data.yaml: no {' or '.join(older)} (schema {info.get('schema_version')}, before 2.2); "
             "Ultralytics then scores pose with its default sigma: rebuild the dataset, or add "
             f"kpt_oks_sigmas: [{info.get('oks_sigma')}] and flip_idx: [0]"
+        )
+    if built >= PATH_UNTIL and isinstance(d, dict) and "path" in d:
+        f.add(
+            "data.yaml",
+            f"path = {d['path']!r}; expected no path (schema {info.get('schema_version')}: Ultralytics then "
+            "takes the folder of data.yaml, wherever the dataset is copied)",
         )
     for err in sorted(jsonschema.Draft202012Validator(schema).iter_errors(d), key=str):
         where = "/".join(str(x) for x in err.absolute_path) or "(top level)"

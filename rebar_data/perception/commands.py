@@ -212,6 +212,11 @@ def run_detect(args: argparse.Namespace) -> int:
                 f"--metrics {args.metrics}: images given as files have no labels to score; accepted: "
                 "--metrics with a dataset"
             )
+        if args.coco_results:
+            raise ConfigError(
+                f"--coco-results {args.coco_results}: images given as files have no COCO annotations; "
+                "accepted: --coco-results with a dataset"
+            )
         files = _image_files(target)
         _images_out(target, args)
         camera = _camera_of(args.camera)
@@ -242,8 +247,9 @@ def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
     return camera
 
 
-def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path | None]:
-    """``--out`` and ``--metrics`` of a dataset's predictions, each checked as `rebar detect` may write it."""
+def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path | None, Path | None]:
+    """``--out``, ``--metrics`` and ``--coco-results`` of a dataset's predictions (the last two None when not
+    asked for), each checked as `rebar detect` may write it."""
     out = Path(args.out)
     if out.suffix != ".parquet":
         raise ConfigError(
@@ -256,14 +262,55 @@ def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path |
         raise ConfigError(
             f"--oks-sigma {args.oks_sigma} is not accepted; accepted: a number above 0, such as 0.04"
         )
-    if not args.metrics:
-        return out, None
-    outputs.outside_inputs(Path(args.metrics), [root], arg="--metrics")
-    what = "a new JSON file, or one an earlier `rebar detect` wrote"
-    metrics = outputs.output_file(args.metrics, arg="--metrics", what=what, owned=_detect_wrote_metrics)
-    if metrics.resolve() == out.resolve():
-        raise ConfigError(f"--metrics {metrics}: is --out as well; accepted: another file than --out")
-    return out, metrics
+    metrics = None
+    if args.metrics:
+        outputs.outside_inputs(Path(args.metrics), [root], arg="--metrics")
+        what = "a new JSON file, or one an earlier `rebar detect` wrote"
+        metrics = outputs.output_file(args.metrics, arg="--metrics", what=what, owned=_detect_wrote_metrics)
+        if metrics.resolve() == out.resolve():
+            raise ConfigError(f"--metrics {metrics}: is --out as well; accepted: another file than --out")
+    return out, metrics, _coco_results_output(root, args, [out, metrics])
+
+
+def _coco_results_output(root: Path, args: argparse.Namespace, others: list[Path | None]) -> Path | None:
+    """``--coco-results``, checked: a .json file outside the dataset and the model, not another output, for
+    one split's sight points (what ``annotations/<split>.json`` holds); None when not asked for."""
+    from rebar_data.perception.evaluation.coco_results import is_coco_results
+
+    if not args.coco_results:
+        return None
+    path = Path(args.coco_results)
+    given = f"--coco-results {path}"
+    if path.suffix != ".json":
+        raise ConfigError(f"{given}: COCO results go to a .json file; accepted: a file such as results.json")
+    if args.split == "all":
+        raise ConfigError(
+            f"{given}: COCO results are scored against one split's annotations/<split>.json; accepted: "
+            "--coco-results with --split train, val or test"
+        )
+    if (args.point or args.truth) != "sight":
+        raise ConfigError(
+            f"{given}: the COCO annotations hold the sight points, not the 3D crossing points; accepted: "
+            "--coco-results with --point sight and --truth sight (the defaults)"
+        )
+    outputs.outside_inputs(path, [root, *([args.model] if args.model else [])], arg="--coco-results")
+    what = "a new JSON file, or COCO results an earlier `rebar detect` wrote"
+    path = outputs.output_file(path, arg="--coco-results", what=what, owned=is_coco_results)
+    for other, flag in zip(others, ("--out", "--metrics"), strict=True):
+        if other is not None and path.resolve() == Path(other).resolve():
+            raise ConfigError(f"{given}: is {flag} as well; accepted: another file than {flag}")
+    return path
+
+
+def _write_coco_results(path: Path, image_ids: list[int], preds: list) -> None:
+    """The detections as COCO keypoint results, of the images with these COCO ``image_ids``."""
+    from rebar_data.perception.evaluation.coco_results import coco_results
+
+    results = coco_results(image_ids, preds)
+    text = json.dumps(results, separators=(",", ":")) + "\n"
+    outputs.replace_file(path, lambda tmp: tmp.write_text(text))
+    if not results:  # COCO.loadRes indexes the first result: an empty list raises IndexError there
+        print(f"note: {path}: no detections, an empty list (COCO.loadRes refuses it)", file=sys.stderr)
 
 
 def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> None:
@@ -282,6 +329,7 @@ def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> 
 
 def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
     from rebar_data.perception.evaluation.bench import runtime_description
+    from rebar_data.perception.evaluation.coco_results import coco_image_ids
     from rebar_data.perception.evaluation.data import SPLITS, stated_oks_sigma
     from rebar_data.perception.evaluation.evaluate import LOW_THRESHOLD, load_splits, predict, score
     from rebar_data.perception.evaluation.false_detections import false_detection_census, format_census
@@ -293,10 +341,16 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
     threshold = args.threshold if args.threshold is not None else LOW_THRESHOLD
     point = args.point or args.truth
     with ExitStack() as held:
-        out, metrics_path = _dataset_outputs(root, args)
+        out, metrics_path, coco_path = _dataset_outputs(root, args)
         held.enter_context(outputs.OutputLock(out, command=DETECT))
         if metrics_path is not None:
             held.enter_context(outputs.OutputLock(metrics_path, command=DETECT, arg="--metrics"))
+        coco_ids: list[int] = []
+        if coco_path is not None:
+            held.enter_context(outputs.OutputLock(coco_path, command=DETECT, arg="--coco-results"))
+            # each image's id in annotations/<split>.json, read before any work: a bad file writes nothing
+            files = [s.path.relative_to(root).as_posix() for s in samples]
+            coco_ids = coco_image_ids(root, args.split, files)
         _dataset_outputs(root, args)  # again under the locks: another writer may have finished meanwhile
         depth, progress = not args.no_depth, not args.quiet
         preds = predict(
@@ -309,6 +363,8 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
             point=point,
         )
         _write_marked_predictions(out, [s.image_id for s in samples], preds)
+        if coco_path is not None:
+            _write_coco_results(coco_path, coco_ids, preds)
         sigma = args.oks_sigma if args.oks_sigma is not None else stated_oks_sigma(root)
         metrics = score(samples, preds, sigma=sigma)
         against = "" if args.truth == "sight" else " (against the projected 3D crossing points)"
@@ -493,6 +549,12 @@ def register(sub: argparse._SubParsersAction) -> None:
     low = f"lowest score written, {THRESHOLD} (default 0.05 for a dataset, 0.5 for images)"
     d.add_argument("--threshold", type=THRESHOLD, help=low)
     d.add_argument("--metrics", help="dataset: also write the split's metrics to this JSON file")
+    d.add_argument(
+        "--coco-results",
+        metavar="FILE.json",
+        help="dataset: also write the detections as COCO keypoint results (image_id the split's id in "
+        "annotations/<split>.json) for pycocotools' COCO.loadRes and COCOeval",
+    )
     d.add_argument("--no-depth", action="store_true", help="leave the dataset's depth images out")
     depth_from = (
         "dataset: the depth read: sensor, the dataset's depth sensor (default; its exact depth before 2.3.0), "

@@ -19,6 +19,9 @@ from rebar_data.dataset.layout import DatasetInfo
 from rebar_data.dataset.writers.card import cocoeval_lines, label_lines
 from rebar_data.publish.rows import DATA_DIR, KEYPOINT_FIELDS, ROW_FIELDS
 
+# the first line of the `datasets` snippet: what it needs (Pillow is only `datasets`' "vision" extra)
+PIP_DATASETS = "pip install datasets pillow"
+
 # Hugging Face license ids accepted by `rebar dataset publish --license`, with their SPDX ids.
 LICENSES = {
     "cc-by-4.0": "CC-BY-4.0",
@@ -154,10 +157,14 @@ def dataset_card(
         "## Use it",
         "",
         "```python",
+        f"# {PIP_DATASETS}",
+        "from pathlib import Path",
+        "",
         "import datasets",
-        "ds = datasets.load_dataset('path/to/this/folder')   # or the Hub repository id",
+        "",
+        "ds = datasets.load_dataset(str(Path.cwd()))   # run from this folder; or the Hub repository id",
         f"row = ds['{splits[0]}'][0]",
-        "row['image']                  # PIL image",
+        "row['image']                  # PIL image (Pillow decodes it: `datasets` alone does not bring it)",
         "row['keypoints'][0]           # {'crossing_id', 'u', 'v', 'visibility', 'bbox', 'box_size_px', ...}",
         "```",
         "",

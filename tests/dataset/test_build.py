@@ -124,6 +124,64 @@ def test_data_yaml_tells_ultralytics_the_datasets_oks_sigma(tiny_dataset, tmp_pa
         assert failures and "kpt_oks_sigmas" in failures[0], (value, failures)
 
 
+def ultralytics_root(data_yaml, *, datasets_dir):
+    """The folder Ultralytics resolves a data.yaml's train/val/test against (``check_det_dataset``): its
+    ``path`` when set, else the folder of the yaml file; a relative one that does not exist as given is taken
+    under Ultralytics' DATASETS_DIR setting."""
+    from pathlib import Path
+
+    import yaml
+
+    data = yaml.safe_load(data_yaml.read_text())
+    root = Path(data.get("path") or data_yaml.parent)
+    if not root.exists() and not root.is_absolute():
+        root = datasets_dir / root
+    return root
+
+
+def test_a_copied_dataset_trains_from_its_own_folder_and_still_validates(tiny_dataset, tmp_path):
+    """data.yaml has no path: Ultralytics reads the copy's images, wherever the folder is copied, and the file
+    still matches the manifest (no edit, so validate, and publish, still accept the copy)."""
+    import shutil
+
+    import yaml
+
+    moved = tmp_path / "elsewhere" / "tiny"
+    shutil.copytree(tiny_dataset, moved)
+    data = yaml.safe_load((moved / "data.yaml").read_text())
+    root = ultralytics_root(moved / "data.yaml", datasets_dir=tmp_path / "ultralytics-datasets")
+    for split in ("train", "val", "test"):
+        images = (root / data[split]).resolve()
+        assert images == (moved / "images" / split).resolve(), (split, images)
+        assert sorted(p.name for p in images.glob("*.png")) == sorted(
+            p.name for p in (tiny_dataset / "images" / split).glob("*.png")
+        )
+    assert validate_dataset(moved, note=lambda s: None) == []
+
+
+def test_a_data_yaml_path_fails_from_schema_2_4_and_an_older_datasets_absolute_path_validates(
+    tiny_dataset, tmp_path
+):
+    import shutil
+
+    import yaml
+
+    from rebar_data.dataset.writers.manifest import write_manifest
+
+    ds = tmp_path / "ds"
+    shutil.copytree(tiny_dataset, ds)
+    data = yaml.safe_load((ds / "data.yaml").read_text())
+    (ds / "data.yaml").write_text(yaml.safe_dump({"path": str(ds.resolve()), **data}, sort_keys=False))
+    write_manifest(ds)
+    failures = [f for f in validate_dataset(ds, note=lambda s: None) if f.startswith("data.yaml")]
+    assert len(failures) == 1 and "path" in failures[0] and "expected no path" in failures[0], failures
+    info = json.loads((ds / "meta/info.json").read_text())
+    info["schema_version"] = "2.3.0"  # built before 2.4: data.yaml held the build folder, as this one does
+    (ds / "meta/info.json").write_text(json.dumps(info, indent=2))
+    write_manifest(ds)
+    assert validate_dataset(ds, note=lambda s: None) == []
+
+
 def test_a_dataset_of_the_schema_before_kpt_oks_sigmas_still_validates_with_a_note(tiny_dataset, tmp_path):
     """A 2.1 dataset was right when built: data.yaml without kpt_oks_sigmas and flip_idx is a note
     saying how to add them, not a failure; a 2.2 one without them fails."""

@@ -28,7 +28,7 @@ def _cycles_config(folder, **dataset):
 def test_info_records_the_open3d_renderer(tiny_dataset):
     info = DatasetInfo.read(tiny_dataset)
     assert info.renderer["engine"] == "open3d" and info.renderer["open3d"]
-    assert info.schema_version == "2.3.0"
+    assert info.schema_version == "2.4.0"
 
 
 def test_cycles_without_bpy_is_one_line_exit_2_and_nothing_written(tmp_path, monkeypatch, capsys):

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import json
+import re
 import shutil
 
 import pyarrow.parquet as pq
@@ -160,3 +161,60 @@ def test_detect_scores_at_a_given_oks_sigma(drawn_dataset, tmp_path, capsys):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--oks-sigma 0.0 is not accepted" in err[0]
     assert not (tmp_path / "q.parquet").exists()
+
+
+def test_detect_writes_coco_results_that_the_cards_cocoeval_snippet_scores_as_written(
+    drawn_dataset, tmp_path
+):
+    """--coco-results: each detection with its image's integer id in annotations/<split>.json (what a user
+    mapped from the string key by hand before), scored by the dataset card's snippet without a change as
+    `rebar detect` scores the detections itself."""
+    import pandas as pd
+
+    from rebar_data.dataset.writers.card import cocoeval_snippet, max_visible_per_image
+    from tests.fresh_env import run_in_fresh_environment
+
+    # COCO ids neither 1-based nor in the split's order, as a built dataset's run across its splits
+    dataset = tmp_path / "drawn"
+    shutil.copytree(drawn_dataset, dataset)
+    gt = json.loads((dataset / "annotations/val.json").read_text())
+    new_id = {im["id"]: 500 - 7 * k for k, im in enumerate(gt["images"])}
+    for im in gt["images"]:
+        im["id"] = new_id[im["id"]]
+    for a in gt["annotations"]:
+        a["image_id"] = new_id[a["image_id"]]
+    (dataset / "annotations/val.json").write_text(json.dumps(gt))
+
+    out, results, metrics = tmp_path / "pred.parquet", tmp_path / "results.json", tmp_path / "m.json"
+    args = ["detect", str(dataset), "--split", "val", "--out", str(out), "--coco-results", str(results)]
+    assert main([*args, "--metrics", str(metrics), "--no-depth", "--quiet"]) == 0  # the shipped model
+    written = json.loads(results.read_text())
+    preds = pq.read_table(out).to_pandas()
+    samples = pd.read_parquet(dataset / "tables/samples.parquet")
+    file_of = dict(zip(samples.image_id, samples.file_name, strict=True))
+    coco_id = {im["file_name"]: im["id"] for im in gt["images"]}
+    by_hand = [
+        {
+            "image_id": coco_id[file_of[r.image_id]],
+            "category_id": 1,
+            "keypoints": [r.u, r.v, 2],
+            "score": r.score,
+        }
+        for r in preds.itertuples()
+    ]
+    assert len(written) == len(preds) > 0 and written == by_hand
+
+    work = tmp_path / "eval"  # the snippet reads DATASET/annotations and RESULTS, from where it runs
+    (work / "annotations").mkdir(parents=True)
+    # the visible crossings alone, as `rebar dataset build` writes its COCO files and `rebar detect` scores
+    # (the drawn dataset's files also hold the occluded ones)
+    gt["annotations"] = [a for a in gt["annotations"] if a["keypoints"][2] == 2]
+    (work / "annotations/val.json").write_text(json.dumps(gt))
+    shutil.copy(results, work / "predictions.json")
+    snippet = cocoeval_snippet(stated_oks_sigma(dataset), max_visible=max_visible_per_image(dataset))
+    run = run_in_fresh_environment(snippet, work)
+    assert run.returncode == 0, run.stderr[-2000:]
+    ap, ap50 = (float(x) for x in re.search(r"AP ([0-9.]+) .*AP@0.5 ([0-9.]+)", run.stdout).groups())
+    scored = json.loads(metrics.read_text())
+    assert scored["oks_ap50"] > 0.5  # the shipped model finds most of the val split's drawn crossings
+    assert (ap, ap50) == pytest.approx((scored["oks_ap"], scored["oks_ap50"]), abs=5e-4), run.stdout

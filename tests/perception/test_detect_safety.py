@@ -146,3 +146,47 @@ def test_dataset_outputs_are_checked_before_any_work(drawn_dataset, model, tmp_p
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "file", "m.json", "model", "notes.json", "p.parquet", "pred.parquet", "ro", "theirs.parquet"
     ]  # fmt: skip
+
+
+def test_coco_results_are_checked_before_any_work_and_written_whole(drawn_dataset, model, tmp_path, capsys):
+    def detect(*args: str, dataset=drawn_dataset) -> int:
+        return main(["detect", str(dataset), "--model", str(model), "--no-depth", "--quiet", *args])
+
+    out, coco = tmp_path / "p.parquet", tmp_path / "coco.json"
+    refused = [
+        (["--coco-results", str(drawn_dataset / "coco.json")], "lies in the input"),
+        (
+            ["--coco-results", str(model.parent / "coco.json"), "--model", str(model.parent)],
+            "lies in the input",
+        ),
+        (["--coco-results", str(model)], ".json file"),
+        (["--coco-results", str(tmp_path / "coco.txt")], ".json file"),
+        (["--coco-results", str(coco), "--split", "all"], "--split train, val or test"),
+        (["--coco-results", str(coco), "--point", "crossing"], "sight points"),
+        (["--coco-results", str(tmp_path / "m.json"), "--metrics", str(tmp_path / "m.json")], "is --metrics"),
+    ]
+    for extra, words in refused:
+        assert detect("--out", str(out), *extra) == 2, extra
+        assert "--coco-results" in (err := _one_line(capsys)) and words in err, (extra, err)
+    assert main(["detect", str(model.parent), "--out", str(tmp_path / "o"), "--coco-results", str(coco)]) == 2
+    assert "--coco-results" in (err := _one_line(capsys)) and "with a dataset" in err, err
+    theirs = tmp_path / "theirs.json"
+    theirs.write_text('[{"image_id": 1, "bbox": [0, 0, 1, 1]}]\n')
+    assert detect("--out", str(out), "--coco-results", str(theirs)) == 2
+    assert "did not write" in _one_line(capsys) and theirs.read_text().startswith('[{"image_id": 1, "bbox"')
+    assert not out.exists() and not coco.exists() and not (drawn_dataset / "coco.json").exists()
+
+    # a dataset whose COCO file lacks the split's images: one line, and neither file written
+    broken = tmp_path / "broken"
+    shutil.copytree(drawn_dataset, broken)
+    (broken / "annotations/test.json").write_text('{"images": [], "annotations": [], "categories": []}')
+    assert detect("--out", str(out), "--coco-results", str(coco), dataset=broken) == 2
+    assert "annotations/test.json" in (err := _one_line(capsys)) and "no image with file_name" in err, err
+    assert not out.exists() and not coco.exists()
+
+    for _ in range(2):  # its own file is replaced whole, with no temporary file left beside it
+        assert detect("--out", str(out), "--coco-results", str(coco)) == 0
+    assert isinstance(json.loads(coco.read_text()), list)
+    assert sorted(p.name for p in tmp_path.iterdir()) == [
+        "broken", "coco.json", "model", "p.parquet", "theirs.json"
+    ]  # fmt: skip

@@ -20,6 +20,7 @@ from rebar_data.dataset.layout import DatasetInfo
 
 CARD = "README.md"
 PREDICTIONS = "predictions.json"
+PIP_PYCOCOTOOLS = "pip install pycocotools"  # the first line of the COCOeval snippet: all it needs
 
 
 def max_dets(max_visible: int | None) -> int:
@@ -41,18 +42,22 @@ def max_visible_per_image(dataset: Path) -> int:
 
 
 def cocoeval_snippet(oks_sigma: float, *, max_visible: int | None, split: str = "val") -> str:
-    """Python that scores ``predictions.json`` against ``annotations/<split>.json`` with COCOeval, run from
-    the dataset's folder; it prints and leaves ``ap`` (OKS 0.50:0.95) and ``ap50`` (OKS 0.5)."""
+    """Python that scores the COCO keypoint results ``RESULTS`` against ``annotations/<split>.json`` of the
+    dataset folder ``DATASET`` with COCOeval; it prints and leaves ``ap`` (OKS 0.50:0.95) and ``ap50`` (OKS
+    0.5). It needs pycocotools alone (numpy comes with it), as its first line says."""
     n = max_dets(max_visible)
     most = f"up to {max_visible}" if max_visible is not None else "many"
     return "\n".join(
         [
+            f"# {PIP_PYCOCOTOOLS}",
             "import numpy as np",
             "from pycocotools.coco import COCO",
             "from pycocotools.cocoeval import COCOeval",
             "",
-            f'gt = COCO("annotations/{split}.json")  # run from this folder',
-            f'dt = gt.loadRes("{PREDICTIONS}")  # [{{"image_id", "category_id": 1, "keypoints": [u, v, 1], "score"}}]',
+            'DATASET = "."  # this folder',
+            f'RESULTS = "{PREDICTIONS}"  # `rebar detect DATASET --split {split} --coco-results {PREDICTIONS}`',
+            f'gt = COCO(f"{{DATASET}}/annotations/{split}.json")',
+            f'dt = gt.loadRes(RESULTS)  # [{{"image_id": its id in {split}.json, "category_id": 1, "keypoints": [u, v, 2], "score"}}]',
             'E = COCOeval(gt, dt, iouType="keypoints")',
             f"E.params.kpt_oks_sigmas = np.array([{oks_sigma!r}])  # one keypoint; COCO's 17 sigmas raise IndexError",
             f"E.params.maxDets = [{n}]  # {most} visible crossings an image; the default 20 drops the rest",
@@ -72,10 +77,11 @@ def cocoeval_lines(info: DatasetInfo, *, max_visible: int | None, heading: str =
     return [
         f"{heading} Score detections with pycocotools",
         "",
-        f"Write your detections as COCO keypoint results to `{PREDICTIONS}` (u, v in pixels with the labels' "
-        "corner origin; one object per detected crossing) and run this from the dataset's folder "
-        "(`annotations/test.json` for the test split). It scores with this dataset's sigma, "
-        f"{info.oks_sigma}, and counts every detection of an image:",
+        "Write your detections as COCO keypoint results (u, v in pixels with the labels' corner origin; one "
+        "object per detected crossing; `image_id` the image's integer id in `annotations/<split>.json`), or "
+        f"let `rebar detect DATASET --split val --coco-results {PREDICTIONS}` write them, set `DATASET` to "
+        "this folder and `RESULTS` to that file, and run this (`annotations/test.json` for the test split). It "
+        f"scores with this dataset's sigma, {info.oks_sigma}, and counts every detection of an image:",
         "",
         "```python",
         cocoeval_snippet(info.oks_sigma, max_visible=max_visible),
@@ -181,8 +187,9 @@ def dataset_card(info: DatasetInfo, *, max_visible: int | None, maps: tuple[str,
         "",
         "## Use it",
         "",
-        "- Ultralytics YOLO pose: `YOLO('yolo11n-pose.yaml').train(data='data.yaml')`; `path` in `data.yaml` "
-        "is where the dataset was built, so edit it if the folder moves.",
+        "- Ultralytics YOLO pose: `YOLO('yolo11n-pose.yaml').train(data=str(Path('data.yaml').resolve()))`. "
+        "`data.yaml` has no `path`, so Ultralytics takes the folder of `data.yaml` as the dataset's, wherever "
+        "it is copied or moved; nothing needs editing (an edit would fail `rebar dataset validate`).",
         "- Tables: `pandas.read_parquet('tables/keypoints.parquet')` and `tables/samples.parquet`.",
         "",
         *cocoeval_lines(info, max_visible=max_visible),

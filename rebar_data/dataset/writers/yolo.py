@@ -50,15 +50,16 @@ def write_yolo(out: Path, samples: pa.Table, keypoints: pa.Table) -> None:
         path.write_text(yolo_lines({k: np.asarray(v, float) for k, v in d.items()}, w, h))
 
 
-def write_data_yaml(out: Path, final_dir: Path, *, oks_sigma: float) -> None:
+def write_data_yaml(out: Path, *, oks_sigma: float) -> None:
     """Ultralytics' pose dataset file.
 
-    ``path`` is the dataset's final absolute location (Ultralytics resolves relative paths against its
-    own datasets folder, not the YAML file); ``rebar dataset publish`` rewrites it. ``kpt_oks_sigmas``
-    carries the dataset's ``oks_sigma``: without it Ultralytics scores a single keypoint with sigma 1.0.
+    It has no ``path``: Ultralytics then resolves ``train``, ``val`` and ``test`` against the folder of
+    ``data.yaml`` itself, so a copied or moved dataset trains from its own images, and its file still matches
+    the manifest (a relative ``path`` would be taken under Ultralytics' datasets folder instead; an absolute
+    one pins the folder the dataset was built in). ``kpt_oks_sigmas`` carries the dataset's ``oks_sigma``:
+    without it Ultralytics scores a single keypoint with sigma 1.0.
     """
     data = {
-        "path": str(Path(final_dir).resolve()),
         "train": "images/train",
         "val": "images/val",
         "test": "images/test",
