@@ -14,6 +14,7 @@ three 10 mm U-bars (two legs, two 30 mm bends and a straight top) cap the wall b
 from __future__ import annotations
 
 import argparse
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -77,30 +78,42 @@ def _u_bar(x: float, leg_y: float, z_low: float, z_top: float) -> list[Curve]:
     ]
 
 
-def wall_bars() -> list[tuple[list[Curve], float, str]]:
+@dataclass(frozen=True)
+class WallSpec:
+    """The sample wall's size and its mats' bars: the shipped wall.ifc by default (12 mm at 150 mm)."""
+
+    length_m: float = WALL_LENGTH_M
+    height_m: float = WALL_HEIGHT_M
+    thickness_m: float = WALL_THICKNESS_M
+    mat_diameter_m: float = MAT_DIAMETER_M
+    spacing_m: float = SPACING_M
+
+
+def wall_bars(spec: WallSpec = WallSpec()) -> list[tuple[list[Curve], float, str]]:
     """The wall's bars in its own frame (x along it, y through it, z up from its base): pieces, diameter
     and IFC role."""
-    half_l, t = WALL_LENGTH_M / 2.0, WALL_THICKNESS_M
-    y_h = t / 2.0 - COVER_M - MAT_DIAMETER_M / 2.0  # horizontal bars, outside
-    y_v = y_h - MAT_DIAMETER_M  # vertical bars, inside them, touching
-    z_h = np.arange(7) * SPACING_M + 0.1
-    x_v = (np.arange(10) - 4.5) * SPACING_M
+    half_l, t, d, step = spec.length_m / 2.0, spec.thickness_m, spec.mat_diameter_m, spec.spacing_m
+    y_h = t / 2.0 - COVER_M - d / 2.0  # horizontal bars, outside
+    y_v = y_h - d  # vertical bars, inside them, touching
+    z_h = np.arange(int((spec.height_m - 0.1 - COVER_M) // step) + 1) * step + 0.1
+    n_v = int((spec.length_m - 2 * COVER_M - 0.1) // step) + 1
+    x_v = (np.arange(n_v) - (n_v - 1) / 2.0) * step
     bars: list[tuple[list[Curve], float, str]] = []
     for side in (1.0, -1.0):
         for z in z_h:
             line = Line(_v(-half_l + COVER_M, side * y_h, z), _v(half_l - COVER_M, side * y_h, z))
-            bars.append(([line], MAT_DIAMETER_M, "MAIN"))
+            bars.append(([line], d, "MAIN"))
         for x in x_v:
-            line = Line(_v(x, side * y_v, COVER_M), _v(x, side * y_v, WALL_HEIGHT_M - COVER_M))
-            bars.append(([line], MAT_DIAMETER_M, "MAIN"))
+            line = Line(_v(x, side * y_v, COVER_M), _v(x, side * y_v, spec.height_m - COVER_M))
+            bars.append(([line], d, "MAIN"))
     for end in (-1.0, 1.0):
         outer = x_v[-1] if end > 0 else x_v[0]
-        inner = outer - end * 2 * SPACING_M
+        inner = outer - end * 2 * step
         span = (min(inner, outer), max(inner, outer))
-        for z in z_h[:-1][::2] + SPACING_M / 2.0:
+        for z in z_h[:-1][::2] + step / 2.0:
             bars.append((_stirrup(float(z), span, y_v), STIRRUP_DIAMETER_M, "LIGATURE"))
     for x in (-0.3, 0.0, 0.3):
-        bars.append((_u_bar(x, y_v, 0.6, WALL_HEIGHT_M - 0.06), U_BAR_DIAMETER_M, "EDGE"))
+        bars.append((_u_bar(x, y_v, 0.6, spec.height_m - 0.06), U_BAR_DIAMETER_M, "EDGE"))
     return bars
 
 
@@ -111,21 +124,25 @@ def world_from_wall() -> np.ndarray:
     return T
 
 
-def wall_records() -> list[BarRecord]:
+def wall_records(spec: WallSpec = WallSpec()) -> list[BarRecord]:
     """The wall's bars placed in the world, as the IFC writer takes them."""
     T = world_from_wall()
     R, t = T[:3, :3], T[:3, 3]
     return [
         BarRecord(k, [c.transformed(R, t) for c in curves], d, -1, -1, global_id(f"ifc-wall/{k}"), role)
-        for k, (curves, d, role) in enumerate(wall_bars())
+        for k, (curves, d, role) in enumerate(wall_bars(spec))
     ]
 
 
-def write_wall(path: str | Path, *, schema: str = "IFC4") -> Path:
+def write_wall(path: str | Path, *, schema: str = "IFC4", spec: WallSpec = WallSpec()) -> Path:
     """Write the sample wall to ``path`` (the same bytes for the same IfcOpenShell version)."""
     path = Path(path)
     model = ifc_model(
-        wall_records(), schema=schema, project_name="ifc-wall", file_name=path.name, timestamp=WALL_TIMESTAMP
+        wall_records(spec),
+        schema=schema,
+        project_name="ifc-wall",
+        file_name=path.name,
+        timestamp=WALL_TIMESTAMP,
     )
     return write_model(model, path)
 
@@ -134,8 +151,18 @@ def main(argv: list[str] | None = None) -> None:
     p = argparse.ArgumentParser(description="Write the sample IFC wall (stirrups and bent bars).")
     p.add_argument("out", help="the .ifc file to write, such as pipelines/ifc/wall.ifc")
     p.add_argument("--schema", choices=("IFC4", "IFC2X3"), default="IFC4")
+    p.add_argument("--size-m", type=float, nargs=3, metavar=("LENGTH", "HEIGHT", "THICKNESS"))
+    p.add_argument("--bar-mm", type=float, help=f"the mats' bar diameter (default {MAT_DIAMETER_M * 1000:g})")
+    p.add_argument("--spacing-mm", type=float, help=f"the mats' spacing (default {SPACING_M * 1000:g})")
     args = p.parse_args(argv)
-    print(write_wall(args.out, schema=args.schema))
+    spec = WallSpec()
+    if args.size_m:
+        spec = replace(spec, length_m=args.size_m[0], height_m=args.size_m[1], thickness_m=args.size_m[2])
+    if args.bar_mm:
+        spec = replace(spec, mat_diameter_m=args.bar_mm / 1000.0)
+    if args.spacing_mm:
+        spec = replace(spec, spacing_m=args.spacing_mm / 1000.0)
+    print(write_wall(args.out, schema=args.schema, spec=spec))
 
 
 if __name__ == "__main__":
