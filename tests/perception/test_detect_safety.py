@@ -190,3 +190,24 @@ def test_coco_results_are_checked_before_any_work_and_written_whole(drawn_datase
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "broken", "coco.json", "model", "p.parquet", "theirs.json"
     ]  # fmt: skip
+
+
+class _RunsCode:
+    """What a hostile checkpoint pickles: unpickling it would create ``marker``."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+def test_a_checkpoint_that_would_run_code_is_refused_before_any_runs(photos, tmp_path, capsys):
+    import torch
+
+    marker = tmp_path / "ran"
+    hostile = tmp_path / "model.pt"
+    torch.save({"format": "rebar-keypoint", "state_dict": {}, "payload": _RunsCode(marker)}, hostile)
+    assert main(["detect", str(photos), "--out", str(tmp_path / "out"), "--model", str(hostile)]) == 2
+    assert "holds more than weights and numbers" in _one_line(capsys)
+    assert not marker.exists() and not (tmp_path / "out").exists()

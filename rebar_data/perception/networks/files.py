@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import json
 import logging
+import pickle
 import warnings
 from pathlib import Path
 from typing import Any
@@ -27,11 +28,28 @@ def write_checkpoint(path: str | Path, payload: dict[str, Any]) -> None:
     replace_file(Path(path), lambda tmp: torch.save(payload, tmp))
 
 
+def _data_types() -> list:
+    """What a checkpoint may hold beside tensors and Python's plain types: numpy's scalars and arrays of numbers
+    (training's history and mined points), rebuilt from their bytes by numpy's own constructors."""
+    kept = ("ObjectDType", "VoidDType", "StringDType")  # these could carry objects: not data
+    numeric = [getattr(np.dtypes, n) for n in dir(np.dtypes) if n.endswith("DType") and n not in kept]
+    core = np._core.multiarray
+    return [core.scalar, core._reconstruct, np.ndarray, np.dtype, bytes, *numeric]
+
+
 def read_checkpoint(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
-    """A ``.pt`` checkpoint's payload; ConfigError when the file cannot be read or is not a ``fmt`` file."""
+    """A ``.pt`` checkpoint's payload; ConfigError when the file cannot be read or is not a ``fmt`` file.
+    Read as data alone (``weights_only``: tensors, numbers, strings, lists, dicts, numpy arrays of numbers), so
+    a file that would run code when unpickled is refused before anything in it runs."""
     path = Path(path)
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=False)
+        with torch.serialization.safe_globals(_data_types()):
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+    except pickle.UnpicklingError:
+        raise ConfigError(
+            f"{path}: holds more than weights and numbers (code or objects a checkpoint never holds), so it is "
+            f"not read; accepted: a {what} checkpoint written by `rebar train`"
+        ) from None
     except Exception as e:  # a truncated or foreign file: say which
         raise ConfigError(f"{path}: cannot be read as a {what} checkpoint ({type(e).__name__})") from None
     if not isinstance(payload, dict) or payload.get("format") != fmt:

@@ -490,6 +490,8 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
             stages[key] = (run.init.stages[key], [])
             run.log(f"{key} kept: {run.init.source}")
             continue
+        if run.init is not None and not run.trains(key):
+            continue  # not named, and the init model has none to keep
         start = run.init.stages.get(key) if run.init is not None else None
         settings = getattr(cfg, key) if start is None else stage_settings(cfg, key)
         since = [] if start is None else [f"from {run.init.source}"]
