@@ -87,6 +87,8 @@ class WallSpec:
     thickness_m: float = WALL_THICKNESS_M
     mat_diameter_m: float = MAT_DIAMETER_M
     spacing_m: float = SPACING_M
+    rows: int = 7  # horizontal bars a mat, from 0.1 m up
+    columns: int = 10  # vertical bars a mat, centred
 
 
 def wall_bars(spec: WallSpec = WallSpec()) -> list[tuple[list[Curve], float, str]]:
@@ -95,9 +97,8 @@ def wall_bars(spec: WallSpec = WallSpec()) -> list[tuple[list[Curve], float, str
     half_l, t, d, step = spec.length_m / 2.0, spec.thickness_m, spec.mat_diameter_m, spec.spacing_m
     y_h = t / 2.0 - COVER_M - d / 2.0  # horizontal bars, outside
     y_v = y_h - d  # vertical bars, inside them, touching
-    z_h = np.arange(int((spec.height_m - 0.1 - COVER_M) // step) + 1) * step + 0.1
-    n_v = int((spec.length_m - 2 * COVER_M - 0.1) // step) + 1
-    x_v = (np.arange(n_v) - (n_v - 1) / 2.0) * step
+    z_h = np.arange(spec.rows) * step + 0.1
+    x_v = (np.arange(spec.columns) - (spec.columns - 1) / 2.0) * step
     bars: list[tuple[list[Curve], float, str]] = []
     for side in (1.0, -1.0):
         for z in z_h:
@@ -154,6 +155,8 @@ def main(argv: list[str] | None = None) -> None:
     p.add_argument("--size-m", type=float, nargs=3, metavar=("LENGTH", "HEIGHT", "THICKNESS"))
     p.add_argument("--bar-mm", type=float, help=f"the mats' bar diameter (default {MAT_DIAMETER_M * 1000:g})")
     p.add_argument("--spacing-mm", type=float, help=f"the mats' spacing (default {SPACING_M * 1000:g})")
+    p.add_argument("--rows", type=int, help="horizontal bars a mat (default 7)")
+    p.add_argument("--columns", type=int, help="vertical bars a mat (default 10)")
     args = p.parse_args(argv)
     spec = WallSpec()
     if args.size_m:
@@ -162,6 +165,10 @@ def main(argv: list[str] | None = None) -> None:
         spec = replace(spec, mat_diameter_m=args.bar_mm / 1000.0)
     if args.spacing_mm:
         spec = replace(spec, spacing_m=args.spacing_mm / 1000.0)
+    if args.rows:
+        spec = replace(spec, rows=args.rows)
+    if args.columns:
+        spec = replace(spec, columns=args.columns)
     print(write_wall(args.out, schema=args.schema, spec=spec))
 
 
