@@ -158,6 +158,7 @@ def write_mesh_outputs(rm: RebarMesh, out: Path) -> None:
             "schema": src.schema,
             "elements": src.elements,
             "skipped": src.skipped,
+            "dropped": src.dropped,
         }
         summary["surface"] = rm.layout.surface.record()
     (out / "mesh.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")

@@ -54,7 +54,8 @@ class IfcSource:
     ifc_class: list[str]
     piece: list[int]  # index of the piece along its bar
     role: list[str | None]
-    skipped: list[dict] = field(default_factory=list)  # global_id, ifc_class, reason
+    skipped: list[dict] = field(default_factory=list)  # entity, global_id, ifc_class, reason: not read
+    dropped: list[dict] = field(default_factory=list)  # the same for the stubs left out
 
 
 @dataclass(frozen=True)
