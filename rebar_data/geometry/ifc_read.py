@@ -46,7 +46,7 @@ from rebar_data.geometry.ifc_curves import (
 from rebar_data.geometry.ifc_file import ifcopenshell_module, open_whole
 from rebar_data.geometry.specs import Bar, IfcSource, MeshLayout, rng_streams
 from rebar_data.geometry.specs import _pose as pose_matrix
-from rebar_data.geometry.surface_fit import fit_surface
+from rebar_data.geometry.surface_fit import fit_faces
 
 PSET_NAME = "RebarServo_Bar"  # what `rebar mesh --ifc` writes: BarId, Direction, Layer
 DEFAULT_PRECISION = 1e-5  # IFC's default Precision, in the file's length unit
@@ -177,7 +177,7 @@ class _Resolver:
         self.length_m, self.angle_rad, self.precision_m = length_m, angle_rad, precision_m
         self._placements: dict[int, np.ndarray] = {}
         self._maps: dict[int, tuple[list[_Solid], set[str]]] = {}
-        self._pieces: dict[int, list[Curve] | str] = {}
+        self._pieces: dict[int, tuple[list[Curve], np.ndarray] | str] = {}
 
     def placement(self, placement) -> np.ndarray:
         """World transform of an IfcLocalPlacement chain (file units)."""
@@ -236,12 +236,14 @@ class _Resolver:
             raise Unreadable(f"no IfcSweptDiskSolid ({what})")
         return found
 
-    def pieces(self, solid) -> list[Curve]:
-        """The solid's directrix as pieces in its own coordinates (file units); Unreadable saying why not."""
+    def pieces(self, solid) -> tuple[list[Curve], np.ndarray]:
+        """The solid's directrix as pieces in its own coordinates (file units) and their lengths; Unreadable
+        saying why not."""
         key = solid.id()
         if key not in self._pieces:
             try:
-                self._pieces[key] = directrix_pieces(solid.Directrix, self.angle_rad)
+                got = directrix_pieces(solid.Directrix, self.angle_rad)
+                self._pieces[key] = (got, np.array([c.length for c in got]))
             except Unreadable as why:
                 self._pieces[key] = str(why)
         got = self._pieces[key]
@@ -306,13 +308,14 @@ def _solid_bar(r: _Resolver, el: _Element, s: _Solid, world: np.ndarray, k: int,
         diameter = (nominal if nominal is not None else float(radius or 0.0)) * r.length_m
     if not diameter > 0.0:
         raise Unreadable(f"a non-positive diameter ({diameter:g} m)")
-    local = r.pieces(solid)
+    local, lengths = r.pieces(solid)
     if not local:
         raise Unreadable("an empty directrix")
-    length_m = sum(c.length for c in local) * scale
+    length_m = float(lengths.sum()) * scale
     if length_m < diameter:
         raise _Stub(f"a stub {length_m * 1e3:.3g} mm long, shorter than its {diameter * 1e3:.3g} mm diameter")
-    local = [c for c in local if c.length * scale >= r.precision_m]
+    if lengths.min() * scale < r.precision_m:
+        local = [c for c, n in zip(local, lengths, strict=True) if n * scale >= r.precision_m]
     if solid.is_a("IfcSweptDiskSolidPolygonal") and solid.FilletRadius:
         local = filleted(local, float(solid.FilletRadius))
     pieces = [transformed(c, m) for c in local]
@@ -558,26 +561,35 @@ def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
     R, t = world_from_mesh[:3, :3], world_from_mesh[:3, 3]
     bars: list[Bar] = []
     gids, classes, pieces, roles = [], [], [], []
+    in_box: list[bool] = []
+    still = bool(np.array_equal(world_from_mesh, np.eye(4)))  # no pose: the pieces as read
+    lo, hi = (np.asarray(c, float) for c in mesh.bbox_m) if mesh.bbox_m is not None else (None, None)
     for bar_id, rb in enumerate(read.bars):
         for k, c in enumerate(rb.curves):
-            bars.append(Bar(bar_id, c.transformed(R, t), rb.diameter_m, rb.direction, rb.layer))
+            bars.append(
+                Bar(bar_id, c if still else c.transformed(R, t), rb.diameter_m, rb.direction, rb.layer)
+            )
             gids.append(rb.global_id)
             classes.append(rb.ifc_class)
             pieces.append(k)
             roles.append(rb.role)
-    fit = fit_surface(
+            in_box.append(lo is None or _in_box(c, lo, hi))
+    faces = fit_faces(
         [b.curve for b in bars],
         np.array([b.diameter_m for b in bars]),
+        bar_of=np.array([b.bar_id for b in bars]),
         surface=mesh.surface,
         camera_side=mesh.camera_side,
         mat_gap_m=mesh.mat_gap_m,
         top_mat=mesh.top_mat,
         need_mats=mesh.crossings == "top_mat",
         world_from_model=R,
+        preference=None if lo is None else np.array([b.curve.length for b in bars]) * np.array(in_box),
     )
+    fit = faces.surface
     bars = [
         replace(b, layer=int(m), direction=_direction(b, int(m), fit))
-        for b, m in zip(bars, fit.piece_mat, strict=True)
+        for b, m in zip(bars, faces.piece_mat, strict=True)
     ]
     source = IfcSource(
         str(path),
@@ -591,4 +603,4 @@ def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
         [s.record() for s in read.skipped],
         [s.record() for s in read.dropped],
     )
-    return MeshLayout(bars, world_from_mesh, "ifc", None, rngs, ifc=source, surface=fit)
+    return MeshLayout(bars, world_from_mesh, "ifc", None, rngs, ifc=source, surface=fit, faces=faces)
