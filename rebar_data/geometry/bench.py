@@ -1,4 +1,5 @@
-"""Benchmark of the paper mesh build, and of the analytic crossing solver against a sampling search."""
+"""Benchmark of the paper mesh build, of the analytic crossing solver against a sampling search, and of
+reading IFC models (a floor plate's crossings; a lift shaft read plain and as mapped items)."""
 
 from __future__ import annotations
 
@@ -159,9 +160,48 @@ def run() -> list[str]:
     ]
 
 
+def _shaft_read(n_bars: int, folder) -> tuple[str, float, int]:
+    """The sample lift shaft of about ``n_bars`` bars written plain and as mapped items and read
+    (``mesh.kind: ifc``: bars, faces and mats): its line, the mapped read's time and its bars."""
+    from rebar_data.config import IfcMesh
+    from rebar_data.geometry.ifc_read import ifc_layout
+    from rebar_data.geometry.ifc_samples import shaft_records, write_shaft
+
+    storeys = max(1, round(n_bars / len(shaft_records())))
+    figures = {}
+    for form in ("plain", "mapped"):
+        path = folder / f"shaft-{n_bars}-{form}.ifc"
+        write_shaft(path, storeys=storeys, mapped=form == "mapped")
+        cfg = MeshConfig.model_validate({"mesh": IfcMesh(kind="ifc", ifc_path=str(path)).model_dump()})
+        t, layout = _timed(lambda cfg=cfg: ifc_layout(cfg, None), repeat=1)
+        figures[form] = (t, len({b.bar_id for b in layout.bars}), len(layout.bars), len(layout.faces.fits))
+    (tp, bars, pieces, faces), (tm, *_) = figures["plain"], figures["mapped"]
+    line = (
+        f"IFC lift shaft, {bars} bars ({pieces} pieces, {faces} faces; mapped: one IfcMappedItem a bar, "
+        f"{6 * storeys} elements): plain {bars / tp:.0f} bars/s ({pieces / tp:.0f} pieces/s, {tp:.2f} s), "
+        f"mapped {bars / tm:.0f} bars/s ({pieces / tm:.0f} pieces/s, {tm:.2f} s), {tp / tm:.2f}x plain's rate"
+    )
+    return line, tm, bars
+
+
+def shaft_bench(sizes: tuple[int, ...] = (500, 2000, 5000)) -> list[str]:
+    """Read the lift shaft at each size in both forms; how the mapped read grows with the bars."""
+    import tempfile
+    from pathlib import Path
+
+    with tempfile.TemporaryDirectory() as tmp:
+        runs = [_shaft_read(n, Path(tmp)) for n in sizes]
+    (_, t_lo, n_lo), (_, t_hi, n_hi) = runs[0], runs[-1]
+    return [
+        *(r[0] for r in runs),
+        f"growth {n_lo} -> {n_hi} shaft bars ({n_hi / n_lo:.0f}x): mapped read {t_hi / t_lo:.1f}x the time "
+        f"(t ~ n^{np.log(t_hi / t_lo) / np.log(n_hi / n_lo):.2f})",
+    ]
+
+
 def _ifc_lines() -> list[str]:
     try:
         import ifcopenshell  # noqa: F401
     except ImportError:
         return ["IFC floor plate: skipped (IfcOpenShell, the ifc extra, is not installed)"]
-    return ifc_bench()
+    return ifc_bench() + shaft_bench()

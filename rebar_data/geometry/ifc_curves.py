@@ -48,7 +48,7 @@ def _frame(position) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
         x = x - np.dot(x, z) * z
     x = _unit(x, "reference direction")
-    return origin, x, np.cross(z, x), z
+    return origin, x, cross(z, x), z
 
 
 def _arc(center: np.ndarray, x, y, z, radius: float, start_rad: float, sweep_rad: float, ccw: bool) -> Arc:
@@ -63,8 +63,8 @@ def _sweep(a0: float, a1: float) -> float:
 
 
 def _trim_angle(trims, master: str, origin, x, y, angle_rad: float) -> float:
-    params = [t for t in trims if t.is_a("IfcParameterValue")]
-    points = [t for t in trims if t.is_a("IfcCartesianPoint")]
+    params = [t for t in trims if t.is_a() == "IfcParameterValue"]
+    points = [t for t in trims if t.is_a() == "IfcCartesianPoint"]
     if points and (master == "CARTESIAN" or not params):
         v = _xyz(points[0].Coordinates) - origin
         return float(np.arctan2(np.dot(v, y), np.dot(v, x)))
@@ -90,8 +90,8 @@ def _trimmed(c, angle_rad: float) -> list[Curve]:
         d = d / np.linalg.norm(d) * float(basis.Dir.Magnitude)
 
         def at(trims) -> np.ndarray:
-            pts = [t for t in trims if t.is_a("IfcCartesianPoint")]
-            params = [t for t in trims if t.is_a("IfcParameterValue")]
+            pts = [t for t in trims if t.is_a() == "IfcCartesianPoint"]
+            params = [t for t in trims if t.is_a() == "IfcParameterValue"]
             if pts and (master == "CARTESIAN" or not params):
                 return _xyz(pts[0].Coordinates)
             if params:

@@ -172,9 +172,10 @@ class _Resolver:
     """Reads elements, each shared entity once: placements, representation maps (what their items resolve
     to) and directrices (their pieces, or why they have none) are kept by entity id."""
 
-    def __init__(self, ifcopenshell, *, length_m: float, angle_rad: float, precision_m: float):
+    def __init__(self, ifcopenshell, f, *, length_m: float, angle_rad: float, precision_m: float):
         self.ifcopenshell = ifcopenshell
         self.length_m, self.angle_rad, self.precision_m = length_m, angle_rad, precision_m
+        self.types, self.psets = _relations(f)
         self._placements: dict[int, np.ndarray] = {}
         self._maps: dict[int, tuple[list[_Solid], set[str]]] = {}
         self._pieces: dict[int, tuple[list[Curve], np.ndarray] | str] = {}
@@ -252,18 +253,36 @@ class _Resolver:
         return got
 
 
-class _Element:
-    """What an element gives every solid of it, each looked up once: world placement, role, property set
-    and nominal diameter."""
+def _relations(f) -> tuple[dict[int, object], dict[int, dict]]:
+    """Every object's type, and its ``RebarServo_Bar`` properties, from one pass over the relations (not an
+    inverse lookup an element)."""
+    types: dict[int, object] = {}
+    for rel in f.by_type("IfcRelDefinesByType"):
+        for obj in rel.RelatedObjects or []:
+            types[obj.id()] = rel.RelatingType
+    psets: dict[int, dict] = {}
+    for rel in f.by_type("IfcRelDefinesByProperties"):
+        pdef = rel.RelatingPropertyDefinition
+        if not (getattr(pdef, "is_a", None) and pdef.is_a("IfcPropertySet") and pdef.Name == PSET_NAME):
+            continue
+        props = {
+            p.Name: p.NominalValue.wrappedValue
+            for p in pdef.HasProperties or []
+            if p.is_a("IfcPropertySingleValue") and p.NominalValue is not None
+        }
+        for obj in rel.RelatedObjects or []:
+            psets[obj.id()] = props
+    return types, psets
 
-    def __init__(self, ifcopenshell, element):
-        self.ifcopenshell, self.e = ifcopenshell, element
-        self._type = None
-        self._typed = False
+
+class _Element:
+    """What an element gives every solid of it, each looked up once: its type, role and nominal diameter."""
+
+    def __init__(self, r: _Resolver, element):
+        self.e = element
+        self._type = r.types.get(element.id())
 
     def type(self):
-        if not self._typed:
-            self._type, self._typed = self.ifcopenshell.util.element.get_type(self.e), True
         return self._type
 
     def nominal_diameter(self) -> float | None:
@@ -347,8 +366,8 @@ def read_element(r: _Resolver, element) -> ElementRead:
     except Unreadable as why:
         out.skipped.append(Skipped(gid, cls, str(why), f"#{element.id()}"))
         return out
-    el = _Element(r.ifcopenshell, element)
-    psets = r.ifcopenshell.util.element.get_pset(element, PSET_NAME) or {}
+    el = _Element(r, element)
+    psets = r.psets.get(element.id(), {})
     for k, s in enumerate(solids):
         try:
             out.bars.append(_solid_bar(r, el, s, world, k, psets))
@@ -473,7 +492,7 @@ def read_ifc(mesh: IfcMesh, path: Path) -> IfcRead:
     angle_rad = float(ifcopenshell.util.unit.calculate_unit_scale(f, "PLANEANGLEUNIT"))
     precision_m = model_precision(f) * length_m
     elements = _select(ifcopenshell, f, mesh, path)
-    resolver = _Resolver(ifcopenshell, length_m=length_m, angle_rad=angle_rad, precision_m=precision_m)
+    resolver = _Resolver(ifcopenshell, f, length_m=length_m, angle_rad=angle_rad, precision_m=precision_m)
     bars: list[ReadBar] = []
     skipped: list[Skipped] = []
     dropped: list[Skipped] = []

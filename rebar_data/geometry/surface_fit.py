@@ -23,6 +23,21 @@ through the thickness (a stirrup's leg, a U-bar's bend) and belongs to no mat (l
 mean heights, sorted from the camera side, start a new mat wherever two neighbours differ by more than
 ``mat_gap_m`` (default: twice the largest bar diameter, so a mat's two touching bar directions stay one
 mat). Mat 0 is the nearest the camera side; the top mat the robot ties is mat ``top_mat`` (default 0).
+
+Faces (:func:`fit_faces`). Bars on several faces (a cage: four walls round a lift shaft's core) fit no one
+surface: cameras would look through two walls and no piece would lie in a mat. A face is found from the
+bars that cross: each piece's normal is the plane its tangent spans with the tangents of the other bars'
+pieces that touch it (within the two radii and a quarter of ``mat_gap_m``, at ``FACE_ANGLE_DEG`` or more;
+the main direction of those planes' normals). Pieces are grouped by normal (the direction most of the bar
+length lies within ``FACE_ANGLE_DEG`` of, then the next), and a group split where the pieces' offsets along
+the normal jump by more than ``FACE_GAP_M`` (opposite walls); a face holds at least ``MIN_FACE_SHARE`` of the
+length. A piece that crosses nothing joins the face whose plane is nearest (all of it within ``FACE_GAP_M``),
+else none. The faces are taken when there are two or more and their planes leave less than
+``FACE_RMS_RATIO`` of the one surface's RMS residual (a slab, a wall and a tunnel stay one surface); each
+face is then a plane with its own mats, seen from outside the cage (away from the bars' centre). The face
+cameras and lights face is the one whose outside ``camera_side`` points to most, else the one with the most
+bar length (inside ``mesh.bbox_m`` when one is set); its mats are the pieces' layers, and pieces of the
+other faces are in no mat (-1), so ``top_mat`` is that face's outer mat.
 """
 
 from __future__ import annotations
@@ -434,7 +449,9 @@ def _piece_normals(arrays: CurveArrays, bar_of: np.ndarray, pads: np.ndarray) ->
     p, q = p[keep], q[keep]
     n = np.cross(tangents[p], tangents[q])
     norm = np.linalg.norm(n, axis=1)
-    keep = (norm >= np.sin(np.radians(FACE_ANGLE_DEG))) & (
+    keep = norm >= np.sin(np.radians(FACE_ANGLE_DEG))
+    p, q, n, norm = p[keep], q[keep], n[keep], norm[keep]
+    keep = (
         _chunk_distance(centres[p], tangents[p], half[p], centres[q], tangents[q], half[q])
         <= pads[owner[p]] + pads[owner[q]]
     )
