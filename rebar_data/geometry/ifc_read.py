@@ -335,6 +335,8 @@ def _solid_bar(r: _Resolver, el: _Element, s: _Solid, world: np.ndarray, k: int,
         raise _Stub(f"a stub {length_m * 1e3:.3g} mm long, shorter than its {diameter * 1e3:.3g} mm diameter")
     if lengths.min() * scale < r.precision_m:
         local = [c for c, n in zip(local, lengths, strict=True) if n * scale >= r.precision_m]
+    if not local:
+        raise Unreadable("every piece shorter than the model's precision")
     if solid.is_a("IfcSweptDiskSolidPolygonal") and solid.FilletRadius:
         local = filleted(local, float(solid.FilletRadius))
     pieces = [transformed(c, m) for c in local]
