@@ -131,8 +131,8 @@ class IfcMesh(Strict):
     a centerline the reader understands stops the build, unless ``skip_unreadable`` lets it go on (the bars
     left out are listed in mesh.json). Two bars cross where their centerlines come within the two radii
     plus ``crossing_tolerance_m`` at an angle of at least ``min_crossing_angle_deg`` (lapped bars run side
-    by side and do not cross). Cameras and lights face a plane or cylinder fitted to the bars' centerlines,
-    from its ``camera_side``; the bars are sorted into mats by their height above it (a crossing's ``layer``
+    by side and do not cross). Cameras and lights face a plane or cylinder fitted to the bars' centerlines
+    (for a cage, one of its faces), from its ``camera_side``; the bars are sorted into mats by their height above it (a crossing's ``layer``
     is its mat, 0 the top mat), and ``crossings: top_mat`` keeps only the top mat's crossings (see
     :mod:`rebar_data.geometry.surface_fit` for the rules).
     """
@@ -156,7 +156,7 @@ class IfcMesh(Strict):
     camera_side: Vec3 | None = Field(
         None,
         description="a direction (the model's frame, before pose) on the camera's side of the surface; default "
-        "up (+z; +x, then +y for a vertical surface), a cylinder's outside",
+        "up (+z; +x, then +y for a vertical surface), a cylinder's outside; for a cage, the face it points out of",
     )
     mat_gap_m: Positive | None = Field(
         None,

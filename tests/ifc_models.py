@@ -243,3 +243,40 @@ def read_mesh(tmp_path: Path, ifc: Path, **mesh):
 
 def bar_count(rm) -> int:
     return len({b.bar_id for b in rm.bars})
+
+
+# vendors' exports: the shapes users met in Tekla's, Allplan's and others' files, written here by hand
+
+
+def tiny_line(m: Model, start, direction, magnitude: float, trim: float):
+    """An IfcTrimmedCurve of an IfcLine whose IfcVector has ``magnitude``, trimmed by parameter 0 to ``trim``
+    (Tekla writes its zero-length connectors so: a magnitude of about 5e-5 mm, trimmed by the same value)."""
+    f = m.f
+    line = f.create_entity(
+        "IfcLine",
+        Pnt=m.point(start),
+        Dir=f.create_entity("IfcVector", Orientation=m.direction(direction), Magnitude=float(magnitude)),
+    )
+    return f.create_entity(
+        "IfcTrimmedCurve",
+        BasisCurve=line,
+        Trim1=[f.create_entity("IfcParameterValue", 0.0)],
+        Trim2=[f.create_entity("IfcParameterValue", float(trim))],
+        SenseAgreement=True,
+        MasterRepresentation="PARAMETER",
+    )
+
+
+def tekla_group(m: Model, y0: float, bars: int, *, z: float = 0.0, connector_at: int = 0):
+    """One element holding ``bars`` swept disk solids (a Tekla rebar group, millimetres): L-bars along x at
+    100 mm, each two legs; bar ``connector_at`` has a zero-length connector between its legs."""
+    solids = []
+    for k in range(bars):
+        y = y0 + 100.0 * k
+        leg1 = m.polyline([(0, y, z), (1000, y, z)])
+        leg2 = m.polyline([(1000, y, z), (1000, y, z + 300)])
+        parts = [leg1, leg2]
+        if k == connector_at:
+            parts = [leg1, tiny_line(m, (1000, y, z), (0, 0, 1), 4.8e-5, 4.8e-5), leg2]
+        solids.append(m.disk(m.composite(parts), 6.0))
+    return m.element(solids, diameter=12.0)

@@ -1,4 +1,5 @@
-"""Benchmark of the paper mesh build, and of the analytic crossing solver against a sampling search."""
+"""Benchmark of the paper mesh build, of the analytic crossing solver against a sampling search, and of
+reading IFC models (a floor plate's crossings; plates read plain and as mapped items, and a lift shaft)."""
 
 from __future__ import annotations
 
@@ -36,9 +37,17 @@ def _sampled_crossings(layout, step_m: float, reach_m: float) -> tuple[int, floa
     return n, step_m / 2
 
 
-def tiled_slab_bars(n_bars: int, *, panel_m: float = 5.0, spacing_m: float = 0.2, diameter_m: float = 0.012):
+def tiled_slab_bars(
+    n_bars: int,
+    *,
+    panel_m: float = 5.0,
+    spacing_m: float = 0.2,
+    diameter_m: float = 0.012,
+    mapped: bool = False,
+):
     """A large floor plate as an IFC model's bars: square panels side by side (``panel_m``, 0.2 m gaps), each
-    with two mats (top and bottom) of straight bars at ``spacing_m`` both ways, until ``n_bars`` bars.
+    with two mats (top and bottom) of straight bars at ``spacing_m`` both ways, until ``n_bars`` bars. With
+    ``mapped`` each panel's mat and direction is one placement of mapped items.
 
     Returns :class:`~rebar_data.geometry.ifc_write.BarRecord` s for :func:`~rebar_data.geometry.ifc_write.ifc_model`.
     Each panel crosses only itself: ``(per_panel / 4) ** 2 * 2`` crossings a whole panel.
@@ -68,7 +77,13 @@ def tiled_slab_bars(n_bars: int, *, panel_m: float = 5.0, spacing_m: float = 0.2
                     k = len(bars)
                     bars.append(
                         BarRecord(
-                            k, [Line(a, b)], diameter_m, direction, layer, global_id(f"bench/{n_bars}/{k}")
+                            k,
+                            [Line(a, b)],
+                            diameter_m,
+                            direction,
+                            layer,
+                            global_id(f"bench/{n_bars}/{k}"),
+                            group=f"{panel}/{layer}/{direction}" if mapped else None,
                         )
                     )
         panel += 1
@@ -159,9 +174,56 @@ def run() -> list[str]:
     ]
 
 
+def _rate(t: float, bars: int, pieces: int) -> str:
+    return f"{bars / t:.0f} bars/s ({pieces / t:.0f} pieces/s, {t:.2f} s)"
+
+
+def read_bench(sizes: tuple[int, ...] = (500, 2000, 5000), shaft_storeys: int = 31) -> list[str]:
+    """Reading (``mesh.kind: ifc``: bars, faces, mats) a floor plate of each size written plain and as mapped
+    items (one placement a panel's mat and direction), and the lift shaft of the Allplan class (about 5,000
+    bars as mapped items, four faces): bars and pieces a second, mapped against plain."""
+    import tempfile
+    from pathlib import Path
+
+    from rebar_data.config import IfcMesh
+    from rebar_data.geometry.ifc_read import ifc_layout
+    from rebar_data.geometry.ifc_samples import write_shaft
+    from rebar_data.geometry.ifc_write import ifc_model
+
+    def read(path: Path):
+        cfg = MeshConfig.model_validate({"mesh": IfcMesh(kind="ifc", ifc_path=str(path)).model_dump()})
+        t, layout = _timed(lambda: ifc_layout(cfg, None), repeat=1)
+        return t, len({b.bar_id for b in layout.bars}), len(layout.bars), layout
+
+    lines, times = [], []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in sizes:
+            got = {}
+            for form in ("plain", "mapped"):
+                path = Path(tmp) / f"plate-{n}-{form}.ifc"
+                ifc_model(tiled_slab_bars(n, mapped=form == "mapped"), file_name=path.name).write(str(path))
+                got[form] = read(path)
+            (tp, bars, pieces, _), (tm, *_) = got["plain"], got["mapped"]
+            times.append(tm)
+            lines.append(
+                f"IFC read, floor plate of {bars} bars: plain {_rate(tp, bars, pieces)}, mapped "
+                f"{_rate(tm, bars, pieces)}, {tp / tm:.2f}x plain's rate"
+            )
+        path = write_shaft(Path(tmp) / "shaft.ifc", storeys=shaft_storeys)
+        t, bars, pieces, layout = read(path)
+    ratio = sizes[-1] / sizes[0]
+    return [
+        *lines,
+        f"growth {sizes[0]} -> {sizes[-1]} bars ({ratio:.0f}x): the mapped read {times[-1] / times[0]:.1f}x the "
+        f"time (t ~ n^{np.log(times[-1] / times[0]) / np.log(ratio):.2f})",
+        f"IFC read, lift shaft of {bars} bars as mapped items ({6 * shaft_storeys} elements, "
+        f"{len(layout.faces.fits)} faces): {_rate(t, bars, pieces)}, {t / 5.0:.2f}x the 5 s goal",
+    ]
+
+
 def _ifc_lines() -> list[str]:
     try:
         import ifcopenshell  # noqa: F401
     except ImportError:
         return ["IFC floor plate: skipped (IfcOpenShell, the ifc extra, is not installed)"]
-    return ifc_bench()
+    return ifc_bench() + read_bench()

@@ -62,7 +62,7 @@ def build_rebar_mesh(cfg: MeshConfig, *, config_dir: Path | None = None) -> Reba
 def _build_ifc_mesh(cfg: MeshConfig, config_dir: Path | None) -> RebarMesh:
     """Bars read from an IFC model: the same tube sweep for every piece (a ball at each sharp joint of a
     bar's pieces, so a polyline stirrup's corners are solid) and the same exact solver for the crossings.
-    The crossings' normals point to the fitted surface's camera side; with ``mesh.crossings: top_mat`` only
+    The crossings' normals point to the camera side of their face (a cage's own wall); with ``mesh.crossings: top_mat`` only
     the crossings of two pieces in the top mat are kept."""
     from rebar_data.geometry.crossings import find_piece_crossings
     from rebar_data.geometry.ifc_read import ifc_layout
@@ -73,7 +73,8 @@ def _build_ifc_mesh(cfg: MeshConfig, config_dir: Path | None) -> RebarMesh:
     fit = layout.surface
     if cfg.mesh.crossings == "top_mat":
         crossings = crossings.take(np.flatnonzero(crossings.layer == fit.top_mat))
-    facing = np.sum(crossings.normal * fit.normal(crossings.point), axis=1) if len(crossings) else np.zeros(0)
+    outside = layout.faces.normal(crossings.point, crossings.piece_a)  # each crossing's own face
+    facing = np.sum(crossings.normal * outside, axis=1) if len(crossings) else np.zeros(0)
     crossings = replace(crossings, normal=np.where(facing[:, None] < 0, -crossings.normal, crossings.normal))
     parts = build_parts(layout.bars, crossings, cfg.realism, layout.rngs["tie_wire"])
     parts += joint_balls(layout.bars, first_part_id=len(parts))

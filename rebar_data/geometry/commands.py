@@ -118,12 +118,14 @@ def run_mesh(args: argparse.Namespace) -> None:
         with OutputLock(ifc, command=COMMAND, arg="--ifc"):
             write_ifc(rm, ifc, project_name=Path(args.config).stem)
     n_bars = len({b.bar_id for b in rm.bars})
-    skipped = len(rm.layout.ifc.skipped) if rm.layout.ifc is not None else 0
+    src = rm.layout.ifc
+    skipped = len({s["global_id"] for s in src.skipped}) if src is not None else 0
+    dropped = len(src.dropped) if src is not None else 0
     print(
         f"{n_bars} bars, {len(rm.crossings)} crossings, {len(rm.mesh.faces)} triangles"
-        + (
-            f"; {skipped} IFC element{'s' * (skipped != 1)} not read (listed in mesh.json)" if skipped else ""
-        ),
+        + (f"; {skipped} IFC element{'s' * (skipped != 1)} not read whole" if skipped else "")
+        + (f"; {dropped} stub{'s' * (dropped != 1)} shorter than its diameter dropped" if dropped else "")
+        + ("; listed in mesh.json" if skipped or dropped else ""),
         file=sys.stderr,
     )
     print(out)

@@ -156,7 +156,8 @@ class CurveArrays:
         arc = np.array([c.kind == "arc" for c in curves], bool)
         origin = np.array([c.center if c.kind == "arc" else c.start for c in curves], float).reshape(-1, 3)
         e1 = np.array([c.e1 if c.kind == "arc" else c.direction for c in curves], float).reshape(-1, 3)
-        e2 = np.array([c.e2 if c.kind == "arc" else np.zeros(3) for c in curves], float).reshape(-1, 3)
+        axis = np.array([c.axis if c.kind == "arc" else np.zeros(3) for c in curves], float).reshape(-1, 3)
+        e2 = np.cross(axis, e1)  # an arc's axis x e1; 0 for a line
         radius = np.array([c.radius if c.kind == "arc" else 1.0 for c in curves], float)
         return CurveArrays(arc, origin, e1, e2, radius, np.array([c.length for c in curves], float))
 

@@ -76,6 +76,7 @@ def bars_table(rm: RebarMesh) -> pa.Table:
         table = table.append_column("piece", pa.array(src.piece, pa.int16()))
         table = table.append_column("global_id", pa.array(src.global_id, pa.string()))
         table = table.append_column("ifc_class", pa.array(src.ifc_class, pa.string()))
+        table = table.append_column("face", pa.array(rm.layout.faces.piece_face.astype(np.int16)))
     return table
 
 
@@ -158,6 +159,8 @@ def write_mesh_outputs(rm: RebarMesh, out: Path) -> None:
             "schema": src.schema,
             "elements": src.elements,
             "skipped": src.skipped,
+            "dropped": src.dropped,
         }
         summary["surface"] = rm.layout.surface.record()
+        summary["faces"] = rm.layout.faces.record()
     (out / "mesh.json").write_text(json.dumps(summary, indent=2, sort_keys=True) + "\n")

@@ -1,41 +1,56 @@
 """Reads reinforcing bars from an IFC model (IFC2X3, IFC4, IFC4X3) as centerlines: lines and circular arcs.
 
 Each IfcSweptDiskSolid in the body of a selected element (IfcReinforcingBar and IfcReinforcingMesh by default)
-is one bar. Its directrix becomes centerline pieces: an IfcPolyline gives lines; an IfcTrimmedCurve of an
-IfcCircle (trimmed by parameter in the file's plane angle unit, or by points) or a whole IfcCircle gives an
-arc; an IfcIndexedPolyCurve gives lines for its IfcLineIndex segments and arcs through the three points of its
-IfcArcIndex segments; an IfcCompositeCurve gives its segments' pieces in order; an
-IfcSweptDiskSolidPolygonal's FilletRadius rounds its polyline's corners into arcs. Geometry is taken in the
-file's length unit through the element's IfcLocalPlacement chain and, for an element drawn by its type, the
-IfcMappedItem's MappingTarget after its MappingOrigin, and is turned into metres in the model's one world
-frame. The diameter is twice the solid's Radius (scaled likewise), or the element's or its type's
-NominalDiameter where the solid gives none. StartParam and EndParam are taken to span the whole directrix.
+is one bar; its directrix becomes centerline pieces (:mod:`rebar_data.geometry.ifc_curves`). Geometry is
+taken in the file's length unit through the element's IfcLocalPlacement chain and, for an element drawn by
+mapped items, each IfcMappedItem's MappingTarget after its MappingOrigin, and is turned into metres in the
+model's one world frame. The diameter is twice the solid's Radius (scaled likewise), or the element's or its
+type's NominalDiameter where the solid gives none. StartParam and EndParam are taken to span the whole
+directrix. The file is taken whole or refused (:mod:`rebar_data.geometry.ifc_file`).
 
-Anything the reader cannot turn into a centerline (a faceted body, an unsupported curve, a non-uniform
-scale) is reported with its GlobalId, never dropped silently; bad input (a missing or non-IFC file, an
-unsupported schema, no bars, filters that select nothing) is one ConfigError line.
+Vendors' exports as they are:
+
+- A piece shorter than the model's precision (the IfcGeometricRepresentationContext's Precision, else IFC's
+  default 1e-5, in the file's length unit) is dropped and its bar kept: a connector of zero length between
+  two legs is no reason to lose the bar.
+- A bar shorter than its own diameter (a stub of a few micrometres) is dropped and listed with its entity id
+  and GlobalId (``dropped`` in mesh.json): it would give crossings where there is no bar.
+- What cannot be turned into a centerline (a faceted body, an unsupported curve, a non-uniform scale) is
+  reported per swept disk solid, with its entity id (``#123``), the element's GlobalId and the reason; the
+  element's other solids are read. Nothing is dropped silently.
+- Each IfcRepresentationMap is read once: what its items resolve to (solids, their transforms and
+  directrices' pieces) is kept, so a model of thousands of mapped items costs what its bars cost.
+
+Bad input (a missing, cut-short or non-IFC file, an unsupported schema, no bars, filters that select
+nothing) is one ConfigError line.
 """
 
 from __future__ import annotations
 
-import hashlib
-import re
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from rebar_data.config import ConfigError, IfcMesh, MeshConfig
-from rebar_data.geometry.curves import Arc, Curve, Line
+from rebar_data.geometry.curves import Curve
+from rebar_data.geometry.ifc_curves import (
+    MIN_LENGTH_M,
+    Unreadable,
+    cross,
+    directrix_pieces,
+    filleted,
+    transformed,
+    uniform_scale,
+)
+from rebar_data.geometry.ifc_file import ifcopenshell_module, open_whole
 from rebar_data.geometry.specs import Bar, IfcSource, MeshLayout, rng_streams
 from rebar_data.geometry.specs import _pose as pose_matrix
-from rebar_data.geometry.surface_fit import fit_surface
+from rebar_data.geometry.surface_fit import fit_faces
 
-SCHEMAS = ("IFC2X3", "IFC4", "IFC4X3")
 PSET_NAME = "RebarServo_Bar"  # what `rebar mesh --ifc` writes: BarId, Direction, Layer
-MIN_LENGTH_M = 1e-9  # a shorter piece is a zero-length segment
-_TWO_PI = 2.0 * np.pi
-_SCALE_TOL = 1e-6
+DEFAULT_PRECISION = 1e-5  # IFC's default Precision, in the file's length unit
+_MAX_MAP_DEPTH = 8
 _REALISM_NOT_FOR_IFC = (
     "jitter_m",
     "jitter_normal_m",
@@ -45,10 +60,6 @@ _REALISM_NOT_FOR_IFC = (
     "pose_jitter_translation_m",
     "pose_jitter_rotation_deg",
 )
-
-
-class Unreadable(Exception):
-    """A bar whose centerline the reader cannot make (the message says why)."""
 
 
 @dataclass(frozen=True)
@@ -67,14 +78,26 @@ class ReadBar:
 
 @dataclass(frozen=True)
 class Skipped:
+    """A solid (or a whole element) left out: its entity id, the element's GlobalId and class, and why."""
+
     global_id: str
     ifc_class: str
     reason: str
+    entity: str = ""  # "#123": the swept disk solid, or the element when no solid of it could be looked at
+
+    def record(self) -> dict:
+        """What mesh.json lists."""
+        return {
+            "entity": self.entity,
+            "global_id": self.global_id,
+            "ifc_class": self.ifc_class,
+            "reason": self.reason,
+        }
 
 
 @dataclass(frozen=True)
 class IfcRead:
-    """What the reader made of a file: the bars, and the selected elements it could not read."""
+    """What the reader made of a file: the bars, what it could not read and the stubs it dropped."""
 
     path: Path
     sha256: str
@@ -83,373 +106,290 @@ class IfcRead:
     elements: int
     bars: list[ReadBar]
     skipped: list[Skipped] = field(default_factory=list)
+    dropped: list[Skipped] = field(default_factory=list)
+    precision_m: float = DEFAULT_PRECISION
 
 
-# ---------------------------------------------------------------------------------------------- the file
+# ---------------------------------------------------------------------------------------------- elements
 
 
-def _ifcopenshell():
-    try:
-        import ifcopenshell
-        import ifcopenshell.util.element
-        import ifcopenshell.util.placement
-        import ifcopenshell.util.unit
-    except ImportError:
-        raise ConfigError(
-            "mesh.kind: ifc needs IfcOpenShell, which is not installed; accepted: install it with "
-            '`pip install -e ".[ifc]"` (make setup does)'
-        ) from None
-    return ifcopenshell
-
-
-def file_schema(path: Path) -> str:
-    """The schema an IFC file declares in its header; a ConfigError for anything that is not an IFC file."""
-    where = f"mesh.ifc_path {path}"
-    if not path.exists():
-        raise ConfigError(f"{where}: no such file; accepted: an IFC file (.ifc)")
-    if path.is_dir():
-        raise ConfigError(f"{where}: is a folder; accepted: an IFC file (.ifc)")
-    try:
-        with open(path, "rb") as f:
-            head = f.read(1 << 16)
-    except OSError as e:
-        raise ConfigError(
-            f"{where}: cannot be read ({e.strerror}); accepted: an IFC file you may read"
-        ) from None
-    if not head.lstrip(b"\xef\xbb\xbf \t\r\n").startswith(b"ISO-10303-21;"):
-        raise ConfigError(
-            f"{where}: not an IFC file (no ISO-10303-21 header); accepted: an IFC file in STEP form (.ifc), "
-            "not ifcXML or ifcZIP"
-        )
-    m = re.search(rb"FILE_SCHEMA\s*\(\s*\(\s*'([^']*)'", head)
-    if not m:
-        raise ConfigError(
-            f"{where}: its header names no FILE_SCHEMA; accepted: an IFC2X3, IFC4 or IFC4X3 file"
-        )
-    name = m.group(1).decode("ascii", "replace").strip().upper()
-    for schema in SCHEMAS:
-        if name == schema or (schema == "IFC4X3" and name.startswith("IFC4X3_")):
-            return name
-    raise ConfigError(f"{where}: schema {name} is not read; accepted: IFC2X3, IFC4 or IFC4X3")
-
-
-def open_ifc(path: Path):
-    """The parsed file (after :func:`file_schema` accepted its header)."""
-    ifcopenshell = _ifcopenshell()
-    try:
-        return ifcopenshell.open(str(path))
-    except Exception as e:  # the parser's errors have no common type
-        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise ConfigError(
-            f"mesh.ifc_path {path}: cannot be parsed as IFC ({first}); accepted: a valid IFC file"
-        ) from None
-
-
-# ---------------------------------------------------------------------------------------------- curves
-
-
-def _xyz(coords) -> np.ndarray:
+def _xyz3(coords) -> np.ndarray:
     p = np.zeros(3)
     c = [float(x) for x in coords]
     p[: len(c)] = c
     return p
 
 
-def _unit(v: np.ndarray, what: str) -> np.ndarray:
-    n = float(np.linalg.norm(v))
-    if n == 0.0 or not np.isfinite(n):
-        raise Unreadable(f"a zero {what}")
-    return v / n
+def _axes_matrix(origin: np.ndarray, z: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """IfcOpenShell's a2p: a 4x4 transform from an origin, a z axis and an x axis (y = z cross x; x as given,
+    as IFC's writers give it square to z)."""
+    x = x / np.sqrt(x @ x)
+    z = z / np.sqrt(z @ z)
+    y = cross(z, x)
+    y = y / np.sqrt(y @ y)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, origin
+    return m
 
 
-def _frame(position) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Origin and orthonormal axes (x, y, z) of an IfcAxis2Placement2D/3D."""
-    origin = _xyz(position.Location.Coordinates)
-    axis = getattr(position, "Axis", None)
-    z = _unit(_xyz(axis.DirectionRatios), "axis") if axis else np.array([0.0, 0.0, 1.0])
-    ref = position.RefDirection
-    x = _xyz(ref.DirectionRatios) if ref else np.array([1.0, 0.0, 0.0])
-    x = x - np.dot(x, z) * z
-    if np.linalg.norm(x) < 1e-12:  # RefDirection along the axis: IFC's default choice of x
-        x = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-        x = x - np.dot(x, z) * z
-    x = _unit(x, "reference direction")
-    return origin, x, np.cross(z, x), z
+def _placement_matrix(placement) -> np.ndarray:
+    """An IfcAxis2Placement3D or 2D as a 4x4 transform (IfcOpenShell's get_axis2placement, for points)."""
+    z = (
+        _xyz3(placement.Axis.DirectionRatios)
+        if getattr(placement, "Axis", None)
+        else np.array([0.0, 0.0, 1.0])
+    )
+    x = _xyz3(placement.RefDirection.DirectionRatios) if placement.RefDirection else np.array([1.0, 0.0, 0.0])
+    return _axes_matrix(_xyz3(placement.Location.Coordinates), z, x)
 
 
-def _arc(center: np.ndarray, x, y, z, radius: float, start_rad: float, sweep_rad: float, ccw: bool) -> Arc:
-    e1 = np.cos(start_rad) * x + np.sin(start_rad) * y
-    return Arc(center, float(radius), z if ccw else -z, e1, float(sweep_rad))
+def _operator_matrix(op) -> np.ndarray:
+    """An IfcCartesianTransformationOperator3D as a 4x4 transform (IfcOpenShell's reading of it)."""
+    axis1 = _xyz3(op.Axis1.DirectionRatios) if op.Axis1 else np.array([1.0, 0.0, 0.0])
+    axis2 = _xyz3(op.Axis2.DirectionRatios) if op.Axis2 else np.array([0.0, 1.0, 0.0])
+    axis3 = _xyz3(op.Axis3.DirectionRatios) if op.Axis3 else np.array([0.0, 0.0, 1.0])
+    m = _axes_matrix(_xyz3(op.LocalOrigin.Coordinates), axis3, axis1)
+    if m[:3, 1] @ axis2 < 0.0:  # a mirror
+        m[:3, 1] *= -1.0
+    s1 = float(op.Scale) if op.Scale else 1.0
+    scales = [s1, s1, s1]
+    if op.is_a("IfcCartesianTransformationOperator3DnonUniform"):
+        scales[1] = float(op.Scale2) if op.Scale2 is not None else s1
+        scales[2] = float(op.Scale3) if op.Scale3 is not None else s1
+    m[:3, :3] *= scales
+    return m
 
 
-def _sweep(a0: float, a1: float) -> float:
-    """The turn from angle a0 to a1 counter-clockwise, in (0, 2 pi]."""
-    s = (a1 - a0) % _TWO_PI
-    return _TWO_PI if s == 0.0 and a1 != a0 else s
+@dataclass(frozen=True)
+class _Solid:
+    """A swept disk solid as a body resolves it: the transform from its coordinates to the element's."""
+
+    solid: object
+    element_from_solid: np.ndarray
 
 
-def _trim_angle(trims, master: str, origin, x, y, angle_rad: float) -> float:
-    params = [t for t in trims if t.is_a("IfcParameterValue")]
-    points = [t for t in trims if t.is_a("IfcCartesianPoint")]
-    if points and (master == "CARTESIAN" or not params):
-        v = _xyz(points[0].Coordinates) - origin
-        return float(np.arctan2(np.dot(v, y), np.dot(v, x)))
-    if params:
-        return float(params[0].wrappedValue) * angle_rad
-    raise Unreadable("an IfcTrimmedCurve without trims")
+class _Resolver:
+    """Reads elements, each shared entity once: placements, representation maps (what their items resolve
+    to) and directrices (their pieces, or why they have none) are kept by entity id."""
 
+    def __init__(self, ifcopenshell, f, *, length_m: float, angle_rad: float, precision_m: float):
+        self.ifcopenshell = ifcopenshell
+        self.length_m, self.angle_rad, self.precision_m = length_m, angle_rad, precision_m
+        self.types, self.psets = _relations(f)
+        self._placements: dict[int, np.ndarray] = {}
+        self._maps: dict[int, tuple[list[_Solid], set[str]]] = {}
+        self._pieces: dict[int, tuple[list[Curve], np.ndarray] | str] = {}
 
-def _trimmed(c, angle_rad: float) -> list[Curve]:
-    basis = c.BasisCurve
-    master = c.MasterRepresentation or "UNSPECIFIED"
-    if basis.is_a("IfcCircle"):
-        origin, x, y, z = _frame(basis.Position)
-        t1 = _trim_angle(c.Trim1, master, origin, x, y, angle_rad)
-        t2 = _trim_angle(c.Trim2, master, origin, x, y, angle_rad)
-        if c.SenseAgreement:
-            return [_arc(origin, x, y, z, basis.Radius, t1, _sweep(t1, t2), True)]
-        # clockwise from t1 to t2: counter-clockwise about the reversed axis, from the same start
-        return [_arc(origin, x, -y, z, basis.Radius, -t1, _sweep(t2, t1), False)]
-    if basis.is_a("IfcLine"):
-        p0 = _xyz(basis.Pnt.Coordinates)
-        d = _xyz(basis.Dir.Orientation.DirectionRatios)
-        d = d / np.linalg.norm(d) * float(basis.Dir.Magnitude)
+    def placement(self, placement) -> np.ndarray:
+        """World transform of an IfcLocalPlacement chain (file units)."""
+        key = placement.id()
+        if key not in self._placements:
+            if not placement.is_a("IfcLocalPlacement"):
+                raise Unreadable(f"a placement the reader does not follow ({placement.is_a()})")
+            parent = placement.PlacementRelTo
+            up = self.placement(parent) if parent is not None else np.eye(4)
+            try:
+                here = _placement_matrix(placement.RelativePlacement)
+            except (AttributeError, TypeError, ValueError):  # a placement along an alignment, or broken
+                raise Unreadable(
+                    f"a placement the reader does not follow ({placement.RelativePlacement.is_a()})"
+                ) from None
+            self._placements[key] = up @ here
+        return self._placements[key]
 
-        def at(trims) -> np.ndarray:
-            pts = [t for t in trims if t.is_a("IfcCartesianPoint")]
-            params = [t for t in trims if t.is_a("IfcParameterValue")]
-            if pts and (master == "CARTESIAN" or not params):
-                return _xyz(pts[0].Coordinates)
-            if params:
-                return p0 + float(params[0].wrappedValue) * d
-            raise Unreadable("an IfcTrimmedCurve without trims")
-
-        a, b = at(c.Trim1), at(c.Trim2)
-        return [Line(a, b) if c.SenseAgreement else Line(b, a)]
-    raise Unreadable(f"an IfcTrimmedCurve of an {basis.is_a()}")
-
-
-def arc_through(p0: np.ndarray, p1: np.ndarray, p2: np.ndarray) -> Arc:
-    """The circular arc from ``p0`` through ``p1`` to ``p2`` (IFC4's IfcArcIndex)."""
-    a, b = p0 - p2, p1 - p2
-    axb = np.cross(a, b)
-    n2 = float(np.dot(axb, axb))
-    if n2 <= 1e-24 * max(float(np.dot(a, a)), float(np.dot(b, b))) ** 2:
-        raise Unreadable("an IfcArcIndex through three points in a line")
-    center = p2 + np.cross(np.dot(a, a) * b - np.dot(b, b) * a, axb) / (2.0 * n2)
-    axis = _unit(np.cross(p1 - p0, p2 - p1), "arc axis")
-    e1 = _unit(p0 - center, "arc radius")
-    radius = float(np.mean([np.linalg.norm(p - center) for p in (p0, p1, p2)]))
-    v = p2 - center
-    end = float(np.arctan2(np.dot(np.cross(e1, v), axis), np.dot(e1, v)))
-    return Arc(center, radius, axis, e1, _sweep(0.0, end))
-
-
-def _indexed(c) -> list[Curve]:
-    pts = [_xyz(p) for p in c.Points.CoordList]
-
-    def point(i: int) -> np.ndarray:
-        if not 1 <= i <= len(pts):
-            raise Unreadable(f"an IfcIndexedPolyCurve index {i} outside its {len(pts)} points")
-        return pts[i - 1]
-
-    if not c.Segments:
-        return [Line(a, b) for a, b in zip(pts, pts[1:], strict=False)]
-    out: list[Curve] = []
-    for seg in c.Segments:
-        idx = [int(i) for i in seg.wrappedValue]
-        if seg.is_a("IfcLineIndex"):
-            out += [Line(point(i), point(j)) for i, j in zip(idx, idx[1:], strict=False)]
-        elif seg.is_a("IfcArcIndex"):
-            out.append(arc_through(point(idx[0]), point(idx[1]), point(idx[2])))
-        else:
-            raise Unreadable(f"an IfcIndexedPolyCurve segment {seg.is_a()}")
-    return out
-
-
-def _reversed(c: Curve) -> Curve:
-    if c.kind == "line":
-        return Line(c.end, c.start)
-    return Arc(c.center, c.radius, -c.axis, (c.end - c.center) / c.radius, c.sweep)
-
-
-def directrix_pieces(curve, angle_rad: float = 1.0) -> list[Curve]:
-    """Centerline pieces of a directrix, in the coordinates and length unit it is written in.
-
-    ``angle_rad``: radians per plane angle unit of the file (trimming parameters of circles use it).
-    """
-    kind = curve.is_a()
-    if curve.is_a("IfcPolyline"):
-        pts = [_xyz(p.Coordinates) for p in curve.Points]
-        return [Line(a, b) for a, b in zip(pts, pts[1:], strict=False)]
-    if curve.is_a("IfcIndexedPolyCurve"):
-        return _indexed(curve)
-    if curve.is_a("IfcTrimmedCurve"):
-        return _trimmed(curve, angle_rad)
-    if curve.is_a("IfcCircle"):
-        origin, x, y, z = _frame(curve.Position)
-        return [_arc(origin, x, y, z, curve.Radius, 0.0, _TWO_PI, True)]
-    if curve.is_a("IfcCompositeCurve"):
-        out: list[Curve] = []
-        for seg in curve.Segments:
-            if not seg.is_a("IfcCompositeCurveSegment"):
-                raise Unreadable(f"an IfcCompositeCurve of {seg.is_a()} segments")
-            pieces = directrix_pieces(seg.ParentCurve, angle_rad)
-            out += pieces if seg.SameSense else [_reversed(p) for p in reversed(pieces)]
-        return out
-    raise Unreadable(f"a directrix of {kind}")
-
-
-def filleted(pieces: list[Curve], radius: float) -> list[Curve]:
-    """Consecutive straight pieces with each corner rounded to ``radius`` (IfcSweptDiskSolidPolygonal's
-    FilletRadius): the legs cut back where the arc touches them, the arc turning in their plane."""
-    if radius <= 0.0 or len(pieces) < 2:
-        return pieces
-    if any(c.kind != "line" for c in pieces):
-        raise Unreadable("a FilletRadius on a directrix with arcs")
-    starts = [c.start for c in pieces]
-    ends = [c.end for c in pieces]
-    arcs: list[Arc | None] = []
-    for k in range(len(pieces) - 1):
-        u, v = pieces[k].direction, pieces[k + 1].direction
-        turn = float(np.arccos(np.clip(np.dot(u, v), -1.0, 1.0)))
-        if turn < 1e-9:
-            arcs.append(None)
-            continue
-        if turn > np.pi - 1e-9:
-            raise Unreadable("a FilletRadius at a corner that turns back on itself")
-        cut = radius * np.tan(turn / 2.0)
-        ends[k], starts[k + 1] = pieces[k].end - u * cut, pieces[k + 1].start + v * cut
-        inward = _unit(v - np.dot(v, u) * u, "fillet normal")
-        center = ends[k] + radius * inward
-        arcs.append(Arc(center, float(radius), _unit(np.cross(u, v), "fillet axis"), -inward, turn))
-    out: list[Curve] = []
-    for k in range(len(pieces)):
-        leg = Line(starts[k], ends[k])
-        if np.dot(leg.end - leg.start, pieces[k].direction) < -MIN_LENGTH_M:
-            raise Unreadable("a FilletRadius larger than its legs allow")
-        if leg.length >= MIN_LENGTH_M:
-            out.append(leg)
-        if k < len(arcs) and arcs[k] is not None:
-            out.append(arcs[k])
-    return out
-
-
-def transformed(c: Curve, world_from_local: np.ndarray) -> Curve:
-    """A piece moved by a 4x4 transform that may scale uniformly (and mirror)."""
-    L, t = world_from_local[:3, :3], world_from_local[:3, 3]
-    if c.kind == "line":
-        return Line(L @ c.start + t, L @ c.end + t)
-    u, v = L @ c.e1, L @ c.e2
-    su = float(np.linalg.norm(u))
-    e1, e2 = u / su, v / float(np.linalg.norm(v))
-    return Arc(L @ c.center + t, float(c.radius * su), np.cross(e1, e2), e1, float(c.sweep))
-
-
-def _uniform_scale(world_from_local: np.ndarray) -> float:
-    sv = np.linalg.svd(world_from_local[:3, :3], compute_uv=False)
-    if sv[-1] <= 0.0 or sv[0] / sv[-1] - 1.0 > _SCALE_TOL:
-        raise Unreadable("a non-uniform scale")
-    return float(np.mean(sv))
-
-
-# ---------------------------------------------------------------------------------------------- elements
-
-
-def _solids(ifcopenshell, element) -> list[tuple[object, np.ndarray]]:
-    """The element's swept disk solids, each with the transform from its coordinates to the element's."""
-    shape = element.Representation
-    reps = list(shape.Representations) if shape else []
-    body = [r for r in reps if (r.RepresentationIdentifier or "") == "Body"] or reps
-    found: list[tuple[object, np.ndarray]] = []
-    others: set[str] = set()
-
-    def walk(items, m: np.ndarray, depth: int) -> None:
+    def _walk(self, items, m: np.ndarray, depth: int, found: list[_Solid], others: set[str]) -> None:
         for item in items:
             if item.is_a("IfcSweptDiskSolid"):
-                found.append((item, m))
-            elif item.is_a("IfcMappedItem") and depth < 8:
+                found.append(_Solid(item, m))
+            elif item.is_a("IfcMappedItem") and depth < _MAX_MAP_DEPTH:
                 target = item.MappingTarget
                 if not target.is_a("IfcCartesianTransformationOperator3D"):
                     raise Unreadable(f"a mapped item with a {target.is_a()}")
-                mapped = ifcopenshell.util.placement.get_mappeditem_transformation(item)
-                walk(item.MappingSource.MappedRepresentation.Items, m @ mapped, depth + 1)
+                solids, inner = self._map(item.MappingSource, depth + 1)
+                mm = m @ _operator_matrix(target)
+                found += [_Solid(s.solid, mm @ s.element_from_solid) for s in solids]
+                others |= inner
             else:
                 others.add(item.is_a())
 
-    for r in body:
-        walk(r.Items, np.eye(4), 0)
-    if not found:
-        what = ", ".join(sorted(others)) if others else "no body"
-        raise Unreadable(f"no IfcSweptDiskSolid ({what})")
-    return found
+    def _map(self, source, depth: int) -> tuple[list[_Solid], set[str]]:
+        """An IfcRepresentationMap's solids, each with its transform from the solid to the mapped space."""
+        key = source.id()
+        if key not in self._maps:
+            found: list[_Solid] = []
+            others: set[str] = set()
+            origin = _placement_matrix(source.MappingOrigin)
+            self._walk(source.MappedRepresentation.Items, origin, depth, found, others)
+            self._maps[key] = (found, others)
+        return self._maps[key]
+
+    def solids(self, element) -> list[_Solid]:
+        """The element's swept disk solids; Unreadable when its body has none."""
+        shape = element.Representation
+        reps = list(shape.Representations) if shape else []
+        body = [r for r in reps if (r.RepresentationIdentifier or "") == "Body"] or reps
+        found: list[_Solid] = []
+        others: set[str] = set()
+        for r in body:
+            self._walk(r.Items, np.eye(4), 0, found, others)
+        if not found:
+            what = ", ".join(sorted(others)) if others else "no body"
+            raise Unreadable(f"no IfcSweptDiskSolid ({what})")
+        return found
+
+    def pieces(self, solid) -> tuple[list[Curve], np.ndarray]:
+        """The solid's directrix as pieces in its own coordinates (file units) and their lengths; Unreadable
+        saying why not."""
+        key = solid.id()
+        if key not in self._pieces:
+            try:
+                got = directrix_pieces(solid.Directrix, self.angle_rad)
+                self._pieces[key] = (got, np.array([c.length for c in got]))
+            except Unreadable as why:
+                self._pieces[key] = str(why)
+        got = self._pieces[key]
+        if isinstance(got, str):
+            raise Unreadable(got)
+        return got
 
 
-def _nominal_diameter(ifcopenshell, element) -> float | None:
-    for e in (element, ifcopenshell.util.element.get_type(element)):
-        d = getattr(e, "NominalDiameter", None) if e is not None else None
-        if d is not None:
-            return float(d)
-    return None
-
-
-def _role(ifcopenshell, element) -> str | None:
-    for e in (element, ifcopenshell.util.element.get_type(element)):
-        if e is None:
+def _relations(f) -> tuple[dict[int, object], dict[int, dict]]:
+    """Every object's type, and its ``RebarServo_Bar`` properties, from one pass over the relations (not an
+    inverse lookup an element)."""
+    types: dict[int, object] = {}
+    for rel in f.by_type("IfcRelDefinesByType"):
+        for obj in rel.RelatedObjects or []:
+            types[obj.id()] = rel.RelatingType
+    psets: dict[int, dict] = {}
+    for rel in f.by_type("IfcRelDefinesByProperties"):
+        pdef = rel.RelatingPropertyDefinition
+        if not (getattr(pdef, "is_a", None) and pdef.is_a("IfcPropertySet") and pdef.Name == PSET_NAME):
             continue
-        role = getattr(e, "PredefinedType", None) or getattr(e, "BarRole", None)
-        if role == "USERDEFINED":
-            role = getattr(e, "ObjectType", None) or getattr(e, "ElementType", None) or role
-        if role and role != "NOTDEFINED":
-            return str(role)
-    return None
+        props = {
+            p.Name: p.NominalValue.wrappedValue
+            for p in pdef.HasProperties or []
+            if p.is_a("IfcPropertySingleValue") and p.NominalValue is not None
+        }
+        for obj in rel.RelatedObjects or []:
+            psets[obj.id()] = props
+    return types, psets
 
 
-def read_element(ifcopenshell, element, *, length_m: float, angle_rad: float) -> list[ReadBar]:
-    """The bars of one element (one per swept disk solid); Unreadable when it has none to read."""
+class _Element:
+    """What an element gives every solid of it, each looked up once: its type, role and nominal diameter."""
+
+    def __init__(self, r: _Resolver, element):
+        self.e = element
+        self._type = r.types.get(element.id())
+
+    def type(self):
+        return self._type
+
+    def nominal_diameter(self) -> float | None:
+        for e in (self.e, self.type()):
+            d = getattr(e, "NominalDiameter", None) if e is not None else None
+            if d is not None:
+                return float(d)
+        return None
+
+    def role(self) -> str | None:
+        for e in (self.e, self.type()):
+            if e is None:
+                continue
+            role = getattr(e, "PredefinedType", None) or getattr(e, "BarRole", None)
+            if role == "USERDEFINED":
+                role = getattr(e, "ObjectType", None) or getattr(e, "ElementType", None) or role
+            if role and role != "NOTDEFINED":
+                return str(role)
+        return None
+
+
+@dataclass
+class ElementRead:
+    """One element's bars, the solids it could not read and the stubs it dropped."""
+
+    bars: list[ReadBar] = field(default_factory=list)
+    skipped: list[Skipped] = field(default_factory=list)
+    dropped: list[Skipped] = field(default_factory=list)
+
+
+def _solid_bar(r: _Resolver, el: _Element, s: _Solid, world: np.ndarray, k: int, psets: dict) -> ReadBar:
+    """One solid as a bar: pieces in metres in the world, those under the precision dropped; Unreadable."""
+    element = el.e
+    m = np.diag([r.length_m, r.length_m, r.length_m, 1.0]) @ world @ s.element_from_solid
+    scale = uniform_scale(m)
+    solid = s.solid
+    radius = solid.Radius
+    if radius is not None and float(radius) > 0.0:
+        diameter = 2.0 * float(radius) * scale
+    else:
+        nominal = el.nominal_diameter()
+        diameter = (nominal if nominal is not None else float(radius or 0.0)) * r.length_m
+    if not diameter > 0.0:
+        raise Unreadable(f"a non-positive diameter ({diameter:g} m)")
+    local, lengths = r.pieces(solid)
+    if not local:
+        raise Unreadable("an empty directrix")
+    length_m = float(lengths.sum()) * scale
+    if length_m < diameter:
+        raise _Stub(f"a stub {length_m * 1e3:.3g} mm long, shorter than its {diameter * 1e3:.3g} mm diameter")
+    if lengths.min() * scale < r.precision_m:
+        local = [c for c, n in zip(local, lengths, strict=True) if n * scale >= r.precision_m]
+    if not local:
+        raise Unreadable("every piece shorter than the model's precision")
+    if solid.is_a("IfcSweptDiskSolidPolygonal") and solid.FilletRadius:
+        local = filleted(local, float(solid.FilletRadius))
+    pieces = [transformed(c, m) for c in local]
+    if any(c.length < MIN_LENGTH_M for c in pieces):
+        raise Unreadable("a zero-length segment")
+    return ReadBar(
+        element.GlobalId,
+        element.is_a(),
+        k,
+        pieces,
+        diameter,
+        el.role(),
+        int(psets.get("Direction", -1)),
+        int(psets.get("Layer", -1)),
+    )
+
+
+class _Stub(Exception):
+    """A solid shorter than its diameter (the message says how long)."""
+
+
+def read_element(r: _Resolver, element) -> ElementRead:
+    """The bars of one element (one per swept disk solid), and what it could not read, solid by solid."""
+    out = ElementRead()
+    gid, cls = element.GlobalId, element.is_a()
     try:
-        world = ifcopenshell.util.placement.get_local_placement(element.ObjectPlacement)
-    except Exception:  # a grid or linear placement, or a broken chain
-        kind = element.ObjectPlacement.is_a() if element.ObjectPlacement else "none"
-        raise Unreadable(f"a placement the reader does not follow ({kind})") from None
-    psets = ifcopenshell.util.element.get_pset(element, PSET_NAME) or {}
-    role = _role(ifcopenshell, element)
-    bars = []
-    for k, (solid, item_m) in enumerate(_solids(ifcopenshell, element)):
-        m = world @ item_m
-        m = np.diag([length_m, length_m, length_m, 1.0]) @ m
-        scale = _uniform_scale(m)
-        radius = solid.Radius
-        if radius is not None and float(radius) > 0.0:
-            diameter = 2.0 * float(radius) * scale
-        else:
-            nominal = _nominal_diameter(ifcopenshell, element)
-            diameter = (nominal if nominal is not None else float(radius or 0.0)) * length_m
-        if not diameter > 0.0:
-            raise Unreadable(f"a non-positive diameter ({diameter:g} m)")
-        local = directrix_pieces(solid.Directrix, angle_rad)
-        if local and min(c.length for c in local) * scale < MIN_LENGTH_M:
-            raise Unreadable("a zero-length segment")
-        if solid.is_a("IfcSweptDiskSolidPolygonal") and solid.FilletRadius:
-            local = filleted(local, float(solid.FilletRadius))
-        pieces = [transformed(c, m) for c in local]
-        if not pieces:
-            raise Unreadable("an empty directrix")
-        if min(c.length for c in pieces) < MIN_LENGTH_M:
-            raise Unreadable("a zero-length segment")
-        bars.append(
-            ReadBar(
-                element.GlobalId,
-                element.is_a(),
-                k,
-                pieces,
-                diameter,
-                role,
-                int(psets.get("Direction", -1)),
-                int(psets.get("Layer", -1)),
-            )
-        )
-    return bars
+        world = np.eye(4) if element.ObjectPlacement is None else r.placement(element.ObjectPlacement)
+        solids = r.solids(element)
+    except Unreadable as why:
+        out.skipped.append(Skipped(gid, cls, str(why), f"#{element.id()}"))
+        return out
+    el = _Element(r, element)
+    psets = r.psets.get(element.id(), {})
+    for k, s in enumerate(solids):
+        try:
+            out.bars.append(_solid_bar(r, el, s, world, k, psets))
+        except Unreadable as why:
+            out.skipped.append(Skipped(gid, cls, str(why), f"#{s.solid.id()}"))
+        except _Stub as why:
+            out.dropped.append(Skipped(gid, cls, str(why), f"#{s.solid.id()}"))
+    return out
+
+
+def model_precision(f) -> float:
+    """The model's precision in its length unit: its Model context's Precision, else IFC's default."""
+    contexts = [
+        c
+        for c in f.by_type("IfcGeometricRepresentationContext")
+        if not c.is_a("IfcGeometricRepresentationSubContext")
+    ]
+    model = [c for c in contexts if (c.ContextType or "").lower() == "model"] or contexts
+    values = [float(c.Precision) for c in model if c.Precision is not None and float(c.Precision) > 0.0]
+    return max(values) if values else DEFAULT_PRECISION
 
 
 # ---------------------------------------------------------------------------------------------- filters
@@ -546,20 +486,23 @@ def _in_box(c: Curve, lo: np.ndarray, hi: np.ndarray) -> bool:
 
 
 def read_ifc(mesh: IfcMesh, path: Path) -> IfcRead:
-    """Read the bars ``mesh`` selects from ``path``; elements the reader cannot read are listed, not raised."""
-    schema = file_schema(path)
-    ifcopenshell = _ifcopenshell()
-    f = open_ifc(path)
+    """Read the bars ``mesh`` selects from ``path``; solids the reader cannot read are listed, not raised."""
+    whole = open_whole(path)
+    ifcopenshell = ifcopenshell_module()
+    f = whole.model
     length_m = float(ifcopenshell.util.unit.calculate_unit_scale(f, "LENGTHUNIT"))
     angle_rad = float(ifcopenshell.util.unit.calculate_unit_scale(f, "PLANEANGLEUNIT"))
+    precision_m = model_precision(f) * length_m
     elements = _select(ifcopenshell, f, mesh, path)
+    resolver = _Resolver(ifcopenshell, f, length_m=length_m, angle_rad=angle_rad, precision_m=precision_m)
     bars: list[ReadBar] = []
     skipped: list[Skipped] = []
+    dropped: list[Skipped] = []
     for e in elements:
-        try:
-            bars += read_element(ifcopenshell, e, length_m=length_m, angle_rad=angle_rad)
-        except Unreadable as why:
-            skipped.append(Skipped(e.GlobalId, e.is_a(), str(why)))
+        got = read_element(resolver, e)
+        bars += got.bars
+        skipped += got.skipped
+        dropped += got.dropped
     if mesh.bbox_m is not None:
         lo, hi = np.asarray(mesh.bbox_m[0], float), np.asarray(mesh.bbox_m[1], float)
         bars = [b for b in bars if any(_in_box(c, lo, hi) for c in b.curves)]
@@ -568,24 +511,30 @@ def read_ifc(mesh: IfcMesh, path: Path) -> IfcRead:
                 f"mesh.bbox_m = {[list(c) for c in mesh.bbox_m]}: no bar of {path} passes through it; accepted: "
                 "a box (metres, the model's world frame) that bars pass through"
             )
-    digest = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for block in iter(lambda: fh.read(1 << 20), b""):
-            digest.update(block)
-    return IfcRead(path, digest.hexdigest(), schema, length_m, len(elements), bars, skipped)
+    return IfcRead(
+        path, whole.sha256, whole.schema, length_m, len(elements), bars, skipped, dropped, precision_m
+    )
+
+
+def reasons(items: list[Skipped], most: int = 20) -> str:
+    """``reason: #id of GlobalId, ...; reason: ...``, at most ``most`` entities a reason."""
+    by_reason: dict[str, list[str]] = {}
+    for s in items:
+        by_reason.setdefault(s.reason, []).append(f"{s.entity} of {s.global_id}" if s.entity else s.global_id)
+    parts = []
+    for reason, where in by_reason.items():
+        more = f" and {len(where) - most} more" if len(where) > most else ""
+        parts.append(f"{reason}: {', '.join(where[:most])}{more}")
+    return "; ".join(parts)
 
 
 def skipped_line(path: Path, read: IfcRead) -> str:
-    """One line naming how many elements were not read, why, and their GlobalIds."""
-    by_reason: dict[str, list[str]] = {}
-    for s in read.skipped:
-        by_reason.setdefault(s.reason, []).append(s.global_id)
-    parts = [f"{reason}: {', '.join(gids)}" for reason, gids in by_reason.items()]
-    n = len(read.skipped)
+    """One line naming how many elements were not read whole, why, and each solid's entity id and GlobalId."""
+    n = len({s.global_id for s in read.skipped})
     return (
         f"mesh.ifc_path {path}: {n} of {read.elements} selected element{'s' if read.elements != 1 else ''} "
-        f"could not be read as bars ({'; '.join(parts)}); accepted: bars drawn as IfcSweptDiskSolid along lines "
-        "and circular arcs with a positive radius, or mesh.skip_unreadable: true to go on without them"
+        f"could not be read whole ({reasons(read.skipped)}); accepted: bars drawn as IfcSweptDiskSolid along "
+        "lines and circular arcs with a positive radius, or mesh.skip_unreadable: true to go on without them"
     )
 
 
@@ -622,35 +571,46 @@ def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
     if read.skipped and not mesh.skip_unreadable:
         raise ConfigError(skipped_line(path, read))
     if not read.bars:
+        why = reasons(read.skipped + read.dropped)
         raise ConfigError(
-            f"mesh.ifc_path {path}: none of its {read.elements} selected elements could be read as bars; "
-            "accepted: bars drawn as IfcSweptDiskSolid along lines and circular arcs"
+            f"mesh.ifc_path {path}: none of its {read.elements} selected elements gave a bar"
+            + (f" ({why})" if why else "")
+            + "; accepted: bars drawn as IfcSweptDiskSolid along lines and circular arcs, longer than their diameter"
         )
     rngs = rng_streams(cfg.seed)
     world_from_mesh = pose_matrix(cfg, rngs["pose"])
     R, t = world_from_mesh[:3, :3], world_from_mesh[:3, 3]
     bars: list[Bar] = []
     gids, classes, pieces, roles = [], [], [], []
+    in_box: list[bool] = []
+    still = bool(np.array_equal(world_from_mesh, np.eye(4)))  # no pose: the pieces as read
+    lo, hi = (np.asarray(c, float) for c in mesh.bbox_m) if mesh.bbox_m is not None else (None, None)
     for bar_id, rb in enumerate(read.bars):
         for k, c in enumerate(rb.curves):
-            bars.append(Bar(bar_id, c.transformed(R, t), rb.diameter_m, rb.direction, rb.layer))
+            bars.append(
+                Bar(bar_id, c if still else c.transformed(R, t), rb.diameter_m, rb.direction, rb.layer)
+            )
             gids.append(rb.global_id)
             classes.append(rb.ifc_class)
             pieces.append(k)
             roles.append(rb.role)
-    fit = fit_surface(
+            in_box.append(lo is None or _in_box(c, lo, hi))
+    faces = fit_faces(
         [b.curve for b in bars],
         np.array([b.diameter_m for b in bars]),
+        bar_of=np.array([b.bar_id for b in bars]),
         surface=mesh.surface,
         camera_side=mesh.camera_side,
         mat_gap_m=mesh.mat_gap_m,
         top_mat=mesh.top_mat,
         need_mats=mesh.crossings == "top_mat",
         world_from_model=R,
+        preference=None if lo is None else np.array([b.curve.length for b in bars]) * np.array(in_box),
     )
+    fit = faces.surface
     bars = [
         replace(b, layer=int(m), direction=_direction(b, int(m), fit))
-        for b, m in zip(bars, fit.piece_mat, strict=True)
+        for b, m in zip(bars, faces.piece_mat, strict=True)
     ]
     source = IfcSource(
         str(path),
@@ -661,6 +621,7 @@ def ifc_layout(cfg: MeshConfig, config_dir: Path | None) -> MeshLayout:
         classes,
         pieces,
         roles,
-        [{"global_id": s.global_id, "ifc_class": s.ifc_class, "reason": s.reason} for s in read.skipped],
+        [s.record() for s in read.skipped],
+        [s.record() for s in read.dropped],
     )
-    return MeshLayout(bars, world_from_mesh, "ifc", None, rngs, ifc=source, surface=fit)
+    return MeshLayout(bars, world_from_mesh, "ifc", None, rngs, ifc=source, surface=fit, faces=faces)

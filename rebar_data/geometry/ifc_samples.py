@@ -1,4 +1,5 @@
-"""Sample IFC models the project makes itself: a reinforced wall with stirrups and bent bars.
+"""Sample IFC models the project makes itself: a reinforced wall with stirrups and bent bars, and a lift
+shaft (a cage: four walls of bars around a core) drawn as mapped items.
 
 ``pipelines/ifc/wall.ifc`` (what ``pipelines/ifc-wall.yaml`` reads) is written by::
 
@@ -9,6 +10,13 @@ moved to (3, 2, 0.5) m, so its faces are neither axis-aligned nor at the origin.
 12 mm bars at 150 mm: horizontal bars outside (cover 30 mm), vertical bars inside them, touching. Six closed
 8 mm stirrups (four legs, four 20 mm bends) hold the three vertical bars at each end of both mats, and
 three 10 mm U-bars (two legs, two 30 mm bends and a straight top) cap the wall between the vertical bars.
+
+The shaft (:func:`shaft_records`) is square about the z axis, its walls ``thickness_m`` thick, ``half_m`` from the
+axis to a wall's outer face, one storey of ``storey_m`` above another. Each wall has two mats of 12 mm bars at
+``spacing_m``: closed horizontal loops round the shaft (four legs, four 50 mm bends) outside, vertical bars
+inside them, touching; the inner mat the same way round, its loops nearest the core. With ``mapped`` the bars
+are written as a placement tool writes them: per storey and mat one element of mapped items for the loops and
+one each for the vertical bars of the two pairs of opposite walls.
 """
 
 from __future__ import annotations
@@ -144,6 +152,63 @@ def write_wall(path: str | Path, *, schema: str = "IFC4", spec: WallSpec = WallS
         project_name="ifc-wall",
         file_name=path.name,
         timestamp=WALL_TIMESTAMP,
+    )
+    return write_model(model, path)
+
+
+def _loop(half: float, z: float, bend: float) -> list[Curve]:
+    """A closed square loop about the z axis at height ``z``, ``half`` from the axis to its legs' axes."""
+    pieces: list[Curve] = []
+    c = half - bend
+    for k in range(4):
+        out, along = Rotation.from_euler("z", 90.0 * k, degrees=True).as_matrix()[:, :2].T
+        up = _v(0, 0, z)
+        pieces.append(Line(half * out - c * along + up, half * out + c * along + up))
+        pieces.append(_quarter(c * out + c * along + up, bend, out, along))
+    return pieces
+
+
+def shaft_records(
+    *,
+    storeys: int = 1,
+    half_m: float = 1.3,
+    thickness_m: float = 0.25,
+    storey_m: float = 3.0,
+    spacing_m: float = 0.15,
+    mapped: bool = True,
+) -> list[BarRecord]:
+    """The lift shaft's bars (module doc), in the world: the shaft's axis is z, its base at z = 0."""
+    d, cover, bend = MAT_DIAMETER_M, COVER_M, 0.05
+    loops_outer = half_m - cover - d / 2.0
+    loops_inner = half_m - thickness_m + cover + d / 2.0
+    mats = (("outer", loops_outer, loops_outer - d), ("inner", loops_inner, loops_inner + d))
+    levels = np.arange(spacing_m / 2.0, storey_m - cover, spacing_m)
+    bars: list[tuple[list[Curve], str]] = []
+    for storey in range(storeys):
+        z0 = storey * storey_m
+        for name, loop_half, vertical_half in mats:
+            for z in levels:
+                bars.append((_loop(loop_half, z0 + z, bend), f"{storey}/{name}/loops"))
+            n = int(np.floor(2.0 * (vertical_half - bend - 0.05) / spacing_m)) + 1
+            along = (np.arange(n) - (n - 1) / 2.0) * spacing_m
+            for k in range(4):
+                out, side = Rotation.from_euler("z", 90.0 * k, degrees=True).as_matrix()[:, :2].T
+                for u in along:
+                    foot = vertical_half * out + u * side + _v(0, 0, z0 + cover)
+                    bars.append(
+                        ([Line(foot, foot + _v(0, 0, storey_m - 2 * cover))], f"{storey}/{name}/v{k % 2}")
+                    )
+    return [
+        BarRecord(k, curves, d, -1, -1, global_id(f"ifc-shaft/{k}"), "MAIN", group if mapped else None)
+        for k, (curves, group) in enumerate(bars)
+    ]
+
+
+def write_shaft(path: str | Path, **shape) -> Path:
+    """Write the lift shaft (:func:`shaft_records`'s keywords) to ``path``."""
+    path = Path(path)
+    model = ifc_model(
+        shaft_records(**shape), project_name="ifc-shaft", file_name=path.name, timestamp=WALL_TIMESTAMP
     )
     return write_model(model, path)
 

@@ -8,6 +8,11 @@ IfcCompositeCurve. Each bar carries NominalDiameter, CrossSectionArea, BarLength
 IFC4, BarRole in IFC2X3), ``Name`` ``bar_<id>``, ``Tag`` the bar id, and the property set ``RebarServo_Bar``
 (BarId, Direction, Layer). Tie wires are left out. GlobalIds are derived from the mesh config, so the same
 config gives the same file (with ``SOURCE_DATE_EPOCH`` set, byte for byte).
+
+Bars that share a ``BarRecord.group`` are written as some authoring tools write a placement of equal bars: one
+IfcReinforcingBar (the group's first bar's GlobalId and property set) whose body holds one IfcMappedItem per
+bar, all of one IfcRepresentationMap (the first bar's shape), each moved by its MappingTarget. The bars of a
+group must be translations of its first.
 """
 
 from __future__ import annotations
@@ -48,6 +53,7 @@ class BarRecord:
     layer: int
     global_id: str
     role: str = "MAIN"
+    group: str | None = None  # bars of one group: one element of mapped items (module doc)
 
     @property
     def length_m(self) -> float:
@@ -184,6 +190,30 @@ class _Writer:
         )
         return trimmed, float(c.sweep)
 
+    def mapped(self, shape, context, offsets: list[np.ndarray]):
+        """A body of one IfcMappedItem of ``shape`` per offset (a translation)."""
+        f = self.f
+        source = f.create_entity(
+            "IfcRepresentationMap", MappingOrigin=self.origin, MappedRepresentation=shape
+        )
+        items = [
+            f.create_entity(
+                "IfcMappedItem",
+                MappingSource=source,
+                MappingTarget=f.create_entity(
+                    "IfcCartesianTransformationOperator3D", LocalOrigin=self.point(t), Scale=1.0
+                ),
+            )
+            for t in offsets
+        ]
+        return f.create_entity(
+            "IfcShapeRepresentation",
+            ContextOfItems=context,
+            RepresentationIdentifier="Body",
+            RepresentationType="MappedRepresentation",
+            Items=items,
+        )
+
     def directrix(self, curves: list[Curve]) -> tuple[object, float]:
         if len(curves) == 1:
             return self.segment(curves[0])
@@ -202,6 +232,40 @@ class _Writer:
                 )
             )
         return self.f.create_entity("IfcCompositeCurve", Segments=segments, SelfIntersect=False), total
+
+
+def _groups(bars: list[BarRecord]) -> list[list[BarRecord]]:
+    """The bars in order, those of one ``group`` together (at its first bar's place)."""
+    out: list[list[BarRecord]] = []
+    index: dict[str, int] = {}
+    for bar in bars:
+        if bar.group is None:
+            out.append([bar])
+        elif bar.group in index:
+            out[index[bar.group]].append(bar)
+        else:
+            index[bar.group] = len(out)
+            out.append([bar])
+    return out
+
+
+def _offset(first: BarRecord, bar: BarRecord) -> np.ndarray:
+    """The translation that moves ``first`` onto ``bar`` (a ValueError when none does)."""
+    t = bar.curves[0].point(0.0) - first.curves[0].point(0.0)
+    same = len(bar.curves) == len(first.curves) and bar.diameter_m == first.diameter_m
+    for a, b in zip(first.curves, bar.curves, strict=False):
+        same = same and a.kind == b.kind and abs(a.length - b.length) <= 1e-9
+        ends = (a.point(0.0), a.point(a.length), b.point(0.0), b.point(b.length))
+        same = (
+            same
+            and np.allclose(ends[0] + t, ends[2], atol=1e-9)
+            and np.allclose(ends[1] + t, ends[3], atol=1e-9)
+        )
+    if not same:
+        raise ValueError(
+            f"bar {bar.bar_id} of group {bar.group!r} is not a translation of bar {first.bar_id}"
+        )
+    return t
 
 
 def ifc_model(
@@ -278,7 +342,8 @@ def ifc_model(
 
     surface = "TEXTURED" if textured else "PLAIN"
     products = []
-    for bar in bars:
+    for group in _groups(bars):
+        bar = group[0]
         directrix, span = w.directrix(bar.curves)
         params = {"StartParam": 0.0, "EndParam": span} if schema == "IFC2X3" else {}
         solid = f.create_entity(
@@ -291,6 +356,8 @@ def ifc_model(
             RepresentationType="AdvancedSweptSolid",
             Items=[solid],
         )
+        if bar.group is not None:
+            shape = w.mapped(shape, body, [_offset(bar, other) for other in group])
         role = {"BarRole": bar.role} if schema == "IFC2X3" else {"PredefinedType": bar.role}
         product = f.create_entity(
             "IfcReinforcingBar",

@@ -23,7 +23,7 @@ from rebar_data.config import Layer, MeshConfig, PlanarMesh, TunnelSegmentMesh
 from rebar_data.geometry.curves import Arc, Curve, Line
 
 if TYPE_CHECKING:
-    from rebar_data.geometry.surface_fit import SurfaceFit
+    from rebar_data.geometry.surface_fit import Faces, SurfaceFit
 
 STREAMS = ("diameter", "missing", "jitter", "bow", "tie_wire", "pose")
 
@@ -54,7 +54,8 @@ class IfcSource:
     ifc_class: list[str]
     piece: list[int]  # index of the piece along its bar
     role: list[str | None]
-    skipped: list[dict] = field(default_factory=list)  # global_id, ifc_class, reason
+    skipped: list[dict] = field(default_factory=list)  # entity, global_id, ifc_class, reason: not read
+    dropped: list[dict] = field(default_factory=list)  # the same for the stubs left out
 
 
 @dataclass(frozen=True)
@@ -68,6 +69,7 @@ class MeshLayout:
     rngs: dict[str, np.random.Generator] = field(default_factory=dict, repr=False)
     ifc: IfcSource | None = None  # a mesh read from IFC (kind "ifc")
     surface: SurfaceFit | None = None  # kind "ifc": the surface fitted to the bars, and their mats
+    faces: Faces | None = None  # kind "ifc": every face (a cage has several); ``surface`` is the chosen one
 
     def outward_normal(self, points_world: np.ndarray) -> np.ndarray:
         """Outward unit normal of the element's surface at (or beside) world points, shape (N, 3); for a

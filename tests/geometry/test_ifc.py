@@ -24,9 +24,10 @@ from rebar_data.cli import main  # noqa: E402
 from rebar_data.config import ConfigError, MeshConfig  # noqa: E402
 from rebar_data.geometry.build import build_rebar_mesh  # noqa: E402
 from rebar_data.geometry.curves import Arc, Line  # noqa: E402
-from rebar_data.geometry.ifc_read import arc_through  # noqa: E402
+from rebar_data.geometry.ifc_curves import arc_through  # noqa: E402
+from rebar_data.geometry.ifc_samples import write_shaft  # noqa: E402
 from rebar_data.geometry.ifc_write import write_ifc  # noqa: E402
-from tests.ifc_models import Model, bar_count, pipeline, read_mesh  # noqa: E402
+from tests.ifc_models import Model, bar_count, pipeline, read_mesh, tekla_group, tiny_line  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -438,15 +439,16 @@ def test_skip_unreadable_goes_on_and_lists_what_it_left_out(tmp_path, capsys):
     cfg = pipeline(tmp_path, {"kind": "ifc", "ifc_path": path.name})
     code, err, out = mesh_cli(tmp_path, cfg, capsys)
     assert code == 2 and err.count("\n") == 0 and not out.exists()
-    assert "1 of 3 selected elements could not be read" in err and brep.GlobalId in err
+    assert "1 of 3 selected elements could not be read whole" in err and brep.GlobalId in err
     assert "IfcFacetedBrep" in err and "skip_unreadable" in err
     cfg = pipeline(tmp_path, {"kind": "ifc", "ifc_path": path.name, "skip_unreadable": True})
     code, err, out = mesh_cli(tmp_path, cfg, capsys)
-    assert code == 0 and "1 IFC element not read" in err
+    assert code == 0 and "1 IFC element not read whole" in err
     summary = json.loads((out / "mesh.json").read_text())
     assert summary["bars"] == 2 and summary["crossings"] == 1
     assert summary["ifc"]["skipped"] == [
         {
+            "entity": f"#{brep.id()}",
             "global_id": brep.GlobalId,
             "ifc_class": "IfcReinforcingBar",
             "reason": "no IfcSweptDiskSolid (IfcFacetedBrep)",
@@ -478,6 +480,122 @@ def _faceted_bar(m: Model):
     return m.element([f.create_entity("IfcFacetedBrep", Outer=shell)], diameter=0.01, kind="Brep")
 
 
+# ---------------------------------------------------------------------------------------------- vendors' exports
+
+
+def test_a_zero_length_connector_is_dropped_and_its_bars_kept(tmp_path, capsys):
+    """Tekla (IFC2X3, millimetres, Precision 1e-5 mm): a group of 5 L-bars and one of 23, each with an IfcLine
+    connector between one bar's legs (magnitude 4.8e-5 mm, trimmed by the same: 2.3e-9 mm long); a bar with a
+    repeated point. The connectors and the repeated point are dropped, every bar kept."""
+    m = Model("IFC2X3", millimetres=True)
+    five = tekla_group(m, 0.0, 5)
+    tekla_group(m, 1000.0, 23, connector_at=11)
+    m.bar(m.polyline([(0, 3400, 0), (500, 3400, 0), (500, 3400, 0), (1000, 3400, 0)]), 6.0, diameter=12.0)
+    m.bar(m.polyline([(500, -100, 12), (500, 3500, 12)]), 6.0, diameter=12.0)  # across all, on top
+    path = m.write(tmp_path / "tekla.ifc")
+    code, err, out = mesh_cli(tmp_path, pipeline(tmp_path, {"kind": "ifc", "ifc_path": path.name}), capsys)
+    assert code == 0, err
+    summary = json.loads((out / "mesh.json").read_text())
+    assert summary["bars"] == 30 and summary["crossings"] == 29
+    assert summary["ifc"]["skipped"] == [] and summary["ifc"]["dropped"] == []
+    bars = pq.read_table(out / "bars.parquet").to_pandas()
+    first = bars[bars.bar_id == 0]  # the connector's bar: its two legs, joined
+    assert first.kind.tolist() == ["line", "line"] and set(first.global_id) == {five.GlobalId}
+    assert first.length_m.tolist() == pytest.approx([1.0, 0.3], abs=1e-9)
+    assert (bars.bar_id == 28).sum() == 2  # the repeated point's zero-length piece dropped
+
+
+def test_an_unreadable_solid_is_reported_alone_with_its_entity_id(tmp_path, capsys):
+    """One element of 24 swept disk solids, one along an IfcEllipse: that solid is named (#id, GlobalId,
+    reason); with skip_unreadable the other 23 are read."""
+    m = Model("IFC4")
+    good = [m.disk(m.polyline([(0, 0.1 * k, 0), (1, 0.1 * k, 0)]), 0.006) for k in range(23)]
+    ellipse = m.f.create_entity("IfcEllipse", Position=m.axes(), SemiAxis1=0.5, SemiAxis2=0.2)
+    bad = m.disk(ellipse, 0.006)
+    group = m.element(good[:11] + [bad] + good[11:], diameter=0.012)
+    m.bar(m.polyline([(0.5, -0.1, 0.012), (0.5, 2.4, 0.012)]), 0.006, diameter=0.012)
+    path = m.write(tmp_path / "group.ifc")
+    code, err, out = mesh_cli(tmp_path, pipeline(tmp_path, {"kind": "ifc", "ifc_path": path.name}), capsys)
+    assert code == 2 and err.count("\n") == 0 and not out.exists()
+    assert f"a directrix of IfcEllipse: #{bad.id()} of {group.GlobalId}" in err, err
+    cfg = pipeline(tmp_path, {"kind": "ifc", "ifc_path": path.name, "skip_unreadable": True})
+    code, err, out = mesh_cli(tmp_path, cfg, capsys)
+    assert code == 0, err
+    summary = json.loads((out / "mesh.json").read_text())
+    assert summary["bars"] == 24 and summary["crossings"] == 23
+    assert summary["ifc"]["skipped"] == [
+        {
+            "entity": f"#{bad.id()}",
+            "global_id": group.GlobalId,
+            "ifc_class": "IfcReinforcingBar",
+            "reason": "a directrix of IfcEllipse",
+        }
+    ]
+
+
+def test_a_stub_shorter_than_its_diameter_is_dropped_and_listed(tmp_path, capsys):
+    """Tekla: a 12 mm solid with EndParam 0.028 mm, lying on a bar 150 mm from its one real crossing."""
+    m = Model("IFC2X3", millimetres=True)
+    m.bar(m.polyline([(-200, 0, 0), (600, 0, 0)]), 6.0, diameter=12.0)
+    m.bar(m.polyline([(0, -200, 12), (0, 400, 12)]), 6.0, diameter=12.0)
+    solid = m.f.create_entity(
+        "IfcSweptDiskSolid",
+        Directrix=tiny_line(m, (150, 0, 12), (0, 1, 0), 1.0, 0.028),
+        Radius=6.0,
+        StartParam=0.0,
+        EndParam=0.028,
+    )
+    stub = m.element([solid], diameter=12.0)
+    path = m.write(tmp_path / "stub.ifc")
+    code, err, out = mesh_cli(tmp_path, pipeline(tmp_path, {"kind": "ifc", "ifc_path": path.name}), capsys)
+    assert code == 0 and "1 stub shorter than its diameter dropped" in err, err
+    summary = json.loads((out / "mesh.json").read_text())
+    assert summary["bars"] == 2 and summary["crossings"] == 1  # the real crossing only
+    assert summary["ifc"]["dropped"] == [
+        {
+            "entity": f"#{solid.id()}",
+            "global_id": stub.GlobalId,
+            "ifc_class": "IfcReinforcingBar",
+            "reason": "a stub 0.028 mm long, shorter than its 12 mm diameter",
+        }
+    ]
+    assert summary["ifc"]["skipped"] == []
+
+
+def test_mapped_items_read_each_representation_map_once(tmp_path, monkeypatch):
+    """Allplan: a lift shaft whose bars are placements of mapped items (6 IfcRepresentationMaps, 52 items).
+    Each map's directrix is read once, and the bars are the same as the shaft drawn bar by bar."""
+    from rebar_data.config import IfcMesh
+    from rebar_data.geometry import ifc_read
+
+    shape = {"half_m": 1.0, "storey_m": 1.2, "spacing_m": 0.3}
+    mapped = write_shaft(tmp_path / "mapped.ifc", **shape)
+    plain = write_shaft(tmp_path / "plain.ifc", mapped=False, **shape)
+    assert len(ifcopenshell.open(str(mapped)).by_type("IfcMappedItem")) == 52
+    calls: list[int] = []
+    real = ifc_read.directrix_pieces
+
+    def counted(curve, angle_rad=1.0):
+        calls.append(curve.id())
+        return real(curve, angle_rad)
+
+    monkeypatch.setattr(ifc_read, "directrix_pieces", counted)
+    mesh = IfcMesh(kind="ifc", ifc_path="x.ifc")
+    got = ifc_read.read_ifc(mesh, mapped)
+    assert len(calls) == len(set(calls)) == 6  # one directrix a map
+    want = ifc_read.read_ifc(mesh, plain)
+    assert len(got.bars) == len(want.bars) == 52
+
+    def placed(bars):  # a placement's bars come together: compare in one order
+        return sorted(bars, key=lambda b: tuple(np.round(b.curves[0].point(0.0), 6)))
+
+    for a, b in zip(placed(got.bars), placed(want.bars), strict=True):
+        assert [c.kind for c in a.curves] == [c.kind for c in b.curves] and a.diameter_m == b.diameter_m
+        for ca, cb in zip(a.curves, b.curves, strict=True):
+            np.testing.assert_allclose(ca.point(0.0), cb.point(0.0), atol=1e-9)
+            np.testing.assert_allclose(ca.point(ca.length), cb.point(cb.length), atol=1e-9)
+
+
 # ---------------------------------------------------------------------------------------------- bad input
 
 
@@ -493,13 +611,6 @@ def _only_a_wall(tmp_path: Path) -> Path:
     m = Model("IFC4")
     m.element(None, ifc_class="IfcWall")
     return m.write(tmp_path / "walls.ifc")
-
-
-def _zero_length(tmp_path: Path) -> Path:
-    m = Model("IFC4")
-    m.bar(m.polyline([(0, 0, 0), (1, 0, 0)]), 0.006)
-    m.bar(m.polyline([(0, 0, 0), (0.5, 0, 0), (0.5, 0, 0), (1, 0, 0)]), 0.006)
-    return m.write(tmp_path / "zero.ifc")
 
 
 def _no_diameter(tmp_path: Path) -> Path:
@@ -518,7 +629,35 @@ def _two_bars(tmp_path: Path) -> Path:
 
 def _broken_data(tmp_path: Path) -> Path:
     text = _two_bars(tmp_path).read_text()
-    return _write(tmp_path / "broken.ifc", text.replace("IFCPOLYLINE((", "IFCPOLYLINE(((", 1)[:-40])
+    return _write(tmp_path / "broken.ifc", text.replace("IFCPOLYLINE((", "IFCPOLYLINE(((", 1))
+
+
+def _slab_43(tmp_path: Path) -> Path:
+    m = Model("IFC4")
+    for k in range(43):
+        m.bar(m.polyline([(0, 0.1 * k, 0), (5, 0.1 * k, 0)]), 0.006)
+    return m.write(tmp_path / "slab.ifc")
+
+
+def _cut_short(tmp_path: Path) -> Path:
+    """An interrupted download: the first half of the file (IfcOpenShell reads 20 of its 43 bars)."""
+    text = _slab_43(tmp_path).read_text()
+    return _write(tmp_path / "half.ifc", text[: len(text) // 2])
+
+
+def _line_skipped(tmp_path: Path) -> Path:
+    """A whole file with one entity line cut off in the middle (IfcOpenShell skips it and goes on)."""
+    lines = _slab_43(tmp_path).read_text().splitlines(keepends=True)
+    k = next(i for i, line in enumerate(lines) if "IFCREINFORCINGBAR(" in line and i > len(lines) // 2)
+    return _write(
+        tmp_path / "skipped.ifc", "".join(lines[:k]) + lines[k][:30] + "\n" + "".join(lines[k + 1 :])
+    )
+
+
+def _only_a_brep(tmp_path: Path) -> Path:
+    m = Model("IFC4")
+    _faceted_bar(m)
+    return m.write(tmp_path / "brep.ifc")
 
 
 BAD_INPUT = {
@@ -536,6 +675,17 @@ BAD_INPUT = {
         ["schema IFC2X2_FINAL is not read", "IFC2X3, IFC4 or IFC4X3"],
     ),
     "broken data": (_broken_data, {}, ["cannot be parsed as IFC"]),
+    "cut short": (_cut_short, {}, ["is not whole", "END-ISO-10303-21;"]),
+    "a line the parser skips": (
+        _line_skipped,
+        {},
+        ["cannot be parsed as IFC whole", "of its", "entity instances"],
+    ),
+    "nothing readable, skipping": (
+        _only_a_brep,
+        {"skip_unreadable": True},
+        ["none of its 1 selected elements gave a bar", "no IfcSweptDiskSolid (IfcFacetedBrep): #"],
+    ),
     "no reinforcing bars": (_only_a_wall, {}, ["has no IfcReinforcingBar or IfcReinforcingMesh elements"]),
     "unknown storey": (_two_bars, {"storeys": ["level 9"]}, ["'level 9' is not a storey", "'ground'"]),
     "storey without bars": (_two_bars, {"storeys": ["roof"]}, ["mesh.storeys", "no IfcReinforcingBar"]),
@@ -546,7 +696,6 @@ BAD_INPUT = {
         {"ifc_classes": ["IfcRebarCage"]},
         ["IfcRebarCage is not a class"],
     ),
-    "zero-length segment": (_zero_length, {}, ["1 of 2 selected elements", "a zero-length segment"]),
     "no diameter": (_no_diameter, {}, ["a non-positive diameter"]),
     "jitter on read bars": (_two_bars, {"realism": {"jitter_m": 0.002}}, ["realism.jitter_m = 0.002"]),
     "relative path unknown": (_two_bars, {"no_config_dir": True}, ["is relative to the pipeline file"]),

@@ -187,3 +187,48 @@ def test_the_camera_side_is_the_models_and_moves_with_its_pose(wall, tmp_path):
         moved.crossings.point, still.crossings.point @ R.T + [1.0, 2.0, 3.0], atol=1e-9
     )
     np.testing.assert_allclose(moved.layout.surface.world_from_surface[:3, 2], R @ WALL_FRONT, atol=1e-9)
+
+
+SHAFT = {"half_m": 1.0, "storey_m": 1.2, "spacing_m": 0.3}  # a small lift shaft: 2 m square, 1.2 m high
+OUTER_MAT_M = 1.0 - 0.03 - 0.006  # the outer loops' axes from the shaft's axis
+
+
+@pytest.fixture
+def shaft(tmp_path):
+    from rebar_data.geometry.ifc_samples import write_shaft
+
+    return write_shaft(tmp_path / "shaft.ifc", **SHAFT)
+
+
+def test_a_cage_is_split_into_its_faces_each_seen_from_outside(shaft, tmp_path):
+    """Four walls of two mats round a core: four vertical planes, each with its two mats, facing away from the
+    core; the top mat is the chosen wall's outer mat, and cameras stand outside that wall."""
+    rm = read_mesh(tmp_path, shaft, crossings="top_mat")
+    faces = rm.layout.faces
+    normals = sorted(np.round(f.world_from_surface[:3, 2], 2).tolist() for f in faces.fits)
+    assert normals == [[-1, 0, 0], [0, -1, 0], [0, 1, 0], [1, 0, 0]]
+    assert all(f.kind == "plane" and len(f.mats) == 2 for f in faces.fits)
+    n = rm.layout.surface.world_from_surface[:3, 2]
+    c = rm.crossings
+    # the outer mat of one wall: its 4 loops' legs by its 6 vertical bars
+    assert len(c) == 24 and np.all(c.point @ n > OUTER_MAT_M - 0.02)
+    assert np.all(c.normal @ n > 0.999)
+    rng = np.random.default_rng(0)
+    poses = trajectory_poses(RandomLookAt(kind="random_look_at", count=1, frames=10), rm, rng)
+    assert np.all(poses[:, :3, 3] @ n > 1.2) and np.all(poses[:, :3, 2] @ n < -0.5)  # outside, looking in
+
+
+def test_a_box_round_one_wall_of_a_cage_faces_that_wall(shaft, tmp_path):
+    """mesh.bbox_m round the +x wall keeps it whole with the loops through it: the wall is the face cameras
+    face (a vertical plane), not a horizontal plane through the loops."""
+    rm = read_mesh(tmp_path, shaft, crossings="top_mat", bbox_m=[[0.7, -1.1, 0.0], [1.1, 1.1, 1.2]])
+    fit = rm.layout.surface
+    np.testing.assert_allclose(fit.world_from_surface[:3, 2], [1.0, 0.0, 0.0], atol=1e-3)
+    assert "mesh.bbox_m" in rm.layout.faces.how and [m.pieces for m in fit.mats][:1] == [4 + 6]
+    assert len(rm.crossings) == 24 and np.all(rm.crossings.point[:, 0] > OUTER_MAT_M - 0.02)
+
+
+def test_camera_side_picks_the_face_of_a_cage(shaft, tmp_path):
+    rm = read_mesh(tmp_path, shaft, crossings="top_mat", camera_side=[0.0, -1.0, 0.0])
+    np.testing.assert_allclose(rm.layout.surface.world_from_surface[:3, 2], [0.0, -1.0, 0.0], atol=1e-3)
+    assert np.all(rm.crossings.point[:, 1] < -(OUTER_MAT_M - 0.02)) and len(rm.crossings) == 24
