@@ -462,9 +462,25 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
     def negatives_of(samples: list[Sample], images: list[np.ndarray]) -> list[np.ndarray]:
         if id(samples) not in found:
             first, _, _ = load_checkpoint(first_path)
-            found[id(samples)] = refine.first_stage_detections(
-                eager.detector(first), samples, cfg.refine, images=images, progress=run.progress
-            )
+            # a step: the first stage's detections on these images, kept in steps.json for a later run
+            key = key_of(_weights_key(first), [str(s.path) for s in samples], cfg.refine.negative_score)
+
+            def mine() -> list:
+                if run.kept("first"):  # the model's own file (faster), read as the network below reads:
+                    detector = Detector.load(
+                        run.init.path, threads=2, runtime="onnxruntime", reading="single"
+                    )
+                    detector.score_bias, detector.focal_px = 0.0, None  # no operating point, no resampling
+                else:
+                    detector = eager.detector(first)
+                with first_stage_only(detector):
+                    ran = refine.first_stage_detections(
+                        detector, samples, cfg.refine, images=images, progress=run.progress
+                    )
+                return [p.tolist() for p in ran]
+
+            mined = run.steps.run("first-stage detections", key, mine)
+            found[id(samples)] = [np.asarray(p, float).reshape(-1, 3) for p in mined]
         return refine.negatives_in(found[id(samples)], samples, cfg.refine)  # the first stage's misses
 
     def depth_negatives() -> list[np.ndarray]:
