@@ -27,6 +27,7 @@ import fcntl
 import json
 import os
 import shutil
+import tempfile
 import time
 from collections.abc import Callable, Iterable, Iterator
 from contextlib import contextmanager
@@ -316,6 +317,30 @@ def _copy_bytes(fi, fo) -> None:
     fo.seek(0)
     fo.truncate()
     shutil.copyfileobj(fi, fo, 1 << 20)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def private_temp_dir(prefix: str) -> Path:
+    """A new folder (mode 0700) in the system's temporary folder, named ``<prefix><pid>-<random>``. First
+    removes the folders of that prefix whose process has died (killed before it could remove its own), so
+    no such folder outlives its command for long. The caller removes its own when done."""
+    tmp = Path(tempfile.gettempdir())
+    for p in tmp.glob(f"{prefix}*-*"):
+        pid = p.name[len(prefix) :].split("-", 1)[0]
+        if not pid.isdigit() or _alive(int(pid)) or p.is_symlink() or not p.is_dir():
+            continue
+        if p.stat().st_uid == os.getuid():  # only this user's: another's is not ours to remove
+            shutil.rmtree(p, ignore_errors=True)
+    return Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-"))
 
 
 def remove_stale(parent: Path, pattern: str) -> None:
