@@ -307,17 +307,19 @@ def build_dataset(
     force: bool = False,
     resume: bool = False,
     runner: TaskRunner | None = None,
+    pipeline: PipelineConfig | None = None,
 ) -> Path:
     """Build the dataset described by ``config`` under ``out_root`` and return its folder.
 
     ``runner`` runs the shards (default: the local backend with ``workers`` processes, 1 to the machine's
     cores); the checks, the lock, the plan, the staging folder, resume and finalize are the same whatever
-    runs them. Ctrl-C raises ``BuildInterrupted`` (a ``KeyboardInterrupt``) with a one-line summary.
+    runs them. ``pipeline`` is ``config`` as a caller already read it (a pipe can be read only once).
+    Ctrl-C raises ``BuildInterrupted`` (a ``KeyboardInterrupt``) with a one-line summary.
     """
     config = check_paths(config, out_root)
     if runner is None:
         check_workers(workers)
-    cfg = load_pipeline(config)
+    cfg = pipeline if pipeline is not None else load_pipeline(config)
     check_engine(cfg.render)
     final = layout.dataset_dir(Path(out_root), cfg.name, cfg.version).resolve()
     check_final(cfg, final, force=force)  # before the lock, which makes the dataset's parent folder
