@@ -107,3 +107,12 @@ def test_a_depth_image_of_another_size_is_named(tmp_path):
             sample_depth(s, source)
     cv2.imwrite(str(depth), np.full((120, 160), 1000, np.uint16))
     assert sample_depth(s, "exact").shape == (120, 160)
+
+
+def test_a_truncated_info_json_is_named(tmp_path):
+    from rebar_data.perception.evaluation.data import read_info
+
+    (tmp_path / "meta").mkdir()
+    (tmp_path / "meta" / "info.json").write_text('{"name": "tiny", "oks_sig')
+    with pytest.raises(ConfigError, match=r"meta/info.json: not valid JSON .*expected the info file"):
+        read_info(tmp_path)

@@ -169,7 +169,18 @@ def read_images(samples: list[Sample]) -> list[np.ndarray]:
 def read_info(root: str | Path) -> dict:
     """The dataset's ``meta/info.json`` (an empty dict when it has none)."""
     p = Path(root) / "meta/info.json"
-    return json.loads(p.read_text()) if p.exists() else {}
+    if not p.exists():
+        return {}
+    try:
+        info = json.loads(p.read_bytes())
+    except ValueError as e:  # cut short, not JSON, or not UTF-8 text
+        raise ConfigError(
+            f"{p}: not valid JSON ({e}); expected the info file `rebar dataset build` writes (rebuild the "
+            "dataset, or restore the file)"
+        ) from None
+    if not isinstance(info, dict):
+        raise ConfigError(f"{p}: the top level is {type(info).__name__}; expected a JSON object")
+    return info
 
 
 def renderer_engine(info: dict) -> str:
