@@ -3,7 +3,7 @@
 Not part of ``make test`` (it builds a dataset and loads the detector many times: about 10 minutes on 2
 cores). Run it from the project root::
 
-    .venv/bin/python tests/fault_battery.py [--work DIR] [--only SUBSTRING]
+    .venv/bin/python tests/fault_battery.py [--work DIR] [--only SUBSTRING] [--skip SUBSTRING]
 
 A case is clean when the command does what was asked, or refuses in one line (``error: ...``, or argparse's
 usage and error line) with a non-zero exit, with no traceback, with no ``error:`` on a success, and with every
@@ -787,6 +787,9 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--work", default=None, help="scratch folder (default: a new temporary one)")
     ap.add_argument("--only", default=None, help="run the cases whose name holds this text")
+    ap.add_argument(
+        "--skip", action="append", default=[], help="leave out the cases whose name holds this text"
+    )
     args = ap.parse_args()
     _WORK = Path(args.work or tempfile.mkdtemp(prefix="rebar-battery-"))
     _WORK.mkdir(parents=True, exist_ok=True)
@@ -803,7 +806,9 @@ def main() -> int:
             shutil.copy(f, images / f.name)
     mounts = can_mount()
     every = cases(smoke, images, mounts=mounts)
-    selected = [x for x in every if not args.only or args.only in x.name]
+    selected = [
+        x for x in every if (not args.only or args.only in x.name) and not any(k in x.name for k in args.skip)
+    ]
     if not mounts:
         print(
             f"note: no mount here (not root, or not allowed): {len(cases(smoke, images)) - len(every)} cases left out"
