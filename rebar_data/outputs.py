@@ -277,7 +277,7 @@ def space_for(
             raise
         try:
             needed = needed_bytes()
-        except OSError:
+        except Exception:  # noqa: BLE001  (an estimate never hides the line)
             needed = None
         raise ConfigError(no_space_message(folder, needed, arg=arg, then=then)) from None
 

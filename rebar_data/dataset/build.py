@@ -337,19 +337,20 @@ def build_dataset(
 
 
 def build_bytes(cfg: PipelineConfig, staging: Path) -> int:
-    """About how much more the build needs: the images still to write, at the size of those written so
-    far (the uncompressed size before there are any), and the tables and views they make again."""
+    """About how much more the build needs: the images still to write, at what those written so far take
+    with their maps (before there are any, their uncompressed size: RGB, and 16-bit exact and sensor depth
+    and instance maps where stored), and a tenth more for the tables and views made from them."""
     plan_images = sum(t.count * t.frames for t in cfg.camera.trajectories)
-    written = [p for p in (staging / "images").rglob("*.png")] if (staging / "images").is_dir() else []
+    images = staging / "images"
+    written = len(list(images.rglob("*.png"))) if images.is_dir() else 0
     staged = sum(p.stat().st_size for p in staging.rglob("*") if p.is_file())
     if written:
-        per_image = staged / len(written)
+        per_image = staged / written
     else:
         k = intrinsics_from_config(cfg.camera)
-        per_image = (
-            k.width * k.height * (3 + 2 * (1 + cfg.dataset.store_depth * 2 + cfg.dataset.store_instances))
-        )
-    return int(per_image * max(plan_images - len(written), 0) + 0.1 * staged)
+        maps = 2 * cfg.dataset.store_depth + cfg.dataset.store_instances
+        per_image = k.width * k.height * (3 + 2 * maps)
+    return int(1.1 * per_image * max(plan_images - written, 0))
 
 
 def _build(cfg: PipelineConfig, runner: TaskRunner, staging: Path, final: Path, *, resume_flags: str) -> Path:
@@ -382,6 +383,9 @@ def _build(cfg: PipelineConfig, runner: TaskRunner, staging: Path, final: Path, 
         raise BuildInterrupted(
             f"interrupted after {saved} of {len(plan.samples)} images; `{resume_flags}` continues it"
         ) from None
+    except BaseException:
+        bar.close()  # the bar's line ends before the error's
+        raise
     finally:
         close = getattr(results, "close", None)  # ends the workers however the loop ended
         if close is not None:
