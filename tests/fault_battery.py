@@ -1,6 +1,6 @@
 """The fault battery: the CLI tried as a new user and a careless one would, each case judged clean or not.
 
-Not part of ``make test`` (it builds a dataset and loads the detector many times: about 10 minutes on 2
+Not part of ``make test`` (it builds a dataset and loads the detector many times: about 15 minutes on 2
 cores). Run it from the project root::
 
     .venv/bin/python tests/fault_battery.py [--work DIR] [--only SUBSTRING] [--skip SUBSTRING]
