@@ -11,6 +11,7 @@ import importlib
 import sys
 
 from rebar_data.config import ConfigError
+from rebar_data.dataset.layout import DatasetFormatError
 
 COMMAND_MODULES = [
     "rebar_data.geometry.commands",
@@ -39,8 +40,20 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     try:
         result = args.func(args)
-    except ConfigError as e:
+    except (ConfigError, DatasetFormatError) as e:
         print(f"error: {e}", file=sys.stderr)
+        return 2
+    except OSError as e:
+        from rebar_data.outputs import NO_SPACE
+
+        if e.errno not in NO_SPACE:
+            raise
+        # a full disk where no command said what it needs: the file it could not write
+        where = f"{e.filename}: " if e.filename else ""
+        print(
+            f"error: {where}no space left on the device; accepted: free space there and run again",
+            file=sys.stderr,
+        )
         return 2
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)

@@ -178,13 +178,13 @@ class IfcMesh(Strict):
         for i, name in enumerate(self.ifc_classes):
             if not _IFC_CLASS.match(name):
                 raise ValueError(
-                    f"ifc_classes[{i}] = {name!r} is not an IFC class name; accepted: names such as "
+                    f"ifc_classes[{i}] = {excerpt(name)} is not an IFC class name; accepted: names such as "
                     "IfcReinforcingBar, IfcReinforcingMesh, IfcTendon"
                 )
         for i, gid in enumerate(self.global_ids or []):
             if not _GLOBAL_ID.match(gid):
                 raise ValueError(
-                    f"global_ids[{i}] = {gid!r} is not a GlobalId; accepted: 22 characters of 0-9, A-Z, a-z, "
+                    f"global_ids[{i}] = {excerpt(gid)} is not a GlobalId; accepted: 22 characters of 0-9, A-Z, a-z, "
                     "_ and $ (IFC's compressed GUID)"
                 )
         if self.camera_side is not None and not (
@@ -274,8 +274,80 @@ _SEMVER = re.compile(r"^\d+\.\d+\.\d+$")
 PAPER_PIPELINE = Path(__file__).resolve().parents[1] / "pipelines" / "paper-tunnel.yaml"
 
 
+MAX_YAML_NODES = 200_000
+"""The most values (mappings, lists and scalars, each alias counted as what it stands for) a config may
+expand to: far above any real config (a pipeline is a few hundred), far below what nested aliases (a
+"billion laughs") make of a few lines."""
+
+EXCERPT_CHARS = 80  # the most of a bad value a message shows
+
+
+def excerpt(value: Any, limit: int = EXCERPT_CHARS) -> str:
+    """``repr(value)``, cut to ``limit`` characters (with ``...``) so that a message stays one short line."""
+    if isinstance(value, list | tuple | dict) and len(value) > 64:
+        kind = type(value).__name__
+        return f"a {kind} of {len(value)} items"
+    text = repr(value)
+    return text if len(text) <= limit else text[: limit - 3] + "..."
+
+
+def _expanded_size(root: yaml.Node, limit: int) -> int | None:
+    """How many nodes ``root`` stands for with every alias expanded (shared nodes counted at each use),
+    counted up to ``limit + 1``; None when a node holds itself (an anchor used inside its own value). Each
+    node is sized once, so a deep alias chain costs its length, not what it expands to."""
+    sizes: dict[int, int] = {}
+    stack: list[tuple[yaml.Node, bool]] = [(root, False)]
+    while stack:
+        node, children_done = stack.pop()
+        key = id(node)
+        if key in sizes and not children_done:
+            continue
+        if isinstance(node, yaml.ScalarNode):
+            sizes[key] = 1
+            continue
+        items = node.value if isinstance(node, yaml.SequenceNode) else [x for kv in node.value for x in kv]
+        if not children_done:
+            sizes[key] = -1  # being sized
+            stack.append((node, True))
+            stack.extend((c, False) for c in items if id(c) not in sizes)
+            continue
+        if any(sizes[id(c)] == -1 for c in items):
+            return None  # a child still being sized is an ancestor: the node holds itself
+        sizes[key] = min(limit + 1, 1 + sum(sizes[id(c)] for c in items))
+    return sizes[id(root)]
+
+
+def parse_yaml(text: str, source: str) -> Any:
+    """The YAML document in ``text`` (``source`` names it in messages): PyYAML's safe loader (plain data,
+    no Python objects), refusing a document whose aliases expand past ``MAX_YAML_NODES`` values."""
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        size = _expanded_size(node, MAX_YAML_NODES)
+        if size is None:
+            raise ConfigError(
+                f"{source}: an anchor (&name) is used inside its own value, which never ends; accepted: "
+                "aliases (*name) of finished sections only"
+            )
+        if size > MAX_YAML_NODES:
+            raise ConfigError(
+                f"{source}: its aliases (*name) expand to more than {MAX_YAML_NODES:,} values; accepted: a "
+                "config that repeats a section a few times, not repeats nested in repeats"
+            )
+        return loader.construct_document(node)
+    except yaml.YAMLError as e:
+        mark = getattr(e, "problem_mark", None)
+        where = f" at line {mark.line + 1}" if mark else ""
+        raise ConfigError(f"{source}: not valid YAML{where}: {getattr(e, 'problem', None) or e}") from None
+    finally:
+        loader.dispose()
+
+
 def read_yaml(path: str | Path) -> dict[str, Any]:
-    """Read a YAML mapping, turning every way a file can be unusable into a ConfigError."""
+    """Read a YAML mapping, turning every way a file can be unusable into a ConfigError. The file is read
+    once (a pipe such as ``<(...)`` can be read only once) and parsed from those bytes."""
     p = Path(path)
     if not p.exists():
         raise ConfigError(f"{p}: no such config file; accepted: a YAML file such as pipelines/smoke.yaml")
@@ -291,14 +363,10 @@ def read_yaml(path: str | Path) -> dict[str, Any]:
         ) from None
     if "\0" in text:
         raise ConfigError(f"{p}: not a text file; accepted: a YAML config file such as pipelines/smoke.yaml")
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        mark = getattr(e, "problem_mark", None)
-        where = f" at line {mark.line + 1}" if mark else ""
-        raise ConfigError(f"{p}: not valid YAML{where}: {getattr(e, 'problem', e)}") from None
+    data = parse_yaml(text, str(p))
     if not isinstance(data, dict):
-        raise ConfigError(f"{p}: the top level is {type(data).__name__}; accepted: a mapping of keys")
+        empty = " (it is empty)" if not text.strip() else ""
+        raise ConfigError(f"{p}: the top level is {type(data).__name__}{empty}; accepted: a mapping of keys")
     return data
 
 
@@ -360,13 +428,13 @@ def format_validation_error(
     if kind == "missing" and path and isinstance(path[-1], int):
         parent = ".".join(str(x) for x in path[:-1])
         given = _lookup(data, path[:-1])
-        return f"{source}: {parent} = {given!r} is not accepted: it needs more than {path[-1]} items"
+        return f"{source}: {parent} = {excerpt(given)} is not accepted: it needs more than {path[-1]} items"
     if kind == "missing":
         return f"{source}: '{loc}' is required but missing"
     if kind == "value_error":
         msg = msg.removeprefix("Value error, ")
         return f"{source}: {loc + ': ' if loc else ''}{msg}"
-    shown = repr(value) if not isinstance(value, dict) else "a mapping"
+    shown = excerpt(value) if not isinstance(value, dict) else "a mapping"
     return f"{source}: {loc} = {shown} is not accepted: {msg[0].lower() + msg[1:]}"
 
 
@@ -389,5 +457,5 @@ def _is_union_tag(x: object) -> bool:
 
 def semver(value: str) -> str:
     if not _SEMVER.match(value):
-        raise ValueError(f"version = {value!r} is not accepted: use MAJOR.MINOR.PATCH, such as 1.0.0")
+        raise ValueError(f"version = {excerpt(value)} is not accepted: use MAJOR.MINOR.PATCH, such as 1.0.0")
     return value

@@ -14,16 +14,23 @@ The rules every command follows:
   new folder, never none.
 - One writer at a time (``OutputLock``): an ``fcntl`` lock on a file beside the output. The operating
   system frees it when the holder dies, so a live writer is told apart from an interrupted one.
+- An output that is a symbolic link is refused (the swap would replace the link, not write where it
+  points); the folder it points to is accepted.
+- A full disk is one line naming the folder, the space free and about how much the output needs
+  (``space_for``); the writer removes what it had half-written.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
 import shutil
+import tempfile
 import time
-from collections.abc import Callable, Iterable
+from collections.abc import Callable, Iterable, Iterator
+from contextlib import contextmanager
 from pathlib import Path
 
 from rebar_data.config import ConfigError
@@ -39,6 +46,16 @@ def _nearest_existing(path: Path) -> Path:
     return p
 
 
+def _refuse_link(path: Path, arg: str, what: str) -> None:
+    """A symbolic link as an output: replacing the output would replace the link, so it is refused."""
+    if path.is_symlink():
+        target = Path(os.path.realpath(path))
+        raise ConfigError(
+            f"{arg} {path}: is a symbolic link (to {target}), which writing the output would replace; "
+            f"accepted: the path it points to ({target}), or {what}"
+        )
+
+
 def _check_writable(path: Path, arg: str) -> None:
     """``path`` (which need not exist) can be created: its nearest existing ancestor is a writable folder."""
     base = _nearest_existing(path)
@@ -51,7 +68,8 @@ def _check_writable(path: Path, arg: str) -> None:
 
 
 def input_file(path: str | Path, *, arg: str, what: str, text: bool = False) -> Path:
-    """An input file that exists and is readable; with ``text``, one that decodes as UTF-8 text."""
+    """An input file that exists and is readable; with ``text``, one that decodes as UTF-8 text (looked at
+    only in a regular file: a pipe such as ``<(...)`` can be read once, by the command that parses it)."""
     p = Path(path)
     if not p.exists():
         raise ConfigError(f"{arg} {p}: no such file; accepted: {what}")
@@ -59,8 +77,9 @@ def input_file(path: str | Path, *, arg: str, what: str, text: bool = False) -> 
         raise ConfigError(f"{arg} {p}: is a folder; accepted: {what}")
     if not os.access(p, os.R_OK):
         raise ConfigError(f"{arg} {p}: not readable; accepted: {what} you may read")
-    if text:
-        head = p.read_bytes()[: 1 << 16]
+    if text and p.is_file():
+        with open(p, "rb") as f:
+            head = f.read(1 << 16)
         try:
             head.decode("utf-8")
         except UnicodeDecodeError as e:
@@ -125,6 +144,7 @@ def output_folder(
     so the folder that holds it must be writable too. Nothing is created here.
     """
     p = Path(path)
+    _refuse_link(p, arg, "a new folder")
     if p.exists() and not p.is_dir():
         raise ConfigError(f"{arg} {p}: is a file; accepted: a new folder or an earlier `{command}` output")
     _check_writable(p, arg)
@@ -156,6 +176,7 @@ def output_file(
     Without ``owned`` an existing file is replaced (the caller's output is a file a user names for it).
     """
     p = Path(path)
+    _refuse_link(p, arg, "a new file")
     if p.is_dir():
         raise ConfigError(f"{arg} {p}: is a folder; accepted: {what}")
     _check_writable(p.parent, arg)
@@ -202,6 +223,12 @@ def replace_folder(staging: Path, final: Path) -> None:
     """
     final = Path(final)
     old = _old_of(final)
+    for p, what in ((final, "the output"), (old, "an earlier output set aside")):
+        if p.is_symlink():  # never swapped away or deleted through: the link is the user's
+            raise ConfigError(
+                f"{p}: {what} is a symbolic link (to {os.path.realpath(p)}), which would be replaced; "
+                "accepted: a real folder there (move the link away)"
+            )
     restore_interrupted_swap(final)
     if old.exists():
         shutil.rmtree(old)
@@ -210,6 +237,120 @@ def replace_folder(staging: Path, final: Path) -> None:
     Path(staging).rename(final)
     if old.exists():
         shutil.rmtree(old)
+
+
+NO_SPACE = (errno.ENOSPC, errno.EDQUOT)
+
+
+def size_text(n_bytes: float) -> str:
+    """``12.3 MB``: a size for a message (decimal units, as ``df -H`` shows them)."""
+    for unit in ("B", "kB", "MB", "GB"):
+        if abs(n_bytes) < 1000 or unit == "GB":
+            return f"{n_bytes:.0f} {unit}" if unit == "B" else f"{n_bytes:.1f} {unit}"
+        n_bytes /= 1000
+    raise AssertionError  # not reached
+
+
+def no_space_message(folder: Path, needed_bytes: int | None, *, arg: str = "--out", then: str = "") -> str:
+    """The one line for a full disk: the folder, what is free, about what the output needs."""
+    try:
+        free = size_text(shutil.disk_usage(_nearest_existing(Path(folder))).free)
+    except OSError:
+        free = "unknown"
+    need = f"; it needs about {size_text(needed_bytes)}" if needed_bytes else ""
+    return (
+        f"{arg} {folder}: no space left on the device ({free} free){need}; accepted: free that much space "
+        f"there, or an {arg} on a disk with room{then}"
+    )
+
+
+@contextmanager
+def space_for(
+    folder: Path, needed_bytes: Callable[[], int | None], *, arg: str = "--out", then: str = ""
+) -> Iterator[None]:
+    """Turn a full disk (``ENOSPC``, ``EDQUOT``) met in the block into one ConfigError line naming ``folder``
+    and ``needed_bytes()`` (about what the output needs; ``then`` is added to the advice)."""
+    try:
+        yield
+    except OSError as e:
+        if e.errno not in NO_SPACE:
+            raise
+        try:
+            needed = needed_bytes()
+        except Exception:  # noqa: BLE001  (an estimate never hides the line)
+            needed = None
+        raise ConfigError(no_space_message(folder, needed, arg=arg, then=then)) from None
+
+
+FICLONE = 0x40049409  # linux/fs.h: _IOW(0x94, 9, int)
+
+
+def copy_file(src: Path, dst: Path) -> None:
+    """``dst`` as a file of its own with ``src``'s bytes and times: a copy-on-write clone where the
+    filesystem makes one (Btrfs, XFS: no space used until either file is written), else an in-kernel copy
+    (``copy_file_range``), else a plain one. Never a hard link: writing one file never changes the other."""
+    Path(dst).parent.mkdir(parents=True, exist_ok=True)
+    with open(src, "rb") as fi, open(dst, "wb") as fo:
+        try:
+            fcntl.ioctl(fo.fileno(), FICLONE, fi.fileno())
+        except OSError as e:
+            if e.errno in NO_SPACE:
+                raise
+            _copy_bytes(fi, fo)
+    shutil.copystat(src, dst)
+
+
+def _copy_bytes(fi, fo) -> None:
+    size = os.fstat(fi.fileno()).st_size
+    done = 0
+    try:
+        while done < size:
+            n = os.copy_file_range(fi.fileno(), fo.fileno(), size - done)
+            if n == 0:
+                break
+            done += n
+        return
+    except OSError as e:  # not across these filesystems, or not at all: copy through this process
+        if e.errno in NO_SPACE:
+            raise
+    fi.seek(0)
+    fo.seek(0)
+    fo.truncate()
+    shutil.copyfileobj(fi, fo, 1 << 20)
+
+
+def _alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's live process
+        return True
+    return True
+
+
+def private_temp_dir(prefix: str) -> Path:
+    """A new folder (mode 0700) in the system's temporary folder, named ``<prefix><pid>-<random>``. First
+    removes the folders of that prefix whose process has died (killed before it could remove its own), so
+    no such folder outlives its command for long. The caller removes its own when done."""
+    tmp = Path(tempfile.gettempdir())
+    for p in tmp.glob(f"{prefix}*-*"):
+        pid = p.name[len(prefix) :].split("-", 1)[0]
+        if not pid.isdigit() or _alive(int(pid)) or p.is_symlink() or not p.is_dir():
+            continue
+        if p.stat().st_uid == os.getuid():  # only this user's: another's is not ours to remove
+            shutil.rmtree(p, ignore_errors=True)
+    return Path(tempfile.mkdtemp(prefix=f"{prefix}{os.getpid()}-"))
+
+
+def remove_stale(parent: Path, pattern: str) -> None:
+    """Delete what ``pattern`` matches in ``parent``: a killed run's temporary folders or files. Call it only
+    holding the output's ``OutputLock``, which proves no live run writes them."""
+    for p in Path(parent).glob(pattern):
+        if p.is_symlink() or not p.is_dir():
+            p.unlink(missing_ok=True)
+        else:
+            shutil.rmtree(p, ignore_errors=True)
 
 
 class OutputLock:

@@ -1,6 +1,7 @@
 from __future__ import annotations
 
 import copy
+import os
 
 import pytest
 import yaml
@@ -91,3 +92,53 @@ def test_good_config_builds_and_prints_the_folder_last(tmp_path, capsys):
     for f in ("mesh.glb", "mesh.ply", "bars.parquet", "crossings.parquet"):
         assert (tmp_path / "m" / f).stat().st_size > 0
     assert (tmp_path / "m.rrd").stat().st_size > 0
+
+
+# --- bounded YAML, short excerpts, inputs read once -------------------------------------------------------
+
+LAUGHS = 'a: &a ["lol","lol","lol","lol","lol","lol","lol","lol","lol"]\n' + "".join(
+    f"{n}: &{n} [{','.join([f'*{p}'] * 9)}]\n" for p, n in zip("abcdefgh", "bcdefghi", strict=True)
+)
+
+
+def test_nested_aliases_are_refused_before_they_expand(tmp_path, capsys):
+    import tracemalloc
+
+    from rebar_data.config import ConfigError, read_yaml
+
+    p = tmp_path / "laughs.yaml"
+    p.write_text(LAUGHS)  # 9**9 strings, from 500 bytes
+    assert main(["mesh", str(p), "--out", str(tmp_path / "m")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "aliases" in err and "200,000" in err and str(p) in err, err
+    tracemalloc.start()
+    with pytest.raises(ConfigError):
+        read_yaml(p)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 50e6, peak  # what the document is, not what it would expand to
+    (tmp_path / "self.yaml").write_text("a: &a [1, *a]\n")
+    assert main(["mesh", str(tmp_path / "self.yaml"), "--out", str(tmp_path / "m")]) == 2
+    assert "its own value" in capsys.readouterr().err
+    assert not (tmp_path / "m").exists()
+
+
+def test_a_bad_value_is_shown_as_a_short_excerpt(write_yaml, tmp_path, capsys):
+    big = _with("seed", ["x" * 50] * 40)
+    assert main(["mesh", str(write_yaml(big)), "--out", str(tmp_path / "m")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "seed = " in err and "..." in err and len(err) < 400, err
+
+
+def test_a_pipeline_given_as_a_pipe_is_read_once(root, tmp_path):
+    from rebar_data.dataset.build import check_paths
+    from rebar_data.pipeline import load_pipeline
+
+    r, w = os.pipe()  # what bash's <(cat pipelines/smoke.yaml) hands over: /dev/fd/N, readable once
+    os.write(w, (root / "pipelines" / "smoke.yaml").read_bytes())
+    os.close(w)
+    try:
+        path = check_paths(f"/dev/fd/{r}", tmp_path)
+        assert load_pipeline(path).name == "smoke"
+    finally:
+        os.close(r)

@@ -151,3 +151,79 @@ def test_a_killed_writer_leaves_no_lock(tmp_path):
     assert OutputLock.held_by(target) is None
     with OutputLock(target, command="x"):
         pass
+
+
+# --- symbolic links, full disks, copies and temporary folders -----------------------------------------
+
+
+def test_a_symbolic_link_as_out_is_refused_and_kept(tmp_path):
+    target = tmp_path / "target"
+    target.mkdir()
+    (target / "theirs.txt").write_text("the user's")
+    link = tmp_path / "link"
+    link.symlink_to(target)
+    with pytest.raises(ConfigError, match=r"--out .*link: is a symbolic link \(to .*target\).*accepted"):
+        output_folder(link, arg="--out", command="rebar x")
+    file_link = tmp_path / "out.parquet"
+    file_link.symlink_to(target / "theirs.txt")
+    with pytest.raises(ConfigError, match="is a symbolic link"):
+        output_file(file_link, arg="--out", what="a Parquet file")
+    staging = tmp_path / "staging"
+    staging.mkdir()
+    with pytest.raises(ConfigError, match="is a symbolic link"):
+        replace_folder(staging, link)
+    assert link.is_symlink() and (target / "theirs.txt").read_text() == "the user's" and staging.is_dir()
+
+
+def test_a_full_disk_is_one_line_naming_the_folder_and_the_space(tmp_path):
+    import errno
+
+    from rebar_data.outputs import space_for
+
+    with pytest.raises(ConfigError) as e, space_for(tmp_path / "out", lambda: 12_345_678):
+        raise OSError(errno.ENOSPC, "No space left on device")
+    msg = str(e.value)
+    assert "\n" not in msg and str(tmp_path / "out") in msg and "no space left" in msg, msg
+    assert "free)" in msg and "needs about 12.3 MB" in msg, msg
+    with pytest.raises(OSError, match="other"), space_for(tmp_path, lambda: 1):
+        raise OSError(errno.EIO, "other")  # any other failure is not a full disk
+
+
+def test_a_copy_is_its_own_file(tmp_path):
+    from rebar_data.outputs import copy_file
+
+    src = tmp_path / "a.png"
+    src.write_bytes(b"\x89PNG the dataset's image" * 1000)
+    os.utime(src, (1_000_000_000, 1_000_000_000))
+    dst = tmp_path / "bundle" / "a.png"
+    copy_file(src, dst)
+    assert dst.read_bytes() == src.read_bytes() and dst.stat().st_mtime == 1_000_000_000
+    assert dst.stat().st_ino != src.stat().st_ino and src.stat().st_nlink == 1
+    dst.write_bytes(b"re-saved in an image editor")
+    assert src.read_bytes().startswith(b"\x89PNG the dataset's image")
+
+
+def test_a_dead_process_temporary_folder_is_removed(tmp_path, monkeypatch):
+    import subprocess
+    import sys
+    import tempfile
+
+    from rebar_data.outputs import private_temp_dir, remove_stale
+
+    monkeypatch.setattr(tempfile, "tempdir", str(tmp_path))
+    dead = subprocess.run(
+        [sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True
+    )
+    stale = tmp_path / f"rebar-runtime-{int(dead.stdout)}-abc"
+    stale.mkdir()
+    live = tmp_path / f"rebar-runtime-{os.getpid()}-def"  # this process's: alive, kept
+    live.mkdir()
+    other = tmp_path / "rebar-runtime-notes"  # not one of ours
+    other.mkdir()
+    made = private_temp_dir("rebar-runtime-")
+    assert made.is_dir() and made.name.startswith(f"rebar-runtime-{os.getpid()}-")
+    assert not stale.exists() and live.is_dir() and other.is_dir()
+    (tmp_path / ".bundle.partial-x1").mkdir()
+    (tmp_path / ".bundle.partial-x1" / "half.parquet").write_bytes(b"PAR1")
+    remove_stale(tmp_path, ".bundle.partial-*")
+    assert not (tmp_path / ".bundle.partial-x1").exists()

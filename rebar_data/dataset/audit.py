@@ -21,7 +21,6 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pandas as pd
-import pyarrow.parquet as pq
 
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetInfo
@@ -59,7 +58,9 @@ class Check:
 
 
 def load_tables(ds: Path) -> tuple[pd.DataFrame, pd.DataFrame]:
-    return pq.read_table(ds / layout.SAMPLES).to_pandas(), pq.read_table(ds / layout.KEYPOINTS).to_pandas()
+    return layout.read_table(ds / layout.SAMPLES).to_pandas(), layout.read_table(
+        ds / layout.KEYPOINTS
+    ).to_pandas()
 
 
 def check_reprojection(S: pd.DataFrame, K: pd.DataFrame) -> list[Check]:
@@ -414,8 +415,11 @@ def check_leakage(info: DatasetInfo, S: pd.DataFrame) -> list[Check]:
     return out
 
 
-def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Check], dict]:
-    """Run every check, write ``audit/report.json``, ``report.md``, plots and the contact sheet."""
+def audit_dataset(
+    ds: Path, *, out: Path | None = None, contact_sheet_images: int = 24
+) -> tuple[list[Check], dict]:
+    """Run every check, write ``report.json``, ``report.md``, plots and the contact sheet to ``out`` (by
+    default the dataset's own ``audit/``); the dataset itself is only read."""
     from rebar_data.dataset.audit_plots import (
         contact_sheet,
         distribution_plots,
@@ -436,8 +440,8 @@ def audit_dataset(ds: Path, *, contact_sheet_images: int = 24) -> tuple[list[Che
     checks += check_instances(ds, S, K, rm, stored=stored)
     checks.append(check_duplicates(ds, S))
     checks += check_leakage(info, S)
-    out = ds / layout.AUDIT_DIR
-    out.mkdir(exist_ok=True)
+    out = Path(out) if out is not None else ds / layout.AUDIT_DIR
+    out.mkdir(parents=True, exist_ok=True)
     stats = distribution_plots(S, K, out)
     _, constant = split_parameters(S)
     contact_sheet(ds, S, K, out / "contact_sheet.png", n=contact_sheet_images)

@@ -28,6 +28,15 @@ STRIP = (0.47, 0.87)  # the part of a row the distribution takes (fraction of th
 LISTING_CHARS = 58  # characters a line of a categorical parameter's counts holds
 
 
+def write_png(path: Path, rgb: np.ndarray) -> None:
+    """An RGB image as a PNG file, encoded in memory and written by Python: a failed write (a full disk)
+    raises, where ``cv2.imwrite`` returns False and libpng prints to stderr."""
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise RuntimeError(f"PNG encoding failed for {path}")
+    Path(path).write_bytes(buf.tobytes())
+
+
 def split_parameters(S: pd.DataFrame) -> tuple[list[str], dict[str, object]]:
     """The randomized columns of the samples table (``layout.RANDOMIZED_PREFIXES``): those that vary over the
     images, and the constant ones with their value (JSON types)."""
@@ -214,7 +223,7 @@ def contact_sheet(
             1,
             cv2.LINE_AA,
         )
-    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    write_png(path, sheet)
 
 
 def _read_depth_m(ds: Path, rel: object) -> np.ndarray | None:
@@ -304,5 +313,5 @@ def sensor_depth_sheet(ds: Path, S: pd.DataFrame, path: Path, *, tile: int = 320
                 1,
                 cv2.LINE_AA,
             )
-    cv2.imwrite(str(path), cv2.cvtColor(sheet, cv2.COLOR_RGB2BGR))
+    write_png(path, sheet)
     return True

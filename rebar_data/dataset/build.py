@@ -41,7 +41,14 @@ from rebar_data.dataset.writers.manifest import write_manifest
 from rebar_data.dataset.writers.tables import keypoints_table, samples_table, write_tables
 from rebar_data.dataset.writers.yolo import write_data_yaml, write_yolo
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
-from rebar_data.outputs import OutputLock, input_file, output_folder, replace_folder, restore_interrupted_swap
+from rebar_data.outputs import (
+    OutputLock,
+    input_file,
+    output_folder,
+    replace_folder,
+    restore_interrupted_swap,
+    space_for,
+)
 from rebar_data.pipeline import PipelineConfig, load_pipeline
 from rebar_data.render.engines import check_engine, engine_record
 from rebar_data.scene.cameras import intrinsics_from_config
@@ -141,11 +148,10 @@ def check_workers(workers: int | None, *, backend: str = "local") -> None:
 
 
 def check_paths(config: str | Path, out_root: str | Path) -> Path:
-    """The pipeline is a readable text file and ``--out`` a folder (new or not) there is a place to write;
-    one ConfigError line otherwise, before any work. Returns the pipeline's path."""
-    path = input_file(
-        config, arg="pipeline", what="a pipeline YAML file such as pipelines/smoke.yaml", text=True
-    )
+    """The pipeline is a readable file and ``--out`` a folder (new or not) there is a place to write; one
+    ConfigError line otherwise, before any work. Returns the pipeline's path (read once, by
+    ``load_pipeline``, which also refuses a file that is not text)."""
+    path = input_file(config, arg="pipeline", what="a pipeline YAML file such as pipelines/smoke.yaml")
     out = Path(out_root)
     if out.exists() and not out.is_dir():
         raise ConfigError(f"--out {out}: is a file; accepted: a folder to hold datasets, new or existing")
@@ -242,9 +248,12 @@ def _load_done(staging: Path) -> dict[str, list[FrameRecord]]:
 def _save_records(staging: Path, trajectory_id: str, records: list[FrameRecord]) -> None:
     path = staging / RECORDS / f"{trajectory_id}.pkl"
     tmp = path.with_suffix(".tmp")
-    with open(tmp, "wb") as f:
-        pickle.dump(records, f, protocol=pickle.HIGHEST_PROTOCOL)
-    tmp.replace(path)
+    try:
+        with open(tmp, "wb") as f:
+            pickle.dump(records, f, protocol=pickle.HIGHEST_PROTOCOL)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 def _processes(workers: int, tasks: list) -> int:
@@ -298,24 +307,50 @@ def build_dataset(
     force: bool = False,
     resume: bool = False,
     runner: TaskRunner | None = None,
+    pipeline: PipelineConfig | None = None,
 ) -> Path:
     """Build the dataset described by ``config`` under ``out_root`` and return its folder.
 
     ``runner`` runs the shards (default: the local backend with ``workers`` processes, 1 to the machine's
     cores); the checks, the lock, the plan, the staging folder, resume and finalize are the same whatever
-    runs them. Ctrl-C raises ``BuildInterrupted`` (a ``KeyboardInterrupt``) with a one-line summary.
+    runs them. ``pipeline`` is ``config`` as a caller already read it (a pipe can be read only once).
+    Ctrl-C raises ``BuildInterrupted`` (a ``KeyboardInterrupt``) with a one-line summary.
     """
     config = check_paths(config, out_root)
     if runner is None:
         check_workers(workers)
-    cfg = load_pipeline(config)
+    cfg = pipeline if pipeline is not None else load_pipeline(config)
     check_engine(cfg.render)
     final = layout.dataset_dir(Path(out_root), cfg.name, cfg.version).resolve()
     check_final(cfg, final, force=force)  # before the lock, which makes the dataset's parent folder
     runner = runner or LocalRunner(workers or os.cpu_count() or 1)
+    flags = "--force --resume" if force else "--resume"
     with OutputLock(final, command=COMMAND):
         staging = prepare_staging(cfg, final, force=force, resume=resume)
-        return _build(cfg, runner, staging, final, resume_flags="--force --resume" if force else "--resume")
+        then = f"; then `{flags}` continues the build from {staging}"
+        try:
+            with space_for(final.parent, lambda: build_bytes(cfg, staging), then=then):
+                return _build(cfg, runner, staging, final, resume_flags=flags)
+        except ConfigError:
+            _remove_stray_temp_files(staging)  # what was half-written; the finished shards' records stay
+            raise
+
+
+def build_bytes(cfg: PipelineConfig, staging: Path) -> int:
+    """About how much more the build needs: the images still to write, at what those written so far take
+    with their maps (before there are any, their uncompressed size: RGB, and 16-bit exact and sensor depth
+    and instance maps where stored), and a tenth more for the tables and views made from them."""
+    plan_images = sum(t.count * t.frames for t in cfg.camera.trajectories)
+    images = staging / "images"
+    written = len(list(images.rglob("*.png"))) if images.is_dir() else 0
+    staged = sum(p.stat().st_size for p in staging.rglob("*") if p.is_file())
+    if written:
+        per_image = staged / written
+    else:
+        k = intrinsics_from_config(cfg.camera)
+        maps = 2 * cfg.dataset.store_depth + cfg.dataset.store_instances
+        per_image = k.width * k.height * (3 + 2 * maps)
+    return int(1.1 * per_image * max(plan_images - written, 0))
 
 
 def _build(cfg: PipelineConfig, runner: TaskRunner, staging: Path, final: Path, *, resume_flags: str) -> Path:
@@ -348,6 +383,9 @@ def _build(cfg: PipelineConfig, runner: TaskRunner, staging: Path, final: Path, 
         raise BuildInterrupted(
             f"interrupted after {saved} of {len(plan.samples)} images; `{resume_flags}` continues it"
         ) from None
+    except BaseException:
+        bar.close()  # the bar's line ends before the error's
+        raise
     finally:
         close = getattr(results, "close", None)  # ends the workers however the loop ended
         if close is not None:
@@ -375,7 +413,7 @@ def _build(cfg: PipelineConfig, runner: TaskRunner, staging: Path, final: Path, 
 
 def _remove_stray_temp_files(staging: Path) -> None:
     """Remove half-written files of workers that were killed mid-write (a retried shard rewrites them)."""
-    for p in staging.rglob(".*.tmp"):
+    for p in [*staging.rglob(".*.tmp"), *(staging / RECORDS).glob("*.tmp")]:
         p.unlink(missing_ok=True)
 
 

@@ -70,19 +70,48 @@ def run_validate(args: argparse.Namespace) -> int:
     return 0
 
 
+AUDIT_COMMAND = "rebar dataset audit"
+
+
+def audit_out(path: Path, out: str | None) -> Path:
+    """Where the audit of the dataset ``path`` writes its report: ``--out`` (new, empty or an earlier audit's
+    output), else the dataset's own ``audit/``, which must then be writable (a read-only dataset is told to
+    give ``--out``). Checked before any work."""
+    from rebar_data.outputs import output_folder
+
+    if out is not None:
+        return output_folder(out, arg="--out", command=AUDIT_COMMAND, owned=_is_audit_report)
+    own = path / layout.AUDIT_DIR
+    writable = os.access(own, os.W_OK | os.X_OK) if own.is_dir() else os.access(path, os.W_OK | os.X_OK)
+    if not writable:
+        raise ConfigError(
+            f"{path}: read-only, and the audit writes its report to {own}; accepted: --out DIR to write the "
+            "report elsewhere (the dataset is only read)"
+        )
+    return own
+
+
+def _is_audit_report(folder: Path) -> bool:
+    """An earlier audit's output: its report and nothing but the files an audit writes."""
+    return (folder / "report.json").is_file() and all(
+        p.suffix in (".json", ".md", ".png") for p in folder.iterdir()
+    )
+
+
 def run_audit(args: argparse.Namespace) -> int:
     from rebar_data.dataset.audit import audit_dataset, result_word
     from rebar_data.dataset.layout import DatasetFormatError
 
     path = dataset_folder(args.path)
+    out = audit_out(path, args.out)
     try:
-        checks, _ = audit_dataset(path)
+        checks, _ = audit_dataset(path, out=out)
     except DatasetFormatError as e:
         raise ConfigError(str(e)) from None
     for c in checks:
         print(f"{result_word(c.passed, c.applicable):4}  {c.name}: {c.value:.6g} (bar {c.bar}) - {c.detail}")
     failed = [c.name for c in checks if not c.passed]
-    print(f"report: {path / 'audit' / 'report.md'}")
+    print(f"report: {out / 'report.md'}")
     if failed:
         print(f"{args.path}: audit FAILED: {', '.join(failed)}", file=sys.stderr)
         return 1
@@ -125,5 +154,11 @@ def register(sub: argparse._SubParsersAction) -> argparse._SubParsersAction:
     v.set_defaults(func=run_validate)
     a = dsub.add_parser("audit", help="label-quality checks, report and contact sheet (audit/)")
     a.add_argument("path")
+    a.add_argument(
+        "--out",
+        default=None,
+        help="folder for the report, plots and contact sheet (default: the dataset's audit/; needed for a "
+        "read-only dataset)",
+    )
     a.set_defaults(func=run_audit)
     return dsub

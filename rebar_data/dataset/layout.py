@@ -79,6 +79,20 @@ class DatasetFormatError(Exception):
     """A dataset on disk cannot be read by this version of the toolkit."""
 
 
+def read_table(path: Path):
+    """A dataset's Parquet table (``pyarrow.Table``); a file cut short or not Parquet is a
+    ``DatasetFormatError`` naming it."""
+    import pyarrow.parquet as pq
+
+    try:
+        return pq.read_table(path)
+    except (OSError, ValueError) as e:  # pyarrow's ArrowIOError and ArrowInvalid
+        raise DatasetFormatError(
+            f"{path}: cannot be read as a Parquet table ({' '.join(str(e).split())[:160]}); expected the table "
+            "`rebar dataset build` writes (rebuild the dataset, or restore the file)"
+        ) from None
+
+
 @dataclass
 class DatasetInfo:
     """Everything ``meta/info.json`` holds: identity, provenance, counts and label conventions."""
@@ -112,6 +126,8 @@ class DatasetInfo:
 
     @classmethod
     def from_dict(cls, d: dict) -> DatasetInfo:
+        if not isinstance(d, dict):
+            raise DatasetFormatError(f"{INFO}: the top level is {type(d).__name__}; expected a JSON object")
         major = str(d.get("schema_version", "0")).split(".")[0]
         if major != SCHEMA_VERSION.split(".")[0]:
             raise DatasetFormatError(
@@ -137,4 +153,20 @@ class DatasetInfo:
             raise DatasetFormatError(
                 f"{dataset}: no {INFO}; is this a dataset folder (<root>/<name>/v<version>)?"
             )
-        return cls.from_dict(json.loads(p.read_text()))
+        try:
+            data = json.loads(p.read_bytes())
+        except OSError as e:
+            raise DatasetFormatError(f"{p}: cannot be read ({e.strerror})") from None
+        except ValueError as e:  # cut short, not JSON, or not UTF-8 text
+            raise DatasetFormatError(
+                f"{p}: not valid JSON ({e}); expected the info file `rebar dataset build` writes (rebuild the "
+                "dataset, or restore the file)"
+            ) from None
+        try:
+            return cls.from_dict(data)
+        except DatasetFormatError as e:
+            raise DatasetFormatError(f"{dataset}: {e}") from None
+        except TypeError as e:  # a key the class needs is missing
+            raise DatasetFormatError(
+                f"{p}: {e}; expected the info file `rebar dataset build` writes"
+            ) from None

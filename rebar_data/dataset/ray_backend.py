@@ -210,8 +210,10 @@ def build_dataset_ray(
     """
     check_paths(config, out_root)
     check_workers(actors, backend="ray")
-    load_pipeline(config)  # a broken pipeline is the first thing reported, before Ray or the cluster
+    cfg = load_pipeline(config)  # a broken pipeline is the first thing reported, before Ray or the cluster
     import_ray()
     runner = RayRunner(address=address, actors=actors)
     runner.check_address()
-    return build_dataset(config, out_root, workers=actors, force=force, resume=resume, runner=runner)
+    return build_dataset(
+        config, out_root, workers=actors, force=force, resume=resume, runner=runner, pipeline=cfg
+    )

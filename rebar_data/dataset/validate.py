@@ -37,6 +37,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 import yaml
 
+from rebar_data.config import ConfigError, parse_yaml
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
 from rebar_data.dataset.writers.manifest import listed_files, sha256_file
@@ -155,8 +156,8 @@ def validate_dataset(path: Path, *, note: Callable[[str], None] = print) -> list
 
 def _check_info(path: Path, f: Failures) -> dict:
     try:
-        d = json.loads((path / layout.INFO).read_text())
-    except json.JSONDecodeError as e:
+        d = json.loads((path / layout.INFO).read_bytes())
+    except (ValueError, OSError) as e:  # not JSON, not UTF-8 text (both ValueErrors), or unreadable
         f.add("info", f"{layout.INFO} is not valid JSON: {e}")
         return {}
     for err in sorted(jsonschema.Draft202012Validator(json_schema("info")).iter_errors(d), key=str):
@@ -217,9 +218,12 @@ def _check_data_yaml(path: Path, info: dict, f: Failures, note: Callable[[str], 
         f.add("data.yaml", "missing")
         return
     try:
-        d = yaml.safe_load(p.read_text())
-    except yaml.YAMLError as e:
-        f.add("data.yaml", f"is not valid YAML: {' '.join(str(e).split())}")
+        d = parse_yaml(p.read_bytes().decode("utf-8"), layout.DATA_YAML)
+    except UnicodeDecodeError:
+        f.add("data.yaml", "is not UTF-8 text; expected Ultralytics' YAML dataset file")
+        return
+    except ConfigError as e:  # not YAML, or aliases that expand without bound
+        f.add("data.yaml", str(e).removeprefix(f"{layout.DATA_YAML}: "))
         return
     names = d.get("names") if isinstance(d, dict) else None
     if isinstance(names, dict):  # YAML reads the class ids as integers; JSON Schema keys are strings

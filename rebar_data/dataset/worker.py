@@ -118,11 +118,15 @@ def _encode(img: np.ndarray) -> bytes:
 
 
 def _write(path: Path, data: bytes) -> None:
-    """Write via a temporary name and rename, so a killed build never leaves a truncated file."""
+    """Write via a temporary name and rename, so a killed build never leaves a truncated file (and a
+    failed write, such as on a full disk, no temporary one)."""
     path.parent.mkdir(parents=True, exist_ok=True)
     tmp = path.with_name(f".{path.name}.{os.getpid()}.tmp")
-    tmp.write_bytes(data)
-    tmp.replace(path)
+    try:
+        tmp.write_bytes(data)
+        tmp.replace(path)
+    finally:
+        tmp.unlink(missing_ok=True)
 
 
 # --- process-pool plumbing: one FrameWorker per process -------------------------------------------

@@ -49,6 +49,7 @@ def run_mesh(args: argparse.Namespace) -> None:
         mark_output,
         output_file,
         output_folder,
+        remove_stale,
         replace_folder,
     )
     from rebar_data.pipeline import load_mesh_config
@@ -101,6 +102,7 @@ def run_mesh(args: argparse.Namespace) -> None:
     rm = build_rebar_mesh(cfg, config_dir=config_dir)
     with OutputLock(out, command=COMMAND):
         check_out()  # again under the lock: another writer may have finished there meanwhile
+        remove_stale(out.parent, f".{out.name}.tmp-*")  # a killed run's (the lock proves it dead)
         # write beside the target and swap, so an interrupted run never leaves a folder that looks finished
         with tempfile.TemporaryDirectory(dir=out.parent, prefix=f".{out.name}.tmp-") as tmp:
             staging = Path(tmp) / "mesh"

@@ -429,6 +429,7 @@ def _detect_images(detector, target: Path, files: list[Path], camera, args: argp
     unread: list[Path] = []
     with outputs.OutputLock(final, command=DETECT):
         _images_out(target, args)  # again under the lock: another writer may have finished meanwhile
+        outputs.remove_stale(final.parent, f".{final.name}.tmp-*")  # a killed run's (the lock proves it dead)
         with tempfile.TemporaryDirectory(dir=final.parent, prefix=f".{final.name}.tmp-") as tmp:
             out = Path(tmp) / "detect"
             out.mkdir()

@@ -6,6 +6,9 @@ tables, the build's ``meta/info.json`` (and ``meta/mesh.ifc``, for bars read fro
 ``SHA256SUMS``. Only a dataset that validates and passes its audit is published. Like a build, the bundle is written to a staging folder
 and swapped into place, so an interrupted publish never leaves a folder that looks finished; an existing
 ``--out`` is replaced only when it holds an earlier bundle (and ``--force`` says so), one publish at a time.
+The bundle's files are its own (copies, or copy-on-write clones where the filesystem makes them): editing
+one never changes the dataset. Nothing is written into the dataset, so a read-only one publishes: a
+dataset without an audit report is audited into the bundle's ``audit/``.
 """
 
 from __future__ import annotations
@@ -26,7 +29,7 @@ from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
 from rebar_data.dataset.writers.manifest import sha256_file
-from rebar_data.outputs import OutputLock, output_folder, replace_folder
+from rebar_data.outputs import OutputLock, copy_file, output_folder, remove_stale, replace_folder, space_for
 from rebar_data.publish.card import LICENSES, citation, dataset_card, license_url
 from rebar_data.publish.croissant import croissant_metadata
 from rebar_data.publish.rows import write_shards
@@ -37,7 +40,6 @@ CROISSANT = "croissant.json"
 CHECKSUMS = "SHA256SUMS"
 VIEW_DIRS = ("images", "labels", "annotations", "tables")
 MAP_DIRS = ("depth", "sensor_depth", "instances")
-IMAGE_DIRS = ("images", "depth", "sensor_depth", "instances")  # hard-linked when possible
 AUDIT_FILES = (
     "report.json",
     "report.md",
@@ -55,31 +57,15 @@ def publication_date() -> str:
     return when.date().isoformat()
 
 
-def _copy(src: Path, dst: Path, *, link: bool = False) -> None:
-    """Copy a file; ``link`` hard-links it when on the same filesystem (for the bulky image files, which a
-    build writes once via a temporary name and never rewrites in place)."""
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    if link:
-        try:
-            os.link(src, dst)
-            return
-        except OSError:
-            pass
-    shutil.copy2(src, dst)
-
-
-def _copy_tree(src: Path, dst: Path, *, link: bool = False, skip: Collection[Path] = ()) -> None:
+def _copy_tree(src: Path, dst: Path, *, skip: Collection[Path] = ()) -> None:
     for p in sorted(src.rglob("*")):
         if p.is_file() and p not in skip:
-            _copy(p, dst / p.relative_to(src), link=link)
+            copy_file(p, dst / p.relative_to(src))
 
 
-def check_source(dataset: Path, *, allow_failed_audit: bool) -> tuple[DatasetInfo, dict]:
-    """The dataset's info and audit report; refuses a dataset that does not validate or fails its audit.
-
-    A dataset without an audit report is audited first (which writes its ``audit/`` folder).
-    """
-    from rebar_data.dataset.audit import audit_dataset
+def check_source(dataset: Path) -> tuple[DatasetInfo, dict | None]:
+    """The dataset's info and its audit report (None when it has none); refuses a dataset that does not
+    validate."""
     from rebar_data.dataset.validate import validate_dataset
 
     try:
@@ -95,15 +81,31 @@ def check_source(dataset: Path, *, allow_failed_audit: bool) -> tuple[DatasetInf
         )
     report = dataset / layout.AUDIT_DIR / "report.json"
     if not report.exists():
-        audit_dataset(dataset)
-    audit = json.loads(report.read_text())
+        return info, None
+    try:
+        audit = json.loads(report.read_bytes())
+    except ValueError as e:
+        raise ConfigError(
+            f"{report}: not valid JSON ({e}); accepted: the report `rebar dataset audit` writes (run it again)"
+        ) from None
+    return info, audit if isinstance(audit, dict) else {}
+
+
+def check_audit(dataset: Path, audit: dict, *, allow_failed_audit: bool) -> None:
+    """Refuse a dataset whose audit failed, unless ``allow_failed_audit``."""
     if not audit.get("passed") and not allow_failed_audit:
         failed = [c["name"] for c in audit.get("checks", []) if not c["passed"]]
         raise ConfigError(
             f"{dataset} fails its audit ({', '.join(failed)}); accepted: a dataset that passes "
             "`rebar dataset audit`, or --allow-failed-audit to publish it with the failures in its card"
         )
-    return info, audit
+
+
+def bundle_bytes(src: Path, *, maps: bool) -> int:
+    """About how much a bundle of ``src`` takes: its copied files, and the images again in the shards."""
+    dirs = VIEW_DIRS + (MAP_DIRS if maps else ()) + (layout.AUDIT_DIR, "meta")
+    copied = sum(p.stat().st_size for d in dirs for p in (src / d).rglob("*") if p.is_file())
+    return copied + sum(p.stat().st_size for p in (src / "images").rglob("*") if p.is_file())
 
 
 def _write_data_yaml(src: Path, bundle: Path) -> None:
@@ -206,12 +208,24 @@ def publish_dataset(
     if out == src or src in out.parents or out in src.parents:
         raise ConfigError(f"--out {out}: inside or around the dataset; accepted: a folder outside {src}")
     check_out(out, force=force)
-    info, audit = check_source(src, allow_failed_audit=allow_failed_audit)
-    with OutputLock(out, command=COMMAND):
+    info, audit = check_source(src)
+    if audit is not None:
+        check_audit(src, audit, allow_failed_audit=allow_failed_audit)
+    with (
+        space_for(out, lambda: bundle_bytes(src, maps=maps)),
+        OutputLock(out, command=COMMAND),
+    ):
         check_out(out, force=force)  # again under the lock: another publish may have finished meanwhile
+        remove_stale(out.parent, f".{out.name}.partial-*")  # a killed publish's (the lock proves it dead)
         staging = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
         try:
-            _write_bundle(src, staging, info, audit, license_id=license_id, maps=maps)
+            if audit is None:  # audited into the bundle: nothing is written into the dataset
+                audit = _audit_into(src, staging / layout.AUDIT_DIR)
+                check_audit(src, audit, allow_failed_audit=allow_failed_audit)
+                audit_src = staging / layout.AUDIT_DIR
+            else:
+                audit_src = src / layout.AUDIT_DIR
+            _write_bundle(src, staging, info, audit, audit_src, license_id=license_id, maps=maps)
             replace_folder(staging, out)
         except BaseException:
             shutil.rmtree(staging, ignore_errors=True)
@@ -219,10 +233,19 @@ def publish_dataset(
     return out
 
 
+def _audit_into(src: Path, folder: Path) -> dict:
+    """Audit ``src`` with its report, plots and contact sheet written to ``folder``; the report."""
+    from rebar_data.dataset.audit import audit_dataset
+
+    audit_dataset(src, out=folder)
+    return json.loads((folder / "report.json").read_text())
+
+
 def _write_bundle(
-    src: Path, staging: Path, info: DatasetInfo, audit: dict, *, license_id: str, maps: bool
+    src: Path, staging: Path, info: DatasetInfo, audit: dict, audit_src: Path, *, license_id: str, maps: bool
 ) -> None:
-    """Every file of the bundle of ``src`` into the empty folder ``staging``."""
+    """Every file of the bundle of ``src`` into the folder ``staging`` (empty but for its ``audit/`` when
+    ``audit_src`` is there)."""
     from rebar_data.dataset.validate import foreign_files
 
     samples = pq.read_table(src / layout.SAMPLES)
@@ -231,14 +254,15 @@ def _write_bundle(
     foreign = {src / rel for rel in foreign_files(src)}  # never published
     for d in VIEW_DIRS + (MAP_DIRS if maps else ()):
         if (src / d).is_dir():
-            _copy_tree(src / d, staging / d, link=d in IMAGE_DIRS, skip=foreign)
-    _copy(src / layout.INFO, staging / layout.INFO)
+            _copy_tree(src / d, staging / d, skip=foreign)
+    copy_file(src / layout.INFO, staging / layout.INFO)
     if (src / layout.MESH_IFC).is_file():
-        _copy(src / layout.MESH_IFC, staging / layout.MESH_IFC)
+        copy_file(src / layout.MESH_IFC, staging / layout.MESH_IFC)
     _write_data_yaml(src, staging)
-    for name in AUDIT_FILES:  # copies: an audit rewrites its files in place
-        if (src / layout.AUDIT_DIR / name).exists():
-            _copy(src / layout.AUDIT_DIR / name, staging / layout.AUDIT_DIR / name)
+    if audit_src != staging / layout.AUDIT_DIR:
+        for name in AUDIT_FILES:
+            if (audit_src / name).exists():
+                copy_file(audit_src / name, staging / layout.AUDIT_DIR / name)
 
     date = publication_date()
     splits = list(dict.fromkeys(s.split for s in shards))

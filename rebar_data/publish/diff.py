@@ -25,7 +25,6 @@ from pathlib import Path
 
 import numpy as np
 import pandas as pd
-import pyarrow.parquet as pq
 from scipy import stats
 
 from rebar_data.config import ConfigError
@@ -203,7 +202,10 @@ def _read(ds: Path) -> tuple[DatasetInfo, pd.DataFrame, pd.DataFrame, dict]:
     for name, rel in (("samples", layout.SAMPLES), ("keypoints", layout.KEYPOINTS)):
         if not (ds / rel).exists():
             raise ConfigError(f"{ds}: no {rel}; accepted: a dataset or published bundle folder")
-        t = pq.read_table(ds / rel)
+        try:
+            t = layout.read_table(ds / rel)
+        except DatasetFormatError as e:
+            raise ConfigError(str(e)) from None
         schemas[name] = {f.name: str(f.type) for f in t.schema}
         frames.append(t.to_pandas())
     return info, frames[0], frames[1], schemas

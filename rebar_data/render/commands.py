@@ -28,7 +28,7 @@ def run_render(args: argparse.Namespace) -> None:
     import numpy as np
 
     from rebar_data.geometry.build import build_rebar_mesh
-    from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_folder
+    from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_stale, replace_folder
     from rebar_data.pipeline import load_pipeline
     from rebar_data.render.engines import check_engine
     from rebar_data.scene.cameras import intrinsics_from_config
@@ -44,6 +44,7 @@ def run_render(args: argparse.Namespace) -> None:
     rng = np.random.default_rng(cfg.seed if args.seed is None else args.seed)
     with OutputLock(final, command=COMMAND):
         check_out()  # again under the lock: another writer may have finished there meanwhile
+        remove_stale(final.parent, f".{final.name}.tmp-*")  # a killed run's (the lock proves it dead)
         # frames go to a folder beside --out, swapped in whole at the end
         with tempfile.TemporaryDirectory(dir=final.parent, prefix=f".{final.name}.tmp-") as tmp:
             out = Path(tmp) / "frames"

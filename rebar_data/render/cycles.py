@@ -30,13 +30,13 @@ from __future__ import annotations
 import os
 import shutil
 import sys
-import tempfile
 from contextlib import contextmanager
 
 import numpy as np
 
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.outputs import private_temp_dir
 from rebar_data.render import cycles_looks as looks
 from rebar_data.render.raycast import Frame, SceneRaycast
 from rebar_data.scene.cameras import Intrinsics
@@ -138,7 +138,7 @@ class CyclesRenderer(SceneRaycast):
         self._mesh_objects: list = []  # the rebar: kept across scenes
         self._bar_vertex_counts: list[int] = []
         self._scene_objects: list = []  # surroundings and lights: replaced by every scene
-        self._tmp = tempfile.mkdtemp(prefix="rebar-cycles-")
+        self._tmp = str(private_temp_dir("rebar-cycles-"))  # a pool worker ended by terminate() leaves it
         self._init_raycast(intrinsics)
         self.timer = StageTimer()  # seconds per stage of render(): cycles, rays, sensor
         with _quiet():

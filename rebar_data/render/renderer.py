@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.outputs import private_temp_dir
 from rebar_data.render.raycast import Frame, SceneRaycast
 from rebar_data.render.uv import bar_corner_uv_m
 from rebar_data.scene.cameras import Intrinsics
@@ -92,7 +93,7 @@ def _quiet_start() -> Iterator[None]:
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     runtime_dir = None
     if not os.environ.get("XDG_RUNTIME_DIR"):
-        runtime_dir = tempfile.mkdtemp(prefix="rebar-runtime-")  # mode 0700, as the variable requires
+        runtime_dir = str(private_temp_dir("rebar-runtime-"))  # mode 0700, as the variable requires
         os.environ["XDG_RUNTIME_DIR"] = runtime_dir
     try:
         with _fds_captured() as captured:

@@ -14,7 +14,7 @@ from typing import Annotated, Literal, get_args
 
 from pydantic import AfterValidator, Field, ValidationError, field_validator, model_validator
 
-from rebar_data.config import Fraction, NonNegative, Positive, Strict
+from rebar_data.config import Fraction, NonNegative, Positive, Strict, excerpt
 
 
 def _ordered(r: tuple[float, float]) -> tuple[float, float]:
@@ -35,9 +35,9 @@ CountRange = Annotated[
 def _weights(table: dict[str, float], accepted: tuple[str, ...]) -> dict[str, float]:
     unknown = sorted(set(table) - set(accepted))
     if unknown:
-        raise ValueError(f"unknown choice {unknown[0]!r}; accepted: {', '.join(accepted)}")
+        raise ValueError(f"unknown choice {excerpt(unknown[0])}; accepted: {', '.join(accepted)}")
     if any(w < 0 for w in table.values()) or sum(table.values()) <= 0:
-        raise ValueError(f"weights {table} must be >= 0 with a positive sum")
+        raise ValueError(f"weights {excerpt(table)} must be >= 0 with a positive sum")
     return table
 
 
@@ -139,7 +139,7 @@ class CameraConfig(Strict):
     def _preset(cls, v: object) -> object:
         if isinstance(v, str) and v not in INTRINSICS_PRESETS:
             raise ValueError(
-                f"{v!r} is not a preset; accepted: {', '.join(INTRINSICS_PRESETS)}, or a mapping of width, "
+                f"{excerpt(v)} is not a preset; accepted: {', '.join(INTRINSICS_PRESETS)}, or a mapping of width, "
                 "height, fx, fy, cx, cy"
             )
         if isinstance(v, dict):  # validate here, so an error names the key rather than the union's branches
@@ -148,7 +148,7 @@ class CameraConfig(Strict):
             except ValidationError as e:
                 err = e.errors(include_url=False)[0]
                 key = ".".join(str(x) for x in err["loc"])
-                given = f" = {err['input']!r}" if err["type"] != "missing" else ""
+                given = f" = {excerpt(err['input'])}" if err["type"] != "missing" else ""
                 raise ValueError(f"{key}{given}: {err['msg'].lower()}") from None
         return v
 

@@ -133,14 +133,8 @@ class TextureCache:
             self._memory.move_to_end(key)
             return self._memory[key]
         path = self.folder / f"{key}.npz"
-        arrays = None
-        if path.exists():
-            try:
-                with np.load(path) as z:
-                    arrays = {k: z[k] for k in z.files}
-            except (OSError, ValueError):  # a damaged file: make it again
-                arrays = None
-        if arrays is None:
+        arrays = _load_whole(path)
+        if arrays is None:  # missing, or damaged (empty, cut short, not ours): made and stored again
             arrays = make()
             self._save(path, arrays)
         self._memory[key] = arrays
@@ -149,13 +143,27 @@ class TextureCache:
         return arrays
 
     def _save(self, path: Path, arrays: dict[str, np.ndarray]) -> None:
+        tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
-            tmp = path.with_name(f".{path.stem}.{os.getpid()}.tmp.npz")
             np.savez(tmp, **arrays)
             tmp.replace(path)
-        except OSError:  # a read-only home: keep the memory copy only
-            pass
+        except OSError:  # a read-only home or a full disk: keep the memory copy only
+            tmp.unlink(missing_ok=True)
+
+
+def _load_whole(path: Path) -> dict[str, np.ndarray] | None:
+    """The arrays of a cached ``.npz`` file, or None when it is missing or damaged: a zip archive whose
+    every member is read whole (which checks each member's CRC-32), with at least one array in it. A power
+    cut's 0-byte or half-written file, or any other file there, is None, so the cache makes it again."""
+    if not path.is_file():
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            arrays = {k: z[k] for k in z.files}
+    except Exception:  # noqa: BLE001  (EOFError, BadZipFile, zlib.error, ValueError...: all mean damaged)
+        return None
+    return arrays or None
 
 
 def _seed(*parts: object) -> int:

@@ -22,7 +22,7 @@ import pyarrow as pa
 import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError
-from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_folder
+from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_stale, replace_folder
 from rebar_data.pipeline import load_pipeline
 from rebar_data.scene.sample import nominal_depth_sensor
 from rebar_data.servo.camera import CameraModel
@@ -174,6 +174,7 @@ def _run_episodes(suite, ctx, out: Path, t0: float, recorder_factory, progress: 
     # only now, with the model loaded and every start pose reachable, does the run write anything
     with OutputLock(out, command=COMMAND):
         check_out(out)  # again under the lock: another writer may have finished there meanwhile
+        remove_stale(out.parent, f".{out.name}.tmp-*")  # a killed run's (the lock proves it dead)
         return _write_run(suite, ctx, plan, out, t0, recorder_factory, progress)
 
 

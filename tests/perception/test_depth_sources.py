@@ -91,3 +91,28 @@ def test_a_frame_with_a_sensors_holes_is_read_no_worse_than_without_depth(
     found_with = match(visible, with_depth[:, :2], 2.0)[1]
     assert len(found_without) >= 5 and set(found_without) <= set(found_with)
     assert len(with_depth) <= len(without)
+
+
+def test_a_depth_image_of_another_size_is_named(tmp_path):
+    from rebar_data.perception.evaluation.data import Sample
+
+    depth = tmp_path / "depth" / "test" / "a.png"
+    depth.parent.mkdir(parents=True)
+    cv2.imwrite(str(depth), np.full((30, 40), 1000, np.uint16))
+    s = Sample("a", tmp_path / "a.png", 160, 120, np.zeros((0, 2)), np.zeros(0), depth_path=depth)
+    for source in ("exact", "structured_light"):
+        with pytest.raises(
+            ConfigError, match=rf"{depth}: a depth image of 40x30 px; accepted: .* 160x120 px"
+        ):
+            sample_depth(s, source)
+    cv2.imwrite(str(depth), np.full((120, 160), 1000, np.uint16))
+    assert sample_depth(s, "exact").shape == (120, 160)
+
+
+def test_a_truncated_info_json_is_named(tmp_path):
+    from rebar_data.perception.evaluation.data import read_info
+
+    (tmp_path / "meta").mkdir()
+    (tmp_path / "meta" / "info.json").write_text('{"name": "tiny", "oks_sig')
+    with pytest.raises(ConfigError, match=r"meta/info.json: not valid JSON .*expected the info file"):
+        read_info(tmp_path)

@@ -18,11 +18,14 @@ PUBLISHED_EPOCH = 1767225600  # 2026-01-01, for a reproducible card
 
 @pytest.fixture(scope="session")
 def source_dataset(tmp_path_factory) -> Path:
-    """TINY built once with one worker (publish audits it, which writes its audit/ folder)."""
+    """TINY built once with one worker and audited (its audit/ folder, which publish reads)."""
+    from rebar_data.dataset.audit import audit_dataset
     from rebar_data.dataset.build import build_dataset
 
     root = tmp_path_factory.mktemp("pub-src")
-    return build_dataset(write_config(root / "cfg"), root, workers=1)
+    ds = build_dataset(write_config(root / "cfg"), root, workers=1)
+    audit_dataset(ds)
+    return ds
 
 
 @pytest.fixture(scope="session")

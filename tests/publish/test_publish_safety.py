@@ -61,3 +61,69 @@ def test_a_bundle_being_written_is_not_written_twice(source_dataset, tmp_path, c
         assert _publish(source_dataset, out) == 2
         assert "is writing there now" in _one_line(capsys)
     assert not out.exists()
+
+
+def test_a_read_only_dataset_publishes_into_a_bundle_of_its_own(source_dataset, tmp_path, monkeypatch):
+    import hashlib
+    import shutil
+
+    from rebar_data.dataset import audit as audit_mod
+
+    report = (source_dataset / "audit" / "report.json").read_text()
+
+    def audit_dataset(ds, *, out=None, **kwargs):  # the real one's report, at once; where it is told to
+        out = out or ds / "audit"
+        out.mkdir(parents=True)
+        (out / "report.json").write_text(report)
+        return [], {}
+
+    monkeypatch.setattr(audit_mod, "audit_dataset", audit_dataset)
+    src = tmp_path / "ds"
+    shutil.copytree(source_dataset, src)
+    shutil.rmtree(src / "audit")  # not audited: publish audits it
+    for p in [src, *src.rglob("*")]:
+        p.chmod(0o555 if p.is_dir() else 0o444)
+
+    def files():
+        return {p: hashlib.sha256(p.read_bytes()).hexdigest() for p in src.rglob("*") if p.is_file()}
+
+    before = files()
+    out = tmp_path / "bundle"
+    killed = tmp_path / ".bundle.partial-k1ll3d"  # what a publish killed midway leaves
+    killed.mkdir()
+    (killed / "README.md").write_text("half")
+    try:
+        assert _publish(src, out) == 0
+        assert files() == before and not (src / "audit").exists()  # nothing written into the input
+    finally:
+        for p in [src, *src.rglob("*")]:
+            p.chmod(0o755 if p.is_dir() else 0o644)
+    assert (out / "audit" / "report.json").read_text() == report and not killed.exists()
+    img = next((out / "images").rglob("*.png"))
+    original = src / img.relative_to(out)
+    assert img.stat().st_ino != original.stat().st_ino and original.stat().st_nlink == 1
+    img.write_bytes(b"re-saved")  # an edit in the bundle leaves the dataset's image as it was
+    assert hashlib.sha256(original.read_bytes()).hexdigest() == before[original]
+
+
+def test_a_full_disk_during_publish_is_one_line_and_leaves_nothing(
+    source_dataset, tmp_path, capsys, monkeypatch
+):
+    import errno
+
+    from rebar_data.publish import bundle as bundle_mod
+
+    def full(src, staging, *args):
+        (staging / "data").mkdir()
+        (staging / "data" / "train-00000.parquet").write_bytes(b"PAR1 half")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    from rebar_data.dataset.layout import DatasetInfo
+
+    info = DatasetInfo.read(source_dataset)  # validated and audited elsewhere: not again here
+    monkeypatch.setattr(bundle_mod, "check_source", lambda *args, **kwargs: (info, {"passed": True}))
+    monkeypatch.setattr(bundle_mod, "write_shards", full)
+    assert _publish(source_dataset, tmp_path / "bundle") == 2
+    err = _one_line(capsys)
+    assert "no space left" in err and str(tmp_path / "bundle") in err and "needs about" in err, err
+    assert list(tmp_path.iterdir()) == []

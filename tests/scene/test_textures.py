@@ -83,3 +83,27 @@ def test_user_texture_sets_in_poly_haven_and_ambientcg_names(tmp_path):
     assert maps["albedo"].shape == (32, 32, 3) and maps["roughness"].shape == (32, 32)
     assert maps["normal"][..., 1].mean() < 100  # DirectX green flipped to OpenGL's
     assert "roughness" not in load_texture_set(sets["metal049a"], 32)
+
+
+def test_a_damaged_cache_file_is_made_again(tmp_path):
+    calls = []
+
+    def make():
+        calls.append(1)
+        return {"a": np.arange(4096, dtype=np.float16)}
+
+    TextureCache(tmp_path).get("k", make)
+    (path,) = tmp_path.rglob("k.npz")
+    whole = path.read_bytes()
+    import io
+    import zipfile
+
+    empty_zip = io.BytesIO()
+    zipfile.ZipFile(empty_zip, "w").close()
+    for damaged in (b"", whole[: len(whole) // 2], whole[:-30] + b"\0" * 30, empty_zip.getvalue()):
+        path.write_bytes(damaged)  # a power cut's 0-byte or half-written file, a bad CRC, an empty archive
+        arrays = TextureCache(tmp_path).get("k", make)  # a new process: reads the file, sees the damage
+        assert np.array_equal(arrays["a"], make()["a"])
+        assert path.read_bytes() == whole  # made again, and the damaged file replaced
+    assert len(calls) == 1 + 2 * 4
+    assert [p.name for p in path.parent.iterdir()] == ["k.npz"]  # no temporary file left

@@ -133,10 +133,10 @@ def sample_depth(s: Sample, source: str = "sensor") -> np.ndarray | None:
     None when the dataset has no depth. A sensor model's noise is drawn from the image id alone."""
     check_depth_source(source, f"depth source {source!r}")
     if source == "sensor" and s.sensor_depth_path is not None:
-        return read_depth(s.sensor_depth_path)
+        return read_depth(s.sensor_depth_path, size=(s.width, s.height))
     if s.depth_path is None:
         return None
-    exact = read_depth(s.depth_path)
+    exact = read_depth(s.depth_path, size=(s.width, s.height))
     if source in ("sensor", "exact"):
         return exact
     from rebar_data.render.depth_sensor import sense_depth
@@ -145,12 +145,18 @@ def sample_depth(s: Sample, source: str = "sensor") -> np.ndarray | None:
     return sense_depth(exact, _nominal_sensor(source), rng, fx=s.camera[0])
 
 
-def read_depth(path: str | Path) -> np.ndarray:
-    """A dataset's depth image (uint16 millimetres of camera z, 0 = no measurement) as float32 metres."""
+def read_depth(path: str | Path, *, size: tuple[int, int] | None = None) -> np.ndarray:
+    """A dataset's depth image (uint16 millimetres of camera z, 0 = no measurement) as float32 metres;
+    ``size`` (width, height), when given, is the size it must have (its colour image's)."""
     raw = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if raw is None or raw.ndim != 2 or raw.dtype != np.uint16:
         raise ConfigError(
             f"{path}: cannot be read as a depth image; accepted: a one-channel 16-bit PNG of millimetres"
+        )
+    if size is not None and raw.shape != (size[1], size[0]):
+        raise ConfigError(
+            f"{path}: a depth image of {raw.shape[1]}x{raw.shape[0]} px; accepted: one of its colour image's "
+            f"size, {size[0]}x{size[1]} px (the samples table's width and height)"
         )
     return raw.astype(np.float32) / MM_PER_M
 
@@ -163,7 +169,18 @@ def read_images(samples: list[Sample]) -> list[np.ndarray]:
 def read_info(root: str | Path) -> dict:
     """The dataset's ``meta/info.json`` (an empty dict when it has none)."""
     p = Path(root) / "meta/info.json"
-    return json.loads(p.read_text()) if p.exists() else {}
+    if not p.exists():
+        return {}
+    try:
+        info = json.loads(p.read_bytes())
+    except ValueError as e:  # cut short, not JSON, or not UTF-8 text
+        raise ConfigError(
+            f"{p}: not valid JSON ({e}); expected the info file `rebar dataset build` writes (rebuild the "
+            "dataset, or restore the file)"
+        ) from None
+    if not isinstance(info, dict):
+        raise ConfigError(f"{p}: the top level is {type(info).__name__}; expected a JSON object")
+    return info
 
 
 def renderer_engine(info: dict) -> str:
