@@ -115,7 +115,10 @@ def run_train(args: argparse.Namespace) -> None:
         model = ship(out, evaluate_on=args.eval or (), progress=not args.quiet)
         print(f"shipped {model}", file=sys.stderr)
     early = " (stopped early)" if result.stopped_early else ""
-    print(f"best epoch {result.best_epoch} of {result.epochs_run}{early}", file=sys.stderr)
+    if result.epochs_run:
+        print(f"best epoch {result.best_epoch} of {result.epochs_run}{early}", file=sys.stderr)
+    else:  # --init with the first stage kept
+        print(f"first stage kept: the init model's (its epoch {result.best_epoch})", file=sys.stderr)
     print(out)
 
 
