@@ -59,7 +59,11 @@ def test_stages_not_named_are_kept_byte_for_byte(trained_run, drawn_dataset, tmp
     from rebar_data.perception.networks.files import onnx_meta
 
     was, now = onnx_meta(base / "best.onnx"), onnx_meta(out / "best.onnx")
-    assert now["score_bias"] == was["score_bias"] and now.get("line_check") == was.get("line_check")
+    from rebar_data.perception.inference.detector import Detector
+
+    # the operating point the run time reads from each file (an older file's own key included) is the same
+    assert Detector.load(out).score_bias == Detector.load(base).score_bias
+    assert now.get("line_check") == was.get("line_check")
     assert now["refiner"] == was["refiner"] and now["crossing_point"] == was["crossing_point"]
     record = json.loads((out / "results.json").read_text())["dataset"]["init"]
     assert record["stages"] == ["depth_check"] and record["sha256"] == sha256_file(base / "best.onnx")
@@ -110,3 +114,22 @@ def test_init_and_stages_refuse_what_they_cannot_do(trained_run, drawn_dataset, 
     train(drawn_dataset, out, config=QUICK_INIT, init=trained_run.out_dir / "best.onnx", progress=False)
     with pytest.raises(ConfigError, match="started from"):  # the same folder, from nothing: not a resume
         train(drawn_dataset, out, config={**TINY_TRAIN, "epochs": 1}, progress=False)
+
+
+def test_the_shipped_model_trains_one_stage_and_keeps_its_operating_point(drawn_dataset, tmp_path):
+    """From the shipped model (no run records, its ONNX files alone), the depth check alone: the other stages'
+    files are the shipped ones, and the run time reads the same operating point and line check from both."""
+    from rebar_data.perception.inference.detector import SHIPPED_MODEL, Detector
+
+    out = tmp_path / "run"
+    train(drawn_dataset, out, config=QUICK_INIT, init=SHIPPED_MODEL, stages="depth_check", progress=False)
+    shipped, tuned = Detector.load(None, runtime="onnxruntime"), Detector.load(out, runtime="onnxruntime")
+    assert tuned.score_bias == shipped.score_bias
+    assert tuned.meta["line_check"] == shipped.meta["line_check"]
+    for name in ("refine", "refine.int8", "crossing"):
+        assert sha256_file(out / f"best.{name}.onnx") == sha256_file(
+            SHIPPED_MODEL.with_name(f"rebar_keypoint.{name}.onnx")
+        )
+    assert sha256_file(out / "best.depth.onnx") != sha256_file(
+        SHIPPED_MODEL.with_name("rebar_keypoint.depth.onnx")
+    )

@@ -661,10 +661,10 @@ def _operating_point(run: _Run, detector: Detector, meta: dict[str, Any], model_
     kept, the model's own are kept."""
     cfg, val = run.cfg, run.val
     if run.init is not None and not any(run.trains(s) for s in SCORING_STAGES):
-        for k in ("score_bias", "line_check"):
-            if k in run.init.meta:
-                meta[k] = run.init.meta[k]
-        detector.score_bias = float(meta.get("score_bias", 0.0))
+        kept = Detector.load(run.init.path, runtime="onnxruntime")  # the bias as the run time reads it
+        meta["score_bias"] = detector.score_bias = kept.score_bias
+        if "line_check" in run.init.meta:
+            meta["line_check"] = run.init.meta["line_check"]
         detector.line_check = (
             LineCheck.from_meta(meta["line_check"], "the init model") if meta.get("line_check") else None
         )
