@@ -7,6 +7,7 @@ from __future__ import annotations
 import json
 import logging
 import pickle
+import re
 import warnings
 from pathlib import Path
 from typing import Any
@@ -45,7 +46,10 @@ def read_checkpoint(path: str | Path, *, fmt: str, what: str) -> dict[str, Any]:
     try:
         with torch.serialization.safe_globals(_data_types()):
             payload = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError:
+    except pickle.UnpicklingError as e:
+        # what the weights-only reader refused: a global (code, a class) or an object; else not a pickle at all
+        if not re.search(r"global|can only build", str(e), re.IGNORECASE):
+            raise ConfigError(f"{path}: cannot be read as a {what} checkpoint (UnpicklingError)") from None
         raise ConfigError(
             f"{path}: holds more than weights and numbers (code or objects a checkpoint never holds), so it is "
             f"not read; accepted: a {what} checkpoint written by `rebar train`"
