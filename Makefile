@@ -42,7 +42,7 @@ mesh: setup
 	$(REBAR) mesh pipelines/paper-tunnel.yaml --out $(DATA)/mesh/paper-tunnel
 
 dataset: setup | $(DATA)
-	$(REBAR) dataset build pipelines/paper-tunnel.yaml --out $(DATA) --workers $(WORKERS) | tee $(DATA)/.last-build
+	$(REBAR) dataset build pipelines/paper-tunnel.yaml --out $(DATA) --workers $(WORKERS) --resume | tee $(DATA)/.last-build
 	$(REBAR) dataset validate "$$(tail -1 $(DATA)/.last-build)"
 	$(REBAR) dataset audit "$$(tail -1 $(DATA)/.last-build)"
 
@@ -60,7 +60,9 @@ smoke: setup | $(DATA)
 # images, a minute) and on the Cycles-rendered cross-renderer sets, from RGB alone, with depth and with what lies
 # behind flattened (built when missing: about 20 minutes; 26 on a CPU without AVX-512). See the model card for
 # the training time on 2 cores.
-# An interrupted run resumes from runs/train/paper-tunnel/last.pt; a finished one is re-scored and re-shipped.
+# Run again after a kill, it picks up where it stopped: an interrupted dataset build goes on (--resume), each
+# stage's epochs from its checkpoint, each finishing and card step from runs/train/paper-tunnel/steps.json.
+# `rebar train DATASET --init` starts from the shipped model instead (README, "Fine-tune on your own bars").
 # the site-* sets: the bars sites use (8-40 mm at 100-400 mm, seen from 0.3-1.5 m), 240 images each
 SUPPLEMENTS := paper-tunnel-lower-mat wide-tunnel-a wide-tunnel-b wide-planar-a wide-planar-b \
 	site-planar-heavy site-tunnel-heavy site-planar-light
@@ -83,10 +85,11 @@ train: setup
 	cv=""; for p in $(CROSSVAL); do cv="$$cv --eval $$($(MAKE) --no-print-directory -s built PIPELINE=$$p WORKERS=1)" || exit 1; done; \
 	$(REBAR) train "$$ds" $$sup --out runs/train/paper-tunnel --ship --eval $$gen $$cv
 
-# Prints the folder of pipelines/$(PIPELINE).yaml's build, building it first when missing (used by train).
+# Prints the folder of pipelines/$(PIPELINE).yaml's build, building it first when missing (an interrupted build
+# goes on where it stopped; used by train).
 built: setup
 	@ver=$$(sed -n 's/^version: *//p' pipelines/$(PIPELINE).yaml | head -1); ds=$(DATA)/$(PIPELINE)/v$$ver; \
-	if [ ! -d "$$ds" ]; then $(REBAR) dataset build pipelines/$(PIPELINE).yaml --out $(DATA) --workers $(WORKERS) >&2 || exit 1; fi; \
+	if [ ! -d "$$ds" ]; then $(REBAR) dataset build pipelines/$(PIPELINE).yaml --out $(DATA) --workers $(WORKERS) --resume >&2 || exit 1; fi; \
 	echo "$$ds"
 
 # Servo evaluation: the paper's set-up (shipped detector), the same with a lower bar mat under the top one,
