@@ -12,6 +12,7 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from functools import partial
 from pathlib import Path
 
 import jinja2
@@ -430,9 +431,7 @@ def evaluation_rows(
         done = steps.run(
             f"card: {label}",
             key,
-            lambda path=path, label=label, engine=engine, samples=samples, set_sigma=set_sigma: (
-                _held_out_rows(detector, path, label, engine, samples, set_sigma, progress)
-            ),
+            partial(_held_out_rows, detector, path, label, engine, samples, set_sigma, progress),
         )
         rows |= done["rows"]
         seen = held_out.setdefault(

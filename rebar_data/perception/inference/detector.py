@@ -86,6 +86,12 @@ def resolve_model_path(path: str | Path | None) -> Path:
     return p
 
 
+def score_bias_of(meta: dict[str, Any]) -> float:
+    """The operating point's heatmap logit shift a model file's ``meta`` gives (an older file's own key for the
+    bias without depth first)."""
+    return float(meta.get("score_bias_without_depth", meta.get("score_bias", 0.0)))
+
+
 class Detector:
     """A loaded keypoint detector: its model file's ``meta``, the ``backend`` running the first stage
     (onnxruntime, openvino or torch) and its later stages (None: left out). ``reading`` is one of
@@ -100,7 +106,7 @@ class Detector:
         self.path = path
         self.reading: str = "single"
         # the heatmap logit shift that puts the operating point at 0.5 (older files' with-depth one unread)
-        self.score_bias = float(meta.get("score_bias_without_depth", meta.get("score_bias", 0.0)))
+        self.score_bias = score_bias_of(meta)
         # how hard the verification counts in a score
         self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))
         self.refiner: Refiner | None = None

@@ -64,7 +64,7 @@ from rebar_data.perception.evaluation.metrics import (
 )
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.checks import LineCheck
-from rebar_data.perception.inference.detector import Detector, resolve_model_path
+from rebar_data.perception.inference.detector import Detector, resolve_model_path, score_bias_of
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, quantize_onnx, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
@@ -661,8 +661,7 @@ def _operating_point(run: _Run, detector: Detector, meta: dict[str, Any], model_
     kept, the model's own are kept."""
     cfg, val = run.cfg, run.val
     if run.init is not None and not any(run.trains(s) for s in SCORING_STAGES):
-        kept = Detector.load(run.init.path, runtime="onnxruntime")  # the bias as the run time reads it
-        meta["score_bias"] = detector.score_bias = kept.score_bias
+        meta["score_bias"] = detector.score_bias = score_bias_of(run.init.meta)  # as the run time reads it
         if "line_check" in run.init.meta:
             meta["line_check"] = run.init.meta["line_check"]
         detector.line_check = (
