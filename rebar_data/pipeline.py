@@ -9,7 +9,8 @@ from typing import Annotated, Literal
 
 from pydantic import Field, field_validator, model_validator
 
-from rebar_data.config import Fraction, MeshConfig, NonNegative, Positive, Strict, read_yaml, semver, validate
+from rebar_data.config import Fraction, NonNegative, Positive, Strict, read_yaml, semver, validate
+from rebar_data.geometry.config import MeshConfig
 from rebar_data.scene.config import CameraConfig, RenderConfig, SceneConfig
 
 # OKS sigma for the single "intersection" keypoint. With COCO's OKS = exp(-d^2 / (2 s^2 k^2)), k = 2 sigma

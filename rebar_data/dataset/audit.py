@@ -162,8 +162,8 @@ def check_geometry(info: DatasetInfo, K: pd.DataFrame, ds: Path | None = None):
     """Rebuild the mesh from the recorded config (a mesh read from IFC from the dataset's own copy of the
     model, ``meta/mesh.ifc``); the table's crossing points must be its crossings, and every sight point must
     lie on one of its crossing's two bar centerlines (or be the crossing's point, in a grazing view)."""
-    from rebar_data.config import MeshConfig
     from rebar_data.geometry.build import build_rebar_mesh
+    from rebar_data.geometry.config import MeshConfig
 
     # only the mesh sections: the rendering sections may have gained or lost options since the build
     if ds is None:

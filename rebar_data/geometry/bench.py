@@ -7,7 +7,8 @@ import time
 
 import numpy as np
 
-from rebar_data.config import PAPER_PIPELINE, MeshConfig
+from rebar_data.config import PAPER_PIPELINE
+from rebar_data.geometry.config import MeshConfig
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.solids import build_parts, merge
@@ -104,7 +105,7 @@ def _all_pairs_candidates(layout, pad: float) -> int:
 def _plate_figures(n_bars: int, folder) -> tuple[str, float, float, float]:
     """One floor plate written, read and crossed: its figures' line, the two candidate searches' times and the
     mesh's time (read and crossings)."""
-    from rebar_data.config import IfcMesh
+    from rebar_data.geometry.config import IfcMesh
     from rebar_data.geometry.crossings import candidate_pairs, find_piece_crossings
     from rebar_data.geometry.ifc_read import ifc_layout
     from rebar_data.geometry.ifc_write import ifc_model
@@ -185,7 +186,7 @@ def read_bench(sizes: tuple[int, ...] = (500, 2000, 5000), shaft_storeys: int = 
     import tempfile
     from pathlib import Path
 
-    from rebar_data.config import IfcMesh
+    from rebar_data.geometry.config import IfcMesh
     from rebar_data.geometry.ifc_read import ifc_layout
     from rebar_data.geometry.ifc_samples import write_shaft
     from rebar_data.geometry.ifc_write import ifc_model

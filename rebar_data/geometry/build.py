@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import trimesh
 
-from rebar_data.config import MeshConfig
+from rebar_data.geometry.config import MeshConfig
 from rebar_data.geometry.crossings import Crossings, find_crossings
 from rebar_data.geometry.solids import Part, build_parts, merge
 from rebar_data.geometry.specs import Bar, MeshLayout, build_layout

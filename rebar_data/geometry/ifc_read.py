@@ -32,7 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
-from rebar_data.config import ConfigError, IfcMesh, MeshConfig
+from rebar_data.config import ConfigError
+from rebar_data.geometry.config import IfcMesh, MeshConfig
 from rebar_data.geometry.curves import Curve
 from rebar_data.geometry.ifc_curves import (
     MIN_LENGTH_M,

@@ -15,7 +15,7 @@ import manifold3d as mf
 import numpy as np
 import trimesh
 
-from rebar_data.config import Realism
+from rebar_data.geometry.config import Realism
 from rebar_data.geometry.crossings import Crossings
 from rebar_data.geometry.curves import Curve
 from rebar_data.geometry.specs import Bar

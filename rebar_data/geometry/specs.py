@@ -19,7 +19,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rebar_data.config import Layer, MeshConfig, PlanarMesh, TunnelSegmentMesh
+from rebar_data.geometry.config import Layer, MeshConfig, PlanarMesh, TunnelSegmentMesh
 from rebar_data.geometry.curves import Arc, Curve, Line
 
 if TYPE_CHECKING:

@@ -29,8 +29,9 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from rebar_data.config import ConfigError, Pose
+from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
+from rebar_data.geometry.config import Pose
 from rebar_data.pipeline import load_mesh_config
 from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.servo import ur5

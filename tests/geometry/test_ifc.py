@@ -21,8 +21,9 @@ import ifcopenshell.guid  # noqa: E402
 import ifcopenshell.validate  # noqa: E402
 
 from rebar_data.cli import main  # noqa: E402
-from rebar_data.config import ConfigError, MeshConfig  # noqa: E402
+from rebar_data.config import ConfigError  # noqa: E402
 from rebar_data.geometry.build import build_rebar_mesh  # noqa: E402
+from rebar_data.geometry.config import MeshConfig  # noqa: E402
 from rebar_data.geometry.curves import Arc, Line  # noqa: E402
 from rebar_data.geometry.ifc_curves import arc_through  # noqa: E402
 from rebar_data.geometry.ifc_samples import write_shaft  # noqa: E402
@@ -565,8 +566,8 @@ def test_a_stub_shorter_than_its_diameter_is_dropped_and_listed(tmp_path, capsys
 def test_mapped_items_read_each_representation_map_once(tmp_path, monkeypatch):
     """Allplan: a lift shaft whose bars are placements of mapped items (6 IfcRepresentationMaps, 52 items).
     Each map's directrix is read once, and the bars are the same as the shaft drawn bar by bar."""
-    from rebar_data.config import IfcMesh
     from rebar_data.geometry import ifc_read
+    from rebar_data.geometry.config import IfcMesh
 
     shape = {"half_m": 1.0, "storey_m": 1.2, "spacing_m": 0.3}
     mapped = write_shaft(tmp_path / "mapped.ifc", **shape)

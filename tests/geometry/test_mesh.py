@@ -5,8 +5,8 @@ import hashlib
 import numpy as np
 import pytest
 
-from rebar_data.config import MeshConfig
 from rebar_data.geometry.build import build_rebar_mesh
+from rebar_data.geometry.config import MeshConfig
 from rebar_data.geometry.export import write_mesh_outputs
 from rebar_data.geometry.specs import positions
 from rebar_data.pipeline import load_mesh_config

@@ -6,8 +6,8 @@ import numpy as np
 import open3d as o3d
 import pytest
 
-from rebar_data.config import MeshConfig
 from rebar_data.geometry.build import build_rebar_mesh
+from rebar_data.geometry.config import MeshConfig
 from rebar_data.labels.keypoints import CrossingParts, label_frame
 from rebar_data.labels.projection import camera_from_world, project
 

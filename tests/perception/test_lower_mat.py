@@ -8,9 +8,10 @@ import cv2
 import numpy as np
 import pytest
 
-from rebar_data.config import ConfigError, MeshConfig
+from rebar_data.config import ConfigError
 from rebar_data.dataset.worker import INSTANCE_OFFSET
 from rebar_data.geometry.build import build_rebar_mesh
+from rebar_data.geometry.config import MeshConfig
 from rebar_data.perception.evaluation.data import load_split, read_distractors
 from rebar_data.perception.evaluation.evaluate import score
 from rebar_data.perception.evaluation.lower_mat import lower_mat_crossings, lower_mat_of, lower_mat_places

@@ -10,7 +10,7 @@ import sys
 SCRIPT = r"""
 import hashlib, json, sys
 import numpy as np
-from rebar_data.config import MeshConfig
+from rebar_data.geometry.config import MeshConfig
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.render.renderer import Renderer
 from rebar_data.scene.cameras import Intrinsics, trajectory_poses

@@ -2,8 +2,8 @@ from __future__ import annotations
 
 import pytest
 
-from rebar_data.config import MeshConfig
 from rebar_data.geometry.build import build_rebar_mesh
+from rebar_data.geometry.config import MeshConfig
 
 TUNNEL = {
     "seed": 3,

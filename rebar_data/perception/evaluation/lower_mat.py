@@ -15,9 +15,10 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from rebar_data.config import ConfigError, MeshConfig, validate
+from rebar_data.config import ConfigError, validate
 from rebar_data.dataset.layout import mesh_sections
 from rebar_data.geometry.build import build_rebar_mesh
+from rebar_data.geometry.config import MeshConfig
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.specs import build_layout
