@@ -1,4 +1,4 @@
-"""Reads a dataset in the project's layout (the contract in DESIGN.md) into per-image keypoint records: the
+"""Reads a dataset in the project's layout (the contract in docs/datasets.md) into per-image keypoint records: the
 images of a split from ``tables/samples.parquet``, their crossings from ``tables/keypoints.parquet`` and the
 OKS sigma from ``meta/info.json``. Visible crossings (visibility 2) are what the detector learns and is
 scored on; occluded ones (visibility 1) are kept apart so training can leave them out of the loss."""
