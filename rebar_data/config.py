@@ -22,6 +22,8 @@ from rebar_data.errors import ConfigError  # noqa: F401  (raised by every config
 Positive = Annotated[float, Field(gt=0)]
 NonNegative = Annotated[float, Field(ge=0)]
 Fraction = Annotated[float, Field(ge=0, le=1)]
+PositiveInt = Annotated[int, Field(gt=0)]
+NonNegativeInt = Annotated[int, Field(ge=0)]
 Vec3 = tuple[float, float, float]
 
 

@@ -23,7 +23,7 @@ import numpy as np
 import pandas as pd
 
 from rebar_data.dataset import layout
-from rebar_data.dataset.layout import DatasetInfo
+from rebar_data.dataset.layout import INSTANCE_OFFSET, DatasetInfo
 
 REPROJECTION_MAX_PX = 1e-3
 DEPTH_MAX_M = 1e-6
@@ -41,7 +41,6 @@ OCCLUDED_OFF_OWN_MIN = 0.95  # share of occluded keypoints whose pixel shows som
 # dataset versions 1.1.0: 0.964 on wide-tunnel-a 1.0.0, where visible_on_own_bar gave 0.994)
 VISIBLE_AT_OWN_DEPTH_MIN = 0.99
 AT_DEPTH_DIAMETERS = 2.0  # the bar's surface lies up to a diameter in front of the centerline's sight point
-INSTANCE_OFFSET = 3
 
 
 @dataclass

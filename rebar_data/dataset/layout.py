@@ -16,6 +16,7 @@ from pathlib import Path
 # path (Ultralytics takes the file's own folder, wherever the dataset is copied)
 SCHEMA_VERSION = "2.4.0"
 SPLITS = ("train", "val", "test")
+INSTANCE_OFFSET = 3  # instance maps store id + 3: 0 distractor, 1 surroundings, 2 nothing, 3+ rebar parts
 KEYPOINT_NAMES = ["intersection"]
 CATEGORY = "rebar_crossing"
 

@@ -27,7 +27,7 @@ from rebar_data.dataset.worker import FrameRecord, FrameWorker
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.pipeline import PipelineConfig, load_pipeline
 
-INSTALL_HINT = "pip install -e '.[ray]' (or pip install 'ray>=2.30,<3')"
+RAY_INSTALL_HINT = "pip install -e '.[ray]' (or pip install 'ray>=2.30,<3')"
 SHARDS_IN_FLIGHT_PER_ACTOR = 2  # one running, one queued, so an actor never waits for the driver
 
 
@@ -41,7 +41,7 @@ def import_ray():
         import ray
     except ImportError:
         raise ConfigError(
-            f"--backend ray needs the ray package, which is not installed; accepted: {INSTALL_HINT}, "
+            f"--backend ray needs the ray package, which is not installed; accepted: {RAY_INSTALL_HINT}, "
             "or --backend local"
         ) from None
     return ray

@@ -42,7 +42,7 @@ from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
 from rebar_data.dataset.writers.manifest import listed_files, sha256_file
 
-SCHEMAS = Path(__file__).resolve().parents[2] / "schemas"
+SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas"
 MAX_PER_CHECK = 5  # failures reported per check before summarising the rest
 ROTATION_TOLERANCE = 1e-6  # largest |R R^T - I| entry of a camera pose's rotation
 
@@ -73,11 +73,11 @@ _PICTURES = {
 
 
 def field_list(table: str) -> list[dict]:
-    return yaml.safe_load((SCHEMAS / "tables" / f"{table}.yaml").read_text())["fields"]
+    return yaml.safe_load((SCHEMA_DIR / "tables" / f"{table}.yaml").read_text())["fields"]
 
 
 def json_schema(name: str) -> dict:
-    return json.loads((SCHEMAS / f"{name}.schema.json").read_text())
+    return json.loads((SCHEMA_DIR / f"{name}.schema.json").read_text())
 
 
 def foreign_files(path: Path) -> dict[str, str]:

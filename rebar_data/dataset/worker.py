@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from rebar_data.dataset import layout
+from rebar_data.dataset.layout import INSTANCE_OFFSET
 from rebar_data.dataset.plan import Sample, depth_sensor_seed
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
 from rebar_data.labels.keypoints import CrossingParts, FrameLabels, LabelRule, label_frame
@@ -25,8 +26,6 @@ from rebar_data.render.depth_sensor import depth_mm, sense_depth
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample, sample_depth_sensor, sample_sensor
 from rebar_data.timing import StageTimer
-
-INSTANCE_OFFSET = 3  # instance maps store id + 3: 0 distractor, 1 surroundings, 2 nothing, 3+ rebar parts
 
 
 @dataclass(frozen=True)

@@ -16,7 +16,8 @@ from pathlib import Path
 
 from rebar_data.config import ConfigError
 
-SCHEMAS = ("IFC2X3", "IFC4", "IFC4X3")
+READ_SCHEMAS = ("IFC2X3", "IFC4", "IFC4X3")
+PSET_NAME = "RebarServo_Bar"  # the property set `rebar mesh --ifc` writes: BarId, Direction, Layer
 END = b"END-ISO-10303-21;"
 _TAIL_BYTES = 4096
 _BLOCK = 1 << 20
@@ -77,7 +78,7 @@ def file_schema(path: Path) -> str:
             f"{where}: its header names no FILE_SCHEMA; accepted: an IFC2X3, IFC4 or IFC4X3 file"
         )
     name = m.group(1).decode("ascii", "replace").strip().upper()
-    for schema in SCHEMAS:
+    for schema in READ_SCHEMAS:
         if name == schema or (schema == "IFC4X3" and name.startswith("IFC4X3_")):
             return name
     raise ConfigError(f"{where}: schema {name} is not read; accepted: IFC2X3, IFC4 or IFC4X3")

@@ -44,12 +44,11 @@ from rebar_data.geometry.ifc_curves import (
     transformed,
     uniform_scale,
 )
-from rebar_data.geometry.ifc_file import ifcopenshell_module, open_whole
+from rebar_data.geometry.ifc_file import PSET_NAME, ifcopenshell_module, open_whole
 from rebar_data.geometry.specs import Bar, IfcSource, MeshLayout, rng_streams
 from rebar_data.geometry.specs import _pose as pose_matrix
 from rebar_data.geometry.surface_fit import fit_faces
 
-PSET_NAME = "RebarServo_Bar"  # what `rebar mesh --ifc` writes: BarId, Direction, Layer
 DEFAULT_PRECISION = 1e-5  # IFC's default Precision, in the file's length unit
 _MAX_MAP_DEPTH = 8
 _REALISM_NOT_FOR_IFC = (

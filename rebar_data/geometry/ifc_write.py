@@ -32,11 +32,11 @@ import numpy as np
 from rebar_data import __version__
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.geometry.curves import Curve
+from rebar_data.geometry.ifc_file import PSET_NAME
 from rebar_data.outputs import replace_file
 
-SCHEMAS = ("IFC4", "IFC2X3")
+WRITE_SCHEMAS = ("IFC4", "IFC2X3")
 ORIGINATING_SYSTEM = f"rebar mesh (rebar-data {__version__})"
-PSET_NAME = "RebarServo_Bar"
 _VIEWS = {"IFC4": "ViewDefinition [DesignTransferView]", "IFC2X3": "ViewDefinition [CoordinationView_V2.0]"}
 _NAMESPACE = uuid.UUID("5b6f3b0e-61a4-4c0f-9d3c-2f1f3c2b7a10")
 _TANGENT_TOL = 1e-9
@@ -123,8 +123,8 @@ def _timestamp() -> int:
 
 class _Writer:
     def __init__(self, schema: str, key: str, stamp: int):
-        if schema not in SCHEMAS:
-            raise ValueError(f"schema {schema!r}; accepted: {', '.join(SCHEMAS)}")
+        if schema not in WRITE_SCHEMAS:
+            raise ValueError(f"schema {schema!r}; accepted: {', '.join(WRITE_SCHEMAS)}")
         self.f = ifcopenshell.file(schema=schema)
         self.key = key
         self.history = self._owner_history(stamp)

@@ -28,14 +28,14 @@ import yaml
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
+from rebar_data.dataset.writers.card import CARD
 from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.outputs import OutputLock, copy_file, output_folder, remove_stale, replace_folder, space_for
-from rebar_data.publish.card import LICENSES, citation, dataset_card, license_url
+from rebar_data.publish.card import LICENSES, bundle_card, citation, license_url
 from rebar_data.publish.croissant import croissant_metadata
 from rebar_data.publish.rows import write_shards
 
 COMMAND = "rebar dataset publish"
-CARD = "README.md"
 CROISSANT = "croissant.json"
 CHECKSUMS = "SHA256SUMS"
 VIEW_DIRS = ("images", "labels", "annotations", "tables")
@@ -267,7 +267,7 @@ def _write_bundle(
     date = publication_date()
     splits = list(dict.fromkeys(s.split for s in shards))
     (staging / CARD).write_text(
-        dataset_card(info, audit=audit, license_id=license_id, date_published=date, splits=splits, maps=maps)
+        bundle_card(info, audit=audit, license_id=license_id, date_published=date, splits=splits, maps=maps)
     )
     n_images = samples.num_rows
     croissant = croissant_metadata(

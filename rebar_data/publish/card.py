@@ -119,7 +119,7 @@ def _geometry(mesh: dict) -> str:
     )
 
 
-def dataset_card(
+def bundle_card(
     info: DatasetInfo,
     *,
     audit: dict,

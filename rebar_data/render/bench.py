@@ -21,7 +21,7 @@ import numpy as np
 
 GOAL_IMAGES_PER_S = 3.0
 WORKERS = 2
-FRAMES = 24
+BENCH_FRAMES = 24
 
 
 def _rss_mb() -> float:
@@ -129,7 +129,7 @@ def run() -> list[str]:
     poses = np.concatenate(
         [trajectory_poses(t, rm, rng)[:: max(1, t.frames // 8)][:8] for t in cam.trajectories]
     )
-    poses = np.concatenate([poses, poses])[:FRAMES]
+    poses = np.concatenate([poses, poses])[:BENCH_FRAMES]
     scene_cfg = SceneConfig()
     sensors = [sample_sensor(scene_cfg, rng) for _ in poses]
     scenes = [sample_scene(scene_cfg, np.random.default_rng(s)) for s in range(3)]

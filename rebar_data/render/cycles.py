@@ -50,7 +50,7 @@ from rebar_data.timing import StageTimer
 
 __all__ = ["CyclesRenderer", "blender_version", "require_bpy"]
 
-INSTALL_HINT = "pip install -e '.[cycles]' (or make crossval, which installs it)"
+CYCLES_INSTALL_HINT = "pip install -e '.[cycles]' (or make crossval, which installs it)"
 TARGET_IRRADIANCE = 3.0  # the mat's centre gets this much light (Blender units): a white surface near 1.0
 NEAR_M, FAR_M = 0.01, 200.0
 CAMERA_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # Blender's camera looks down -z with +y up
@@ -63,7 +63,7 @@ def require_bpy():
         import bpy
     except ImportError as e:
         raise ConfigError(
-            f"render.engine: cycles needs Blender's bpy module, which is not installed ({e}); {INSTALL_HINT}"
+            f"render.engine: cycles needs Blender's bpy module, which is not installed ({e}); {CYCLES_INSTALL_HINT}"
         ) from None
     return bpy
 

@@ -61,7 +61,7 @@ def _frames(points: np.ndarray, up_hint: np.ndarray) -> tuple[np.ndarray, np.nda
     return t, n1, np.cross(t, n1)
 
 
-def tube(points: np.ndarray, radius: float, *, up_hint: np.ndarray, sides: int = 10) -> Shape:
+def polyline_tube(points: np.ndarray, radius: float, *, up_hint: np.ndarray, sides: int = 10) -> Shape:
     """A capped tube along a polyline. ``u`` runs along it, ``v`` around it from ``up_hint`` (the seam
     is on the side opposite ``up_hint``)."""
     points = np.asarray(points, float)
@@ -110,7 +110,9 @@ def box(centre: np.ndarray, axes: np.ndarray, half: np.ndarray) -> Shape:
 def cylinder(base: np.ndarray, axis: np.ndarray, radius: float, height: float, *, sides: int = 16) -> Shape:
     """A closed cylinder standing on ``base`` along unit ``axis``."""
     axis = np.asarray(axis, float) / np.linalg.norm(axis)
-    return tube(np.stack([base, base + height * axis]), radius, up_hint=_any_square(axis), sides=sides)
+    return polyline_tube(
+        np.stack([base, base + height * axis]), radius, up_hint=_any_square(axis), sides=sides
+    )
 
 
 def _any_square(v: np.ndarray) -> np.ndarray:

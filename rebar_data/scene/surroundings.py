@@ -20,7 +20,7 @@ import numpy as np
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.scene.sample import SceneSample
-from rebar_data.scene.shapes import Shape, cylinder, grid, tube
+from rebar_data.scene.shapes import Shape, cylinder, grid, polyline_tube
 
 GROUND_ID = -2
 DISTRACTOR_ID = -3
@@ -118,7 +118,7 @@ def _lower_layer(scene: SceneSample, surf: MatSurface, rm: RebarMesh) -> list[Sc
         ab = surf.to_ab(pts) + np.array([d.lower_layer_shift_a_m, d.lower_layer_shift_b_m])
         h = surf.height(pts) - d.lower_layer_depth_m
         moved, _, _, normal = surf.frame(ab, h)
-        shapes.append(tube(moved, bar.radius_m, up_hint=normal[0], sides=8))
+        shapes.append(polyline_tube(moved, bar.radius_m, up_hint=normal[0], sides=8))
     return [SceneObject("lower_layer", Shape.concat(shapes), "rebar", DISTRACTOR_ID)]
 
 
@@ -163,7 +163,7 @@ def _loose_wire(scene: SceneSample, surf: MatSurface, ground: _GroundProbe, rng)
         xy = np.concatenate([[[0.0, 0.0]], np.cumsum(steps, 0)])
         radius = 0.0008
         pts = base + xy[:, :1] * e1 + xy[:, 1:] * e2 + gn * radius * 1.5
-        shapes.append(tube(pts, radius, up_hint=gn, sides=6))
+        shapes.append(polyline_tube(pts, radius, up_hint=gn, sides=6))
     if not shapes:
         return []
     return [SceneObject("loose_tie_wire", Shape.concat(shapes), "tie_wire", DISTRACTOR_ID)]

@@ -15,7 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
-IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
+TEXTURE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif", ".tiff", ".bmp", ".webp")
 
 # last token (or two tokens) of a file name -> map kind
 _MAP_TOKENS: dict[tuple[str, ...], str] = {
@@ -85,7 +85,7 @@ def find_texture_sets(folder: str | Path) -> list[TextureSet]:
     folder = Path(folder)
     groups: dict[str, dict[str, Path]] = {}
     for p in sorted(folder.iterdir()):
-        if p.suffix.lower() not in IMAGE_SUFFIXES or not p.is_file():
+        if p.suffix.lower() not in TEXTURE_SUFFIXES or not p.is_file():
             continue
         found = _classify(p.stem)
         if found is None:

@@ -13,13 +13,11 @@ from typing import Annotated, Literal
 
 from pydantic import Field, model_validator
 
-from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, read_yaml, validate
+from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, Vec3, read_yaml, validate
 from rebar_data.perception.inference.detector import Reading
 from rebar_data.perception.inference.model_file import Runtime
-from rebar_data.scene.config import SceneConfig
+from rebar_data.scene.config import Range, SceneConfig
 
-Vec3 = tuple[float, float, float]
-Range = tuple[float, float]
 Count = Annotated[int, Field(ge=1)]
 
 

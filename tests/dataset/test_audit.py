@@ -70,7 +70,7 @@ def test_a_visible_label_whose_pixel_shows_the_ground_fails_the_depth_check(copy
     import cv2
     import numpy as np
 
-    from rebar_data.dataset.audit import INSTANCE_OFFSET
+    from rebar_data.dataset.layout import INSTANCE_OFFSET
 
     keypoints = pq.read_table(copy / "tables/keypoints.parquet").to_pandas()
     samples = pq.read_table(copy / "tables/samples.parquet").to_pandas().set_index("image_id")

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.dataset.worker import INSTANCE_OFFSET
+from rebar_data.dataset.layout import INSTANCE_OFFSET
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.geometry.config import MeshConfig
 from rebar_data.perception.evaluation.data import load_split, read_distractors

@@ -19,13 +19,13 @@ import pyarrow.parquet as pq
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
+from rebar_data.dataset.layout import SPLITS
 from rebar_data.perception.inference.checks import MM_PER_M
 from rebar_data.pipeline import DEFAULT_OKS_SIGMA
 from rebar_data.scene.config import DEPTH_MODELS
 
 T = TypeVar("T")
 
-SPLITS = ("train", "val", "test")
 _SAMPLE_COLUMNS = ("image_id", "split", "file_name", "width", "height", "fx", "fy", "cx", "cy")
 _KEYPOINT_COLUMNS = ("image_id", "u", "v", "visibility", "box_size_px")
 # a crossing's pixel: ``sight``, the dataset's u, v (where the image shows the bars cross), or ``crossing``,
@@ -79,10 +79,11 @@ def read_distractors(sample: Sample) -> np.ndarray | None:
     wire, formwork: one id, ``DISTRACTOR_ID``); None when the dataset has no instance map."""
     if sample.instance_path is None:
         return None
-    from rebar_data.dataset.worker import INSTANCE_OFFSET  # the dataset builder's: imported when needed
     from rebar_data.scene.surroundings import DISTRACTOR_ID
 
-    return read_uint16(sample.instance_path, "a 16-bit instance PNG") == DISTRACTOR_ID + INSTANCE_OFFSET
+    return (
+        read_uint16(sample.instance_path, "a 16-bit instance PNG") == DISTRACTOR_ID + layout.INSTANCE_OFFSET
+    )
 
 
 def per_file(samples: list[Sample], read: Callable[[Sample], T]) -> list[T]:

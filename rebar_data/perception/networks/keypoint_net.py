@@ -3,17 +3,13 @@ and a head giving a crossing heatmap and a sub-cell offset per cell (``docs/dete
 
 from __future__ import annotations
 
-from typing import Annotated, Literal
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
-from pydantic import Field
 from torch import nn
 
-from rebar_data.config import Strict
-
-PositiveInt = Annotated[int, Field(gt=0)]
-NonNegativeInt = Annotated[int, Field(ge=0)]
+from rebar_data.config import NonNegativeInt, PositiveInt, Strict
 
 
 class ModelConfig(Strict):

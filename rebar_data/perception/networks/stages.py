@@ -9,10 +9,10 @@ from torch import nn
 
 from rebar_data.perception.networks.keypoint_net import conv_bn_relu
 
-Widths = tuple[int, int, int, int]
 
-
-def conv_stack(channels: int, widths: Widths, blocks: tuple[int, int, int]) -> nn.Sequential:
+def conv_stack(
+    channels: int, widths: tuple[int, int, int, int], blocks: tuple[int, int, int]
+) -> nn.Sequential:
     """3x3 convolutions from ``channels`` to ``widths[0]`` at full resolution, then three halvings to the
     other widths, each followed by ``blocks`` more convolutions at its resolution."""
     a, b, c, d = widths
@@ -22,7 +22,7 @@ def conv_stack(channels: int, widths: Widths, blocks: tuple[int, int, int]) -> n
     return nn.Sequential(*layers)
 
 
-def flat_size(patch_px: int, widths: Widths) -> int:
+def flat_size(patch_px: int, widths: tuple[int, int, int, int]) -> int:
     """The length of :func:`conv_stack`'s output for a ``patch_px`` patch, flattened."""
     return widths[3] * ((patch_px + 7) // 8) ** 2
 
@@ -35,7 +35,7 @@ class PatchNet(nn.Module):
     def __init__(
         self,
         patch_px: int,
-        widths: Widths,
+        widths: tuple[int, int, int, int],
         hidden: int,
         blocks: tuple[int, int, int] = (1, 1, 1),
         *,
@@ -64,7 +64,7 @@ class DepthNet(nn.Module):
     """(N, 2, P, P) encoded depth patches (:func:`~rebar_data.perception.inference.checks.encode`) -> (N,)
     logit that the patch shows a crossing."""
 
-    def __init__(self, patch_px: int, widths: Widths, hidden: int):
+    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
         super().__init__()
         self.patch_px = patch_px
         self.features = conv_stack(2, widths, (0, 0, 0))
@@ -81,7 +81,7 @@ class CrossingNet(nn.Module):
     """(N, 3, P, P) patches, values 0-255, and (N, 2) viewing rays -> (N, 2) offset (x, y) in pixels from
     the patch centre's sight point to the projected 3D crossing point."""
 
-    def __init__(self, patch_px: int, widths: Widths, hidden: int):
+    def __init__(self, patch_px: int, widths: tuple[int, int, int, int], hidden: int):
         super().__init__()
         self.patch_px = patch_px
         self.features = conv_stack(3, widths, (1, 1, 0))

@@ -9,11 +9,18 @@ from typing import Annotated, Any, Literal
 
 from pydantic import Field, ValidationError, field_validator, model_validator
 
-from rebar_data.config import ConfigError, Fraction, NonNegative, Positive, Strict, format_validation_error
+from rebar_data.config import (
+    ConfigError,
+    Fraction,
+    NonNegative,
+    NonNegativeInt,
+    Positive,
+    PositiveInt,
+    Strict,
+    format_validation_error,
+)
 from rebar_data.perception.networks.keypoint_net import ModelConfig
 
-PositiveInt = Annotated[int, Field(gt=0)]
-NonNegativeInt = Annotated[int, Field(ge=0)]
 PatchPx = Annotated[int, Field(ge=16, multiple_of=8)]
 Power = Annotated[float, Field(gt=0.0, le=1.0)]
 Between = Annotated[float, Field(gt=0.0, lt=1.0)]
