@@ -26,7 +26,7 @@ from rebar_data.servo.detectors import Detector, Faults, FaultyDetector
 from rebar_data.servo.frames import Frame, FrameSource
 from rebar_data.servo.records import StepRow, VisitRow
 from rebar_data.servo.targets import persistent_clusters, select_targets
-from rebar_data.servo.tracker import TargetTracker, TrackerConfig, TrackState
+from rebar_data.servo.tracker import TargetTracker, TrackState
 from rebar_data.servo.transforms import apply, inverse
 from rebar_data.servo.world import ServoWorld
 
@@ -275,7 +275,7 @@ class EpisodeRunner:
         sigma_det = self.ctx.suite.tracker.detection_sigma_px
         for i in idx:
             uv = clusters.center[i]
-            tracker = TargetTracker(self.tracker_config())
+            tracker = TargetTracker(self.ctx.suite.tracker)
             tracker.seed(s.frame.rgb, uv, sigma_det / np.sqrt(clusters.count[i]))
             t = Target(uv, self._true_crossing(uv, true_T), tracker, pose=pose)
             z = self.crossing_depth(s.frame, uv)
@@ -292,17 +292,6 @@ class EpisodeRunner:
             self.result.snapshots.append(
                 (f"{self.spec.mode.upper()} start: {len(self.targets)} targets", img)
             )
-
-    def tracker_config(self) -> TrackerConfig:
-        t = self.ctx.suite.tracker
-        return TrackerConfig(
-            window_px=t.window_px,
-            detection_sigma_px=t.detection_sigma_px,
-            klt_sigma_px=t.klt_sigma_px,
-            klt_motion_fraction=t.klt_motion_fraction,
-            gate_px=t.gate_px,
-            drift_px=t.drift_px,
-        )
 
     def _true_crossing(self, uv: np.ndarray, world_from_camera: np.ndarray) -> int:
         """The true crossing whose projection is nearest the target pixel, if within the cluster radius."""
