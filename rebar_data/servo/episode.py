@@ -70,6 +70,8 @@ class ServoContext:
     make_detector: Callable[[np.random.Generator], Detector]
     depth_offset_m: float
     detector_name: str
+    # draws the frame source's camera sensor for an episode (the renderer's); None where it has none
+    new_sensor: Callable[[np.random.Generator], None] | None = None
 
     def close(self) -> None:
         """Release the renderer and the simulator."""
@@ -175,7 +177,7 @@ class EpisodeRunner:
         if (self.frame_index - 1) % self.ctx.suite.tracker.detect_every == 0:
             det = np.asarray(self.detector.detect(frame.rgb, depth=frame.depth_m), float).reshape(-1, 3)
             det = det[det[:, 2] >= self.ctx.suite.targets.min_score]
-            dropped = bool(getattr(self.detector, "dropped", False))
+            dropped = bool(self.detector.dropped)
         return Sensed(frame, det, dropped)
 
     def sense(self) -> Sensed:
@@ -229,8 +231,8 @@ class EpisodeRunner:
         world = self.ctx.world
         world.reset_clock()
         world.reset_joints(q_start)
-        if hasattr(self.ctx.frames, "new_sensor"):
-            self.ctx.frames.new_sensor(self.rng_frames)
+        if self.ctx.new_sensor is not None:
+            self.ctx.new_sensor(self.rng_frames)
         self.start = start
         self.rec.event(self.step_index, f"episode {self.index}: {self.spec.mode}, start {start.look_at_m}")
         self.acquire()
@@ -354,7 +356,7 @@ class EpisodeRunner:
             if settle >= cfg.safety.settle_frames:
                 stop = "converged"
             elif err_px > cfg.safety.divergence_factor * max(initial_px, DIVERGENCE_FLOOR_PX) or (
-                ctl.mode == "pbvs"
+                ctl.drives_position
                 and err_m > cfg.safety.divergence_factor * max(initial_m, DIVERGENCE_FLOOR_M)
             ):
                 stop = "diverged"
@@ -559,7 +561,7 @@ class EpisodeRunner:
             return float("nan"), float("nan")
         want = self.controller.desired_point_camera(p_true[2])
         lateral = float(np.linalg.norm(p_true[:2] - want[:2]))
-        if self.controller.mode == "pbvs":
+        if self.controller.drives_position:
             return lateral, float(np.linalg.norm(p_true - self.controller.desired_point_camera(0.0)))
         return lateral, lateral
 
@@ -571,7 +573,7 @@ class EpisodeRunner:
             _, _, final_px, final_m, p_true, uv_true = last
             true_px = float(np.linalg.norm(uv_true - ctl.desired_px))
             lat, err3 = self._true_errors(p_true)
-            if ctl.mode == "pbvs" or ctx.suite.ibvs.depth_feature:
+            if ctl.drives_depth:
                 depth_err = float(p_true[2] - ctl.desired_point_camera(ctx.suite.ibvs.desired_depth_m)[2])
         return VisitRow(
             suite=ctx.suite.name,

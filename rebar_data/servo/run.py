@@ -73,6 +73,7 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
         suite.scene.depth_sensor,
         noise=suite.camera.depth_noise,
     )
+    new_sensor = None
     if suite.frames == "renderer":
         try:
             frames = RendererFrames(
@@ -86,6 +87,7 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
         except BaseException:
             world.close()
             raise
+        new_sensor = frames.new_sensor
     else:
         frames = RaycastFrames(rm, camera, Raycaster(rm), depth_sensor=depth_sensor)
     base = shipped or GroundTruthDetector(rm, camera, frames.cast_rays, world.world_from_camera)
@@ -95,7 +97,15 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
 
     bar_diameter_m = max(b.diameter_m for b in rm.bars)
     return ServoContext(
-        suite, world, rm, camera, frames, make_detector, float(bar_diameter_m), suite.detector
+        suite,
+        world,
+        rm,
+        camera,
+        frames,
+        make_detector,
+        float(bar_diameter_m),
+        suite.detector,
+        new_sensor=new_sensor,
     )
 
 
