@@ -1,5 +1,9 @@
 """The rows the servo run writes: one per control step (``steps.parquet``), one per target visit
-(``episodes.parquet``). "true" columns come from the simulator's ground truth, never from the detector."""
+(``episodes.parquet``). "true" columns come from the simulator's ground truth, never from the detector.
+
+The rows are keyword-only: a parquet file's columns are their fields, in this order, so a row is never built
+from a list of values in an order that could drift from it.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 
-@dataclass
+@dataclass(kw_only=True)
 class StepRow:
     suite: str
     episode: int
@@ -40,7 +44,7 @@ class StepRow:
     tcp_position_m: list[float]
 
 
-@dataclass
+@dataclass(kw_only=True)
 class VisitRow:
     suite: str
     episode: int
