@@ -2,7 +2,7 @@
 (``episodes.parquet``). "true" columns come from the simulator's ground truth, never from the detector.
 
 The rows are keyword-only: a parquet file's columns are their fields, in this order, so a row is never built
-from a list of values in an order that could drift from it.
+from a list of values in an order that could drift from it. :mod:`rebar_data.servo.rows` builds them.
 """
 
 from __future__ import annotations
@@ -78,3 +78,12 @@ class VisitRow:
 
     def to_dict(self) -> dict:
         return {k: (float(v) if isinstance(v, np.floating) else v) for k, v in asdict(self).items()}
+
+
+@dataclass(kw_only=True)
+class EpisodeResult:
+    """One episode's rows, and the annotated camera views its report shows (title, RGB image)."""
+
+    visits: list[VisitRow] = field(default_factory=list)
+    steps: list[StepRow] = field(default_factory=list)
+    snapshots: list[tuple[str, np.ndarray]] = field(default_factory=list)
