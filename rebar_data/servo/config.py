@@ -121,9 +121,10 @@ class SafetyConfig(Strict):
 
 
 class TrackerSettings(Strict):
-    """The target tracker (see :mod:`rebar_data.servo.tracker`); ``detection_sigma_px`` is the detector's
-    pixel noise per axis (0.1 for the exact detector). The detector runs on every ``detect_every``-th
-    frame; KLT and the arm's motion carry the targets in between."""
+    """The target tracker's settings, as :class:`rebar_data.servo.tracker.TargetTracker` takes them (its
+    defaults are these); ``detection_sigma_px`` is the detector's pixel noise per axis (0.1 for the exact
+    detector). The detector runs on every ``detect_every``-th frame; KLT and the arm's motion carry the
+    targets in between."""
 
     detection_sigma_px: Positive = 0.1
     klt_sigma_px: Positive = 0.03

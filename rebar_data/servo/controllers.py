@@ -29,10 +29,15 @@ from rebar_data.servo.world import ServoWorld
 
 
 class _Base:
+    """``drives_position``: the controller drives the target's 3D point in the camera frame (its metric
+    error is that point's error), not its image point. ``drives_depth``: it drives the target's depth."""
+
     mode = ""
+    drives_position = False
 
     def __init__(self, world: ServoWorld, camera: CameraModel, motion: MotionConfig):
         self.world, self.camera, self.motion = world, camera, motion
+        self.drives_depth = False
         self.reference: np.ndarray | None = None
         self.hold_orientation = True
         self.last_gain = 0.0
@@ -72,6 +77,7 @@ class IbvsController(_Base):
         self.cfg = cfg
         self.gain = AdaptiveGain.of(cfg.gain)
         self.hold_orientation = not cfg.rotation
+        self.drives_depth = cfg.depth_feature
         self.desired_px = np.array(cfg.desired_px) if cfg.desired_px is not None else camera.principal_point
 
     def camera_pose(self) -> np.ndarray:
@@ -104,10 +110,12 @@ class IbvsController(_Base):
 
 class PbvsController(_Base):
     mode = "pbvs"
+    drives_position = True
 
     def __init__(self, world: ServoWorld, camera: CameraModel, motion: MotionConfig, cfg: PbvsConfig):
         super().__init__(world, camera, motion)
         self.cfg = cfg
+        self.drives_depth = True
         self.gain = AdaptiveGain.of(cfg.gain)
         self.desired_m = np.array(cfg.desired_m, float)
         self.desired_px = camera.project(self.desired_m)[0]
@@ -143,3 +151,6 @@ class PbvsController(_Base):
 
     def desired_point_camera(self, Z: float) -> np.ndarray:
         return self.desired_m.copy()
+
+
+Controller = IbvsController | PbvsController

@@ -1,15 +1,14 @@
 """Crossing detectors for the servo loop: the protocol, a ground-truth detector, faults, and the shipped model.
 
-Anything with ``detect(rgb) -> (N, 3)`` rows ``(u, v, score)`` in pixels drops into the loop. The
-shipped model is :class:`rebar_data.perception.Detector`; :class:`GroundTruthDetector` projects
-the crossings that are really visible with the exact camera pose (for tests and for separating control
-from perception errors), and :class:`FaultyDetector` wraps either one with dropped frames, pixel noise
-and spurious detections.
+Anything with ``detect(rgb, *, depth) -> (N, 3)`` rows ``(u, v, score)`` in pixels and a ``dropped`` flag
+(see :class:`Detector`) drops into the loop. The shipped model is :class:`rebar_data.perception.Detector`;
+:class:`GroundTruthDetector` projects the crossings that are really visible with the exact camera pose
+(for tests and for separating control from perception errors), and :class:`FaultyDetector` wraps either
+one with dropped frames, pixel noise and spurious detections.
 """
 
 from __future__ import annotations
 
-import inspect
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,11 @@ CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
 
 class Detector(Protocol):
+    """What the loop calls. ``dropped`` says whether the last :meth:`detect` lost its frame to a fault (its
+    step rows count it); a detector that never drops one declares ``dropped = False``."""
+
+    dropped: bool
+
     def detect(self, rgb: np.ndarray, *, depth: np.ndarray | None = None) -> np.ndarray:
         """Detections (N, 3): u, v (pixels, COCO corner origin) and a score in [0, 1]; ``depth`` is the
         frame's metric depth (H, W), 0 = none, for a detector that checks its detections in depth."""
@@ -45,6 +49,8 @@ class GroundTruthDetector:
     surface along the ray from the camera is one of its own bars, near the crossing) and it lies at
     least ``margin_px`` inside the image.
     """
+
+    dropped = False
 
     def __init__(
         self,
@@ -128,11 +134,14 @@ class FaultyDetector:
 
 
 class _WithCamera:
-    """A detector that takes the camera's intrinsics, bound to this camera: ``detect(rgb)`` as the loop calls it."""
+    """The shipped detector, which takes the camera's intrinsics, bound to this camera (None: its default
+    camera): ``detect(rgb, depth=...)`` as the loop calls it."""
 
-    def __init__(self, inner, camera: CameraModel):
+    dropped = False
+
+    def __init__(self, inner, camera: CameraModel | None):
         self.inner = inner
-        self._camera = (camera.fx, camera.fy, camera.cx, camera.cy)
+        self._camera = None if camera is None else (camera.fx, camera.fy, camera.cx, camera.cy)
 
     def detect(self, rgb: np.ndarray, *, depth: np.ndarray | None = None) -> np.ndarray:
         return self.inner.detect(rgb, camera=self._camera, depth=depth)
@@ -167,6 +176,4 @@ def load_shipped_detector(
             "give detector_path, or use detector: ground_truth"
         ) from None
     det.flatten_behind = flatten_behind
-    if camera is not None and "camera" in inspect.signature(det.detect).parameters:
-        return _WithCamera(det, camera)
-    return det
+    return _WithCamera(det, camera)

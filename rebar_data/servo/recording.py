@@ -25,8 +25,9 @@ from scipy.spatial.transform import Rotation
 from rebar_data.servo import ur5
 from rebar_data.servo.camera import KINECT_RANGE_M
 from rebar_data.servo.config import EpisodeSpec, SuiteConfig
-from rebar_data.servo.episode import Recorder, ServoContext
+from rebar_data.servo.context import ServoContext
 from rebar_data.servo.frames import Frame
+from rebar_data.servo.recorder import Recorder
 from rebar_data.servo.tracker import TrackState
 from rebar_data.servo.world import ServoWorld
 

@@ -1,5 +1,9 @@
 """The rows the servo run writes: one per control step (``steps.parquet``), one per target visit
-(``episodes.parquet``). "true" columns come from the simulator's ground truth, never from the detector."""
+(``episodes.parquet``). "true" columns come from the simulator's ground truth, never from the detector.
+
+The rows are keyword-only: a parquet file's columns are their fields, in this order, so a row is never built
+from a list of values in an order that could drift from it. :mod:`rebar_data.servo.rows` builds them.
+"""
 
 from __future__ import annotations
 
@@ -8,7 +12,7 @@ from dataclasses import asdict, dataclass, field
 import numpy as np
 
 
-@dataclass
+@dataclass(kw_only=True)
 class StepRow:
     suite: str
     episode: int
@@ -40,7 +44,7 @@ class StepRow:
     tcp_position_m: list[float]
 
 
-@dataclass
+@dataclass(kw_only=True)
 class VisitRow:
     suite: str
     episode: int
@@ -74,3 +78,12 @@ class VisitRow:
 
     def to_dict(self) -> dict:
         return {k: (float(v) if isinstance(v, np.floating) else v) for k, v in asdict(self).items()}
+
+
+@dataclass(kw_only=True)
+class EpisodeResult:
+    """One episode's rows, and the annotated camera views its report shows (title, RGB image)."""
+
+    visits: list[VisitRow] = field(default_factory=list)
+    steps: list[StepRow] = field(default_factory=list)
+    snapshots: list[tuple[str, np.ndarray]] = field(default_factory=list)

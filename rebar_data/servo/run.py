@@ -27,10 +27,14 @@ from rebar_data.pipeline import load_pipeline
 from rebar_data.scene.sample import nominal_depth_sensor
 from rebar_data.servo.camera import CameraModel
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
+from rebar_data.servo.context import ServoContext
 from rebar_data.servo.detectors import GroundTruthDetector, load_shipped_detector
-from rebar_data.servo.episode import EpisodeResult, EpisodeRunner, Recorder, ServoContext, faulty
+from rebar_data.servo.episode import EpisodeRunner
+from rebar_data.servo.faults import faulty
 from rebar_data.servo.frames import RaycastFrames, RendererFrames
 from rebar_data.servo.raycast import Raycaster
+from rebar_data.servo.recorder import Recorder
+from rebar_data.servo.records import EpisodeResult
 from rebar_data.servo.world import ServoWorld, build_world_mesh, check_reachable
 
 RANDOM_EPISODE_OFFSET = 1000
@@ -73,6 +77,7 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
         suite.scene.depth_sensor,
         noise=suite.camera.depth_noise,
     )
+    new_sensor = None
     if suite.frames == "renderer":
         try:
             frames = RendererFrames(
@@ -86,6 +91,7 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
         except BaseException:
             world.close()
             raise
+        new_sensor = frames.new_sensor
     else:
         frames = RaycastFrames(rm, camera, Raycaster(rm), depth_sensor=depth_sensor)
     base = shipped or GroundTruthDetector(rm, camera, frames.cast_rays, world.world_from_camera)
@@ -95,7 +101,15 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
 
     bar_diameter_m = max(b.diameter_m for b in rm.bars)
     return ServoContext(
-        suite, world, rm, camera, frames, make_detector, float(bar_diameter_m), suite.detector
+        suite=suite,
+        world=world,
+        rm=rm,
+        camera=camera,
+        frames=frames,
+        make_detector=make_detector,
+        depth_offset_m=float(bar_diameter_m),
+        detector_name=suite.detector,
+        new_sensor=new_sensor,
     )
 
 

@@ -21,18 +21,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from rebar_data.servo.config import TrackerSettings
 
-@dataclass(frozen=True)
-class TrackerConfig:
-    window_px: int = 21
-    pyramid_levels: int = 3
-    forward_backward_px: float = 0.5
-    detection_sigma_px: float = 0.1
-    klt_sigma_px: float = 0.03
-    klt_motion_fraction: float = 0.03
-    gate_px: float = 25.0
-    min_gate_px: float = 3.0
-    drift_px: float = 3.0
+# What a suite does not set (its settings are :class:`rebar_data.servo.config.TrackerSettings`).
+PYRAMID_LEVELS = 3  # KLT's pyramid levels above the image
+FORWARD_BACKWARD_PX = 0.5  # largest forward-backward KLT disagreement that keeps its point
+MIN_GATE_PX = 3.0  # the detection gate's floor
 
 
 @dataclass(frozen=True)
@@ -57,8 +51,8 @@ class TrackState:
 class TargetTracker:
     """KLT plus detections for one target; call :meth:`seed` once, then :meth:`update` every frame."""
 
-    def __init__(self, config: TrackerConfig = TrackerConfig()):
-        self.cfg = config
+    def __init__(self, config: TrackerSettings | None = None):
+        self.cfg = config if config is not None else TrackerSettings()
         self._gray: np.ndarray | None = None
         self.point = np.full(2, np.nan)
         self.var = np.inf
@@ -115,7 +109,7 @@ class TargetTracker:
         if len(det):
             d = np.linalg.norm(det - pred, axis=1)
             j = int(np.argmin(d))
-            gate = max(cfg.min_gate_px, 3.5 * np.sqrt(var + r))
+            gate = max(MIN_GATE_PX, 3.5 * np.sqrt(var + r))
             if not preds and d[j] <= cfg.gate_px:
                 self.point, self.var, source = det[j].copy(), r, "reseeded"  # re-acquired
                 self.reseeds += 1
@@ -157,7 +151,7 @@ class TargetTracker:
         p0 = self.point.reshape(1, 1, 2).astype(np.float32)
         kw = {
             "winSize": (cfg.window_px, cfg.window_px),
-            "maxLevel": cfg.pyramid_levels,
+            "maxLevel": PYRAMID_LEVELS,
             "criteria": (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 30, 0.01),
         }
         p1, st, _ = cv2.calcOpticalFlowPyrLK(self._gray, gray, p0, None, **kw)
@@ -166,7 +160,7 @@ class TargetTracker:
         back, st_b, _ = cv2.calcOpticalFlowPyrLK(gray, self._gray, p1, None, **kw)
         if back is None or not st_b[0, 0]:
             return None
-        if np.linalg.norm(back[0, 0] - p0[0, 0]) > cfg.forward_backward_px:
+        if np.linalg.norm(back[0, 0] - p0[0, 0]) > FORWARD_BACKWARD_PX:
             return None
         p = p1[0, 0].astype(float)
         h, w = gray.shape

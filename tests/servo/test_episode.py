@@ -16,6 +16,8 @@ from .conftest import suite_dict
 class _Blinded:
     """The exact detector, blind (no detections) on frames ``first`` to ``last`` of the episode."""
 
+    dropped = False
+
     def __init__(self, inner, first: int, last: int):
         self.inner, self.first, self.last, self.calls = inner, first, last, 0
 

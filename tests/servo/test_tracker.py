@@ -3,7 +3,8 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from rebar_data.servo.tracker import TargetTracker, TrackerConfig
+from rebar_data.servo.config import TrackerSettings
+from rebar_data.servo.tracker import TargetTracker
 
 
 def _grid_image(offset: np.ndarray, rng: np.random.Generator) -> np.ndarray:
@@ -22,7 +23,7 @@ def _crossing(offset):
 
 def test_klt_follows_a_moving_crossing_between_detections():
     rng = np.random.default_rng(0)
-    tr = TargetTracker(TrackerConfig(detection_sigma_px=0.1))
+    tr = TargetTracker(TrackerSettings(detection_sigma_px=0.1))
     offset = np.zeros(2)
     tr.seed(_grid_image(offset, rng), _crossing(offset))
     for _ in range(15):
@@ -34,7 +35,7 @@ def test_klt_follows_a_moving_crossing_between_detections():
 
 def test_noisy_detections_are_averaged():
     rng = np.random.default_rng(1)
-    tr = TargetTracker(TrackerConfig(detection_sigma_px=2.0))
+    tr = TargetTracker(TrackerSettings(detection_sigma_px=2.0))
     img = _grid_image(np.zeros(2), rng)
     truth = _crossing(np.zeros(2))
     first = truth + rng.normal(0, 2.0, 2)
@@ -48,7 +49,7 @@ def test_noisy_detections_are_averaged():
 
 def test_a_spurious_detection_is_ignored_and_a_persistent_offset_reseeds():
     rng = np.random.default_rng(2)
-    tr = TargetTracker(TrackerConfig(detection_sigma_px=0.2))
+    tr = TargetTracker(TrackerSettings(detection_sigma_px=0.2))
     img = _grid_image(np.zeros(2), rng)
     truth = _crossing(np.zeros(2))
     tr.seed(img, truth, 0.2)
@@ -62,7 +63,7 @@ def test_a_spurious_detection_is_ignored_and_a_persistent_offset_reseeds():
 
 def test_the_arm_motion_prediction_carries_the_point_when_klt_cannot():
     rng = np.random.default_rng(3)
-    tr = TargetTracker(TrackerConfig())
+    tr = TargetTracker(TrackerSettings())
     blank = np.zeros((480, 640, 3), np.uint8)  # nothing for KLT to hold on to
     tr.seed(blank, np.array([300.0, 200.0]), 0.1)
     state = tr.update(blank, np.zeros((0, 3)), motion=(np.array([310.0, 195.0]), 0.05))

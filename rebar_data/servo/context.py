@@ -1,0 +1,41 @@
+"""What a servo run shares across its episodes: the suite, the simulated cell, the camera and its frames,
+and how each episode gets its detector."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from rebar_data.geometry.build import RebarMesh
+from rebar_data.servo.camera import CameraModel
+from rebar_data.servo.config import SuiteConfig
+from rebar_data.servo.detectors import Detector
+from rebar_data.servo.frames import FrameSource
+from rebar_data.servo.world import ServoWorld
+
+
+@dataclass(kw_only=True)
+class ServoContext:
+    """Everything a run shares across episodes.
+
+    ``make_detector`` builds an episode's detector from the episode's own generator (its faults draw from
+    it); ``new_sensor``, where the frame source has a camera sensor of its own (the renderer's), draws a
+    new one for each episode, and is None where it has none (the ray cast).
+    """
+
+    suite: SuiteConfig
+    world: ServoWorld
+    rm: RebarMesh
+    camera: CameraModel
+    frames: FrameSource
+    make_detector: Callable[[np.random.Generator], Detector]
+    depth_offset_m: float
+    detector_name: str
+    new_sensor: Callable[[np.random.Generator], None] | None = None
+
+    def close(self) -> None:
+        """Release the renderer and the simulator."""
+        self.frames.close()
+        self.world.close()
