@@ -174,7 +174,7 @@ def is_bundle(folder: Path) -> bool:
     return listed and (folder / CROISSANT).is_file() and (folder / CARD).is_file()
 
 
-def check_out(out: Path, *, force: bool) -> Path:
+def check_bundle_out(out: Path, *, force: bool) -> Path:
     """``out`` as a bundle may be written there: new, empty, or (with ``force``) an earlier bundle."""
     output_folder(out, arg="--out", command=COMMAND, owned=is_bundle, swapped=True)
     if out.exists() and any(out.iterdir()) and not force:
@@ -207,7 +207,7 @@ def publish_dataset(
         raise ConfigError(f"--license {license_id}: unknown; accepted: {', '.join(LICENSES)}")
     if out == src or src in out.parents or out in src.parents:
         raise ConfigError(f"--out {out}: inside or around the dataset; accepted: a folder outside {src}")
-    check_out(out, force=force)
+    check_bundle_out(out, force=force)
     info, audit = check_source(src)
     if audit is not None:
         check_audit(src, audit, allow_failed_audit=allow_failed_audit)
@@ -215,7 +215,9 @@ def publish_dataset(
         space_for(out, lambda: bundle_bytes(src, maps=maps)),
         OutputLock(out, command=COMMAND),
     ):
-        check_out(out, force=force)  # again under the lock: another publish may have finished meanwhile
+        check_bundle_out(
+            out, force=force
+        )  # again under the lock: another publish may have finished meanwhile
         remove_stale(out.parent, f".{out.name}.partial-*")  # a killed publish's (the lock proves it dead)
         staging = Path(tempfile.mkdtemp(dir=out.parent, prefix=f".{out.name}.partial-"))
         try:

@@ -52,7 +52,7 @@ __all__ = ["CyclesRenderer", "blender_version", "require_bpy"]
 
 CYCLES_INSTALL_HINT = "pip install -e '.[cycles]' (or make crossval, which installs it)"
 TARGET_IRRADIANCE = 3.0  # the mat's centre gets this much light (Blender units): a white surface near 1.0
-NEAR_M, FAR_M = 0.01, 200.0
+CYCLES_NEAR_M, CYCLES_FAR_M = 0.01, 200.0
 CAMERA_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])  # Blender's camera looks down -z with +y up
 _OPEN: list[CyclesRenderer] = []
 
@@ -152,7 +152,7 @@ class CyclesRenderer(SceneRaycast):
             target = bpy.context.scene.render if key.startswith("pixel_aspect") else cam
             setattr(target, key, value)
         cam.sensor_fit = "HORIZONTAL"
-        cam.clip_start, cam.clip_end = NEAR_M, FAR_M
+        cam.clip_start, cam.clip_end = CYCLES_NEAR_M, CYCLES_FAR_M
         _OPEN.append(self)
 
     def _setup_render(self, sc) -> None:

@@ -12,7 +12,7 @@ import numpy as np
 
 from rebar_data.servo.config import SuiteConfig
 
-MODES = ("ibvs", "pbvs")
+CONTROL_MODES = ("ibvs", "pbvs")
 
 
 def _finite(values) -> np.ndarray:
@@ -28,7 +28,7 @@ def _stat(values, fn) -> float | None:
 def summarize(visits: list[dict]) -> dict:
     """Per-mode figures over the visits (errors over converged visits, convergence over all)."""
     out: dict = {"visits": len(visits), "modes": {}}
-    for mode in MODES:
+    for mode in CONTROL_MODES:
         g = [v for v in visits if v["mode"] == mode]
         if not g:
             continue

@@ -42,15 +42,15 @@ MAX_START_DRAWS = 50
 COMMAND = "rebar servo run"
 
 
-def is_run_folder(folder: Path) -> bool:
+def is_servo_run(folder: Path) -> bool:
     """``folder`` has an earlier run's layout (runs written before they carried a mark)."""
     return (folder / "summary.json").is_file() and (folder / "episodes.parquet").is_file()
 
 
-def check_out(out: str | Path) -> Path:
+def check_run_out(out: str | Path) -> Path:
     """``out`` as a run may write it: new, empty, or an earlier run's folder (its inputs are files, which
     a folder never overwrites)."""
-    return output_folder(out, arg="--out", command=COMMAND, owned=is_run_folder, swapped=True)
+    return output_folder(out, arg="--out", command=COMMAND, owned=is_servo_run, swapped=True)
 
 
 def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> ServoContext:
@@ -163,12 +163,12 @@ def run_suite(
 ) -> dict:
     """Run every episode of a suite and write the outputs to ``out``; returns the summary.
 
-    ``out`` is replaced only when it is an earlier run's folder (see :func:`check_out`); ``limit_episodes``
+    ``out`` is replaced only when it is an earlier run's folder (see :func:`check_run_out`); ``limit_episodes``
     runs the first episodes only (1 or more).
     """
     if limit_episodes is not None and limit_episodes < 1:
         raise ConfigError(f"--episodes {limit_episodes}: runs nothing; accepted: an integer >= 1")
-    out = check_out(out)
+    out = check_run_out(out)
     suite = load_suite(suite_path)
     # the pipeline the world's mesh comes from is checked whole before anything is written
     load_pipeline(resolve_path(suite.world.mesh_config, suite_path))
@@ -187,7 +187,7 @@ def _run_episodes(suite, ctx, out: Path, t0: float, recorder_factory, progress: 
         plan = plan[:limit_episodes]
     # only now, with the model loaded and every start pose reachable, does the run write anything
     with OutputLock(out, command=COMMAND):
-        check_out(out)  # again under the lock: another writer may have finished there meanwhile
+        check_run_out(out)  # again under the lock: another writer may have finished there meanwhile
         remove_stale(out.parent, f".{out.name}.tmp-*")  # a killed run's (the lock proves it dead)
         return _write_run(suite, ctx, plan, out, t0, recorder_factory, progress)
 
