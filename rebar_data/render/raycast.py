@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.render.sensor import apply_sensor
-from rebar_data.scene.cameras import Intrinsics
 from rebar_data.scene.sample import SensorSample
 from rebar_data.scene.surroundings import SceneObject
 from rebar_data.timing import StageTimer
@@ -51,15 +51,9 @@ class SceneRaycast:
         self._raycast = None
         # instance id of each ray-cast geometry (0: the rebar), then the id of a miss
         self._geom_lut = np.array([0, NOTHING_ID], np.int32)
-        self._pixel_xy = self._camera_rays(intrinsics)
+        # (x, y) of the ray (x, y, 1) through every pixel centre, (H*W, 2)
+        self._pixel_xy = np.ascontiguousarray(intrinsics.pixel_rays()[:, :2], np.float32)
         self._rays = np.empty((len(self._pixel_xy), 6), np.float32)
-
-    @staticmethod
-    def _camera_rays(k: Intrinsics) -> np.ndarray:
-        """(x, y) of the ray through every pixel centre in the camera frame at z = 1, shape (H*W, 2)."""
-        v, u = np.mgrid[0 : k.height, 0 : k.width].astype(np.float64)
-        xy = np.stack([(u + 0.5 - k.cx) / k.fx, (v + 0.5 - k.cy) / k.fy], axis=-1)
-        return xy.reshape(-1, 2).astype(np.float32)
 
     def _build_raycast(self, objects: list[SceneObject]) -> None:
         import open3d as o3d
