@@ -17,9 +17,9 @@ from typing import Protocol
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
-from rebar_data.servo.camera import CameraModel
 
 CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -49,7 +49,7 @@ class GroundTruthDetector:
     def __init__(
         self,
         rm: RebarMesh,
-        camera: CameraModel,
+        camera: Intrinsics,
         cast_rays: CastRays,
         pose_fn: Callable[[], np.ndarray],
         *,
@@ -130,7 +130,7 @@ class FaultyDetector:
 class _WithCamera:
     """A detector that takes the camera's intrinsics, bound to this camera: ``detect(rgb)`` as the loop calls it."""
 
-    def __init__(self, inner, camera: CameraModel):
+    def __init__(self, inner, camera: Intrinsics):
         self.inner = inner
         self._camera = (camera.fx, camera.fy, camera.cx, camera.cy)
 
@@ -140,7 +140,7 @@ class _WithCamera:
 
 def load_shipped_detector(
     path: str | Path | None = None,
-    camera: CameraModel | None = None,
+    camera: Intrinsics | None = None,
     *,
     runtime: str = "auto",
     reading: str = "single",

@@ -18,8 +18,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics, rigid_inverse
 from rebar_data.geometry.build import RebarMesh
-from rebar_data.servo.camera import KINECT_RANGE_M, CameraModel, depth_at
+from rebar_data.servo.camera import KINECT_RANGE_M, depth_at
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig
 from rebar_data.servo.controllers import IbvsController, PbvsController
 from rebar_data.servo.detectors import Detector, Faults, FaultyDetector
@@ -27,7 +28,7 @@ from rebar_data.servo.frames import Frame, FrameSource
 from rebar_data.servo.records import StepRow, VisitRow
 from rebar_data.servo.targets import persistent_clusters, select_targets
 from rebar_data.servo.tracker import TargetTracker, TrackerConfig, TrackState
-from rebar_data.servo.transforms import apply, inverse
+from rebar_data.servo.transforms import apply
 from rebar_data.servo.world import ServoWorld
 
 # Frame-to-frame accuracy of the arm's own motion prediction of a still point: a floor, plus the pixel
@@ -65,7 +66,7 @@ class ServoContext:
     suite: SuiteConfig
     world: ServoWorld
     rm: RebarMesh
-    camera: CameraModel
+    camera: Intrinsics
     frames: FrameSource
     make_detector: Callable[[np.random.Generator], Detector]
     depth_offset_m: float
@@ -207,7 +208,7 @@ class EpisodeRunner:
             return None
         cam = self.ctx.camera
         p_prev = cam.back_project(np.atleast_2d(t.tracker.point), np.array([t.depth_m]))[0]
-        p_now = apply(inverse(pose_now) @ t.pose, p_prev)
+        p_now = apply(rigid_inverse(pose_now) @ t.pose, p_prev)
         shift = float(np.linalg.norm(p_now[:2] - p_prev[:2]))
         sigma = MOTION_SIGMA_PX + cam.fx * shift * DEPTH_SIGMA_M / t.depth_m**2
         return cam.project(p_now)[0], sigma
@@ -216,7 +217,7 @@ class EpisodeRunner:
         """The true crossing in the camera frame and its true pixel (NaN when there is no true crossing)."""
         if crossing_id < 0:
             return np.full(3, np.nan), np.full(2, np.nan)
-        p = apply(inverse(self.ctx.world.world_from_camera()), self.ctx.rm.crossings.point[crossing_id])
+        p = apply(rigid_inverse(self.ctx.world.world_from_camera()), self.ctx.rm.crossings.point[crossing_id])
         return p, self.ctx.camera.project(p)[0]
 
     def hold(self) -> None:
@@ -306,7 +307,7 @@ class EpisodeRunner:
 
     def _true_crossing(self, uv: np.ndarray, world_from_camera: np.ndarray) -> int:
         """The true crossing whose projection is nearest the target pixel, if within the cluster radius."""
-        p = apply(inverse(world_from_camera), self.ctx.rm.crossings.point)
+        p = apply(rigid_inverse(world_from_camera), self.ctx.rm.crossings.point)
         px = self.ctx.camera.project(np.where((p[:, 2] > 0)[:, None], p, np.nan))
         d = np.linalg.norm(px - uv, axis=1)
         d[~np.isfinite(d)] = np.inf
@@ -633,7 +634,7 @@ def faults_label(suite: SuiteConfig) -> str:
     return ", ".join(parts) or "none"
 
 
-def faulty(detector: Detector, suite: SuiteConfig, rng: np.random.Generator, camera: CameraModel) -> Detector:
+def faulty(detector: Detector, suite: SuiteConfig, rng: np.random.Generator, camera: Intrinsics) -> Detector:
     """The suite's detector with its faults (or as it is when the suite has none)."""
     f = Faults(suite.faults.drop_fraction, suite.faults.pixel_noise_px, suite.faults.spurious_per_frame)
     if not f.active:
