@@ -6,8 +6,9 @@ image of its depth sensor model (:func:`rebar_data.render.depth_sensor.sense_dep
 
 - ``renderer``: :class:`rebar_data.render.renderer.Renderer` with the dataset's materials and lights, so
   a trained detector sees images like those it was trained on.
-- ``raycast``: exact geometry from :class:`Raycaster`, shaded with a headlight and a key light. About
-  ten times cheaper; for tests and for suites whose detector does not look at pixels (``ground_truth``).
+- ``raycast``: exact geometry from the labels' own ray caster (:class:`rebar_data.render.raycast.Raycaster`),
+  shaded with a headlight and a key light. About ten times cheaper; for tests and for suites whose detector
+  does not look at pixels (``ground_truth``).
 """
 
 from __future__ import annotations
@@ -21,9 +22,9 @@ from rebar_data.camera import Intrinsics
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.render.depth_sensor import sense_depth
+from rebar_data.render.raycast import Raycaster
 from rebar_data.scene.config import SceneConfig
 from rebar_data.scene.sample import DepthSensorSample, nominal_depth_sensor
-from rebar_data.servo.raycast import Raycaster
 
 
 @dataclass(frozen=True)

@@ -24,13 +24,13 @@ import pyarrow.parquet as pq
 from rebar_data.config import ConfigError
 from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_stale, replace_folder
 from rebar_data.pipeline import load_pipeline
+from rebar_data.render.raycast import Raycaster
 from rebar_data.scene.sample import nominal_depth_sensor
 from rebar_data.servo.camera import kinect_intrinsics
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.detectors import GroundTruthDetector, load_shipped_detector
 from rebar_data.servo.episode import EpisodeResult, EpisodeRunner, Recorder, ServoContext, faulty
 from rebar_data.servo.frames import RaycastFrames, RendererFrames
-from rebar_data.servo.raycast import Raycaster
 from rebar_data.servo.world import ServoWorld, build_world_mesh, check_reachable
 
 RANDOM_EPISODE_OFFSET = 1000
