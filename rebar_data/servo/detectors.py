@@ -132,7 +132,7 @@ class _WithCamera:
 
     def __init__(self, inner, camera: Intrinsics):
         self.inner = inner
-        self._camera = (camera.fx, camera.fy, camera.cx, camera.cy)
+        self._camera = camera
 
     def detect(self, rgb: np.ndarray, *, depth: np.ndarray | None = None) -> np.ndarray:
         return self.inner.detect(rgb, camera=self._camera, depth=depth)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
-from rebar_data.camera import Intrinsics, Projection, project
+from rebar_data.camera import Projection, project
 from rebar_data.config import ConfigError, MeshConfig, validate
 from rebar_data.dataset.layout import mesh_sections
 from rebar_data.geometry.build import build_rebar_mesh
@@ -107,7 +107,7 @@ class _Camera:
     def __init__(self, world_from_camera: np.ndarray, s: Sample) -> None:
         self.world_from_camera = world_from_camera
         self.centre = world_from_camera[:3, 3]
-        self.intrinsics = Intrinsics(s.width, s.height, *s.camera)
+        self.intrinsics = s.intrinsics
 
     def _project(self, points: np.ndarray) -> Projection:
         return project(points, self.world_from_camera, self.intrinsics)
