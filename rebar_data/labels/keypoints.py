@@ -34,9 +34,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics, project
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.geometry.curves import CurveArrays
-from rebar_data.labels.projection import project
 
 CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -319,14 +319,14 @@ def label_frame(
     rm: RebarMesh,
     parts: CrossingParts,
     world_from_camera: np.ndarray,
-    intrinsics,
+    intrinsics: Intrinsics,
     cast_rays: CastRays,
     rule: LabelRule = LabelRule(),
 ) -> FrameLabels:
     """Project every crossing's sight point and decide its visibility with one batched ray cast."""
     k = intrinsics
     pts, seen = sight_points(rm, parts, np.asarray(world_from_camera, float)[:3, 3])
-    proj = project(pts, world_from_camera, fx=k.fx, fy=k.fy, cx=k.cx, cy=k.cy, width=k.width, height=k.height)
+    proj = project(pts, world_from_camera, k)
     n = len(pts)
     vis = np.zeros(n, np.int8)
     hit_instance = np.full(n, -1, np.int32)

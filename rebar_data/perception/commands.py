@@ -477,7 +477,8 @@ def _detect_image(detector, f: Path, rgb: np.ndarray, out: Path, camera, thresho
     overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
     cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
     h, w = rgb.shape[:2]
-    fx, fy, cx, cy = used if used is not None else detector.default_camera(h, w)
+    k = detector.default_camera(h, w)
+    fx, fy, cx, cy = used if used is not None else (k.fx, k.fy, k.cx, k.cy)
     print(f"{f.name}: {len(det)} crossings (camera: {how})", file=sys.stderr)
     return det, {"file": f.name, "width": w, "height": h, "fx": fx, "fy": fy, "cx": cx, "cy": cy, "from": how}
 

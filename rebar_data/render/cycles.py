@@ -34,12 +34,12 @@ from contextlib import contextmanager
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.outputs import private_temp_dir
 from rebar_data.render import cycles_looks as looks
 from rebar_data.render.raycast import Frame, SceneRaycast
-from rebar_data.scene.cameras import Intrinsics
 from rebar_data.scene.config import RenderConfig
 from rebar_data.scene.lighting import direction_in_frame, kelvin_to_rgb
 from rebar_data.scene.mat_surface import MatSurface

@@ -1,9 +1,14 @@
 """Exact depth and instance ids by ray cast, shared by every renderer so labels never depend on the engine.
 
-:class:`SceneRaycast` holds an ``open3d.t.geometry.RaycastingScene`` of a rebar mesh and its surroundings.
-It casts one ray through every pixel centre for metric depth (camera-frame z) and instance ids, and
-answers the world rays the labelling code casts for visibility. The Open3D renderer and the Cycles
-renderer both use it: whichever engine draws the RGB image, depth, instance maps and labels are the same.
+:class:`Raycaster` is the package's one ray caster: an ``open3d.t.geometry.RaycastingScene`` of a rebar mesh
+and, optionally, the scene's objects, giving each ray's first hit (distance, instance id, surface normal).
+The labels' visibility rays, the dataset's depth and instance images and the servo loop's ray-cast frames
+all go through it.
+
+:class:`SceneRaycast` is the renderers' part of it: one ray through every pixel centre for metric depth
+(camera-frame z) and instance ids, and the world rays the labelling code casts for visibility. The Open3D
+renderer and the Cycles renderer both use it: whichever engine draws the RGB image, depth, instance maps and
+labels are the same.
 
 Instance ids: ``>= 0`` the part of ``rm.parts`` (primitive ids of the merged mesh mapped through
 ``rm.triangle_part_id``), ``-1`` nothing, and the objects' own ids for the surroundings (``-2`` ground,
@@ -12,13 +17,14 @@ Instance ids: ``>= 0`` the part of ``rm.parts`` (primitive ids of the merged mes
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.render.sensor import apply_sensor
-from rebar_data.scene.cameras import Intrinsics
 from rebar_data.scene.sample import SensorSample
 from rebar_data.scene.surroundings import SceneObject
 from rebar_data.timing import StageTimer
@@ -35,6 +41,61 @@ class Frame:
     instance: np.ndarray  # (H, W) int32: >= 0 part id; -1 nothing; -2 ground; -3 distractors
 
 
+class Raycaster:
+    """First hits of rays against a rebar mesh and the scene's ``objects``, built once per scene."""
+
+    def __init__(self, rm: RebarMesh, objects: Sequence[SceneObject] = ()):
+        import open3d as o3d
+
+        self._o3d = o3d
+        self._rm = rm
+        rs = o3d.t.geometry.RaycastingScene()
+        rs.add_triangles(
+            o3d.core.Tensor(np.asarray(rm.mesh.vertices, np.float32)),
+            o3d.core.Tensor(np.asarray(rm.mesh.faces, np.uint32)),
+        )
+        ids = [0]  # the rebar's ids come from its triangles
+        for obj in objects:
+            rs.add_triangles(
+                o3d.core.Tensor(obj.shape.vertices.astype(np.float32)),
+                o3d.core.Tensor(obj.shape.triangles.astype(np.uint32)),
+            )
+            ids.append(obj.instance_id)
+        self._scene = rs
+        # instance id of each ray-cast geometry (0: the rebar), then the id of a miss
+        self._geom_lut = np.array([*ids, NOTHING_ID], np.int32)
+
+    def cast_rays(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """First hit of each world ray against everything in the scene: distance in metres along the
+        (normalised) direction, ``inf`` when nothing is hit, and the instance id there."""
+        d = np.asarray(directions, np.float64)
+        d = d / np.linalg.norm(d, axis=1, keepdims=True)
+        rays = np.empty((len(d), 6), np.float32)
+        rays[:, :3] = np.asarray(origins, np.float64)
+        rays[:, 3:] = d
+        t, inst = self.cast(rays)
+        return t.astype(np.float64), inst
+
+    def cast(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hit distances (in ray-direction lengths, inf = miss) and instance ids of (N, 6) float32 rays
+        (origin, then direction)."""
+        hit = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
+        t = hit["t_hit"].numpy()
+        geom = hit["geometry_ids"].numpy()  # uint32; Open3D marks a miss with the largest value
+        # one look-up for every geometry (a miss reads the extra last entry), then the rebar's hits get
+        # their part's id from the triangle they hit
+        inst = self._geom_lut[np.minimum(geom, len(self._geom_lut) - 1)]
+        rebar = geom == 0
+        inst[rebar] = self._rm.triangle_part_id[hit["primitive_ids"].numpy()[rebar]]
+        return t, inst
+
+    def cast_t_normal(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Hit distance (float32, inf on a miss) and the hit triangle's unit normal of (N, 6) float32 rays
+        (origin, then direction)."""
+        hit = self._scene.cast_rays(self._o3d.core.Tensor.from_numpy(rays))
+        return hit["t_hit"].numpy(), hit["primitive_normals"].numpy()
+
+
 class SceneRaycast:
     """Ray casts against the rebar and the scene's objects; a renderer mixes it in.
 
@@ -48,67 +109,19 @@ class SceneRaycast:
     timer: StageTimer  # seconds per stage of render(): the engine's own, rays, sensor
 
     def _init_raycast(self, intrinsics: Intrinsics) -> None:
-        self._raycast = None
-        # instance id of each ray-cast geometry (0: the rebar), then the id of a miss
-        self._geom_lut = np.array([0, NOTHING_ID], np.int32)
-        self._pixel_xy = self._camera_rays(intrinsics)
+        self._raycast: Raycaster | None = None
+        # (x, y) of the ray (x, y, 1) through every pixel centre, (H*W, 2)
+        self._pixel_xy = np.ascontiguousarray(intrinsics.pixel_rays()[:, :2], np.float32)
         self._rays = np.empty((len(self._pixel_xy), 6), np.float32)
 
-    @staticmethod
-    def _camera_rays(k: Intrinsics) -> np.ndarray:
-        """(x, y) of the ray through every pixel centre in the camera frame at z = 1, shape (H*W, 2)."""
-        v, u = np.mgrid[0 : k.height, 0 : k.width].astype(np.float64)
-        xy = np.stack([(u + 0.5 - k.cx) / k.fx, (v + 0.5 - k.cy) / k.fy], axis=-1)
-        return xy.reshape(-1, 2).astype(np.float32)
-
     def _build_raycast(self, objects: list[SceneObject]) -> None:
-        import open3d as o3d
-
-        rs = o3d.t.geometry.RaycastingScene()
-        rm = self._rm
-        rs.add_triangles(
-            o3d.core.Tensor(np.asarray(rm.mesh.vertices, np.float32)),
-            o3d.core.Tensor(np.asarray(rm.mesh.faces, np.uint32)),
-        )
-        ids = [0]  # the rebar's ids come from its triangles
-        for obj in objects:
-            rs.add_triangles(
-                o3d.core.Tensor(obj.shape.vertices.astype(np.float32)),
-                o3d.core.Tensor(obj.shape.triangles.astype(np.uint32)),
-            )
-            ids.append(obj.instance_id)
-        self._raycast = rs
-        self._geom_lut = np.array([*ids, NOTHING_ID], np.int32)  # the last entry: nothing hit
+        self._raycast = Raycaster(self._rm, objects)
 
     def cast_rays(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """First hit of each world ray against everything in the scene: distance in metres along the
-        (normalised) direction, ``inf`` when nothing is hit, and the instance id there."""
+        """:meth:`Raycaster.cast_rays` against the current scene."""
         if self._raycast is None:
             raise RuntimeError("set_mesh(rm) and set_scene(scene) must come before cast_rays")
-        d = np.asarray(directions, np.float64)
-        d = d / np.linalg.norm(d, axis=1, keepdims=True)
-        t, inst = self._cast(np.asarray(origins, np.float64), d)
-        return t.astype(np.float64), inst
-
-    def _cast(self, origins: np.ndarray, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        rays = np.empty((len(directions), 6), np.float32)
-        rays[:, :3] = origins
-        rays[:, 3:] = directions
-        return self._cast_rays(rays)
-
-    def _cast_rays(self, rays: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Hit distances (in ray-direction lengths, inf = miss) and instance ids of (N, 6) float32 rays."""
-        import open3d as o3d
-
-        hit = self._raycast.cast_rays(o3d.core.Tensor.from_numpy(rays))
-        t = hit["t_hit"].numpy()
-        geom = hit["geometry_ids"].numpy()  # uint32; Open3D marks a miss with the largest value
-        # one look-up for every geometry (a miss reads the extra last entry), then the rebar's hits get
-        # their part's id from the triangle they hit
-        inst = self._geom_lut[np.minimum(geom, len(self._geom_lut) - 1)]
-        rebar = geom == 0
-        inst[rebar] = self._rm.triangle_part_id[hit["primitive_ids"].numpy()[rebar]]
-        return t, inst
+        return self._raycast.cast_rays(origins, directions)
 
     def depth_and_instance(self, world_from_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Exact depth (z, metres, 0 = nothing) and instance ids of every pixel, by ray cast."""
@@ -121,7 +134,7 @@ class SceneRaycast:
         np.multiply(self._pixel_xy[:, :1], R[:, 0], out=rays[:, 3:])
         rays[:, 3:] += self._pixel_xy[:, 1:] * R[:, 1]
         rays[:, 3:] += R[:, 2]
-        depth, inst = self._cast_rays(rays)  # directions have camera z = 1, so t is z
+        depth, inst = self._raycast.cast(rays)  # directions have camera z = 1, so t is z
         depth[np.isinf(depth)] = 0.0
         return depth.reshape(k.height, k.width), inst.reshape(k.height, k.width)
 

@@ -29,11 +29,11 @@ from pathlib import Path
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.outputs import private_temp_dir
 from rebar_data.render.raycast import Frame, SceneRaycast
 from rebar_data.render.uv import bar_corner_uv_m
-from rebar_data.scene.cameras import Intrinsics
 from rebar_data.scene.config import RenderConfig
 from rebar_data.scene.lighting import light_specs
 from rebar_data.scene.mat_surface import MatSurface

@@ -1,17 +1,16 @@
-"""Camera intrinsics (presets or explicit) and camera trajectories over the mat.
+"""The pipeline's camera: its intrinsics (presets or explicit) and its trajectories over the mat.
 
-Poses are ``world_from_camera`` 4x4 matrices with OpenCV camera axes (x right, y down, z forward). Every
-trajectory looks at points of the mat from its outward side; ``standoff_m`` is the distance from the
-camera to the point it looks at, ``tilt_deg`` the angle between the optical axis and the mat's inward
-normal there.
+Poses are ``world_from_camera`` 4x4 matrices with OpenCV camera axes (x right, y down, z forward), the
+convention of :mod:`rebar_data.camera`. Every trajectory looks at points of the mat from its outward side;
+``standoff_m`` is the distance from the camera to the point it looks at, ``tilt_deg`` the angle between the
+optical axis and the mat's inward normal there.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.scene.config import (
     Approach,
@@ -23,23 +22,6 @@ from rebar_data.scene.config import (
     TrajectoryBase,
 )
 from rebar_data.scene.mat_surface import MatSurface
-
-
-@dataclass(frozen=True)
-class Intrinsics:
-    """Pinhole intrinsics in pixels with COCO's corner origin: ``u = fx * x / z + cx``."""
-
-    width: int
-    height: int
-    fx: float
-    fy: float
-    cx: float
-    cy: float
-
-    @property
-    def K(self) -> np.ndarray:
-        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
-
 
 # Kinect v1 colour camera's common default calibration (cx, cy = 319.5, 239.5 in OpenCV's pixel-centre
 # convention). RealSense D435 colour at 640x480 (69 x 42 degree sensor cropped to 4:3): fx = fy ~ 615.

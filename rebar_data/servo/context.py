@@ -8,8 +8,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.geometry.build import RebarMesh
-from rebar_data.servo.camera import CameraModel
 from rebar_data.servo.config import SuiteConfig
 from rebar_data.servo.detectors import Detector
 from rebar_data.servo.frames import FrameSource
@@ -28,7 +28,7 @@ class ServoContext:
     suite: SuiteConfig
     world: ServoWorld
     rm: RebarMesh
-    camera: CameraModel
+    camera: Intrinsics
     frames: FrameSource
     make_detector: Callable[[np.random.Generator], Detector]
     depth_offset_m: float

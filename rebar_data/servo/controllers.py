@@ -13,8 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.servo import ur5
-from rebar_data.servo.camera import CameraModel
 from rebar_data.servo.config import IbvsConfig, MotionConfig, PbvsConfig
 from rebar_data.servo.ibvs import AdaptiveGain, ibvs_twist
 from rebar_data.servo.motion import (
@@ -35,7 +35,7 @@ class _Base:
     mode = ""
     drives_position = False
 
-    def __init__(self, world: ServoWorld, camera: CameraModel, motion: MotionConfig):
+    def __init__(self, world: ServoWorld, camera: Intrinsics, motion: MotionConfig):
         self.world, self.camera, self.motion = world, camera, motion
         self.drives_depth = False
         self.reference: np.ndarray | None = None
@@ -72,7 +72,7 @@ class _Base:
 class IbvsController(_Base):
     mode = "ibvs"
 
-    def __init__(self, world: ServoWorld, camera: CameraModel, motion: MotionConfig, cfg: IbvsConfig):
+    def __init__(self, world: ServoWorld, camera: Intrinsics, motion: MotionConfig, cfg: IbvsConfig):
         super().__init__(world, camera, motion)
         self.cfg = cfg
         self.gain = AdaptiveGain.of(cfg.gain)
@@ -112,7 +112,7 @@ class PbvsController(_Base):
     mode = "pbvs"
     drives_position = True
 
-    def __init__(self, world: ServoWorld, camera: CameraModel, motion: MotionConfig, cfg: PbvsConfig):
+    def __init__(self, world: ServoWorld, camera: Intrinsics, motion: MotionConfig, cfg: PbvsConfig):
         super().__init__(world, camera, motion)
         self.cfg = cfg
         self.drives_depth = True

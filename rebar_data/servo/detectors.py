@@ -16,9 +16,9 @@ from typing import Protocol
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
-from rebar_data.servo.camera import CameraModel
 
 CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
 
@@ -55,7 +55,7 @@ class GroundTruthDetector:
     def __init__(
         self,
         rm: RebarMesh,
-        camera: CameraModel,
+        camera: Intrinsics,
         cast_rays: CastRays,
         pose_fn: Callable[[], np.ndarray],
         *,
@@ -139,9 +139,9 @@ class _WithCamera:
 
     dropped = False
 
-    def __init__(self, inner, camera: CameraModel | None):
+    def __init__(self, inner, camera: Intrinsics | None):
         self.inner = inner
-        self._camera = None if camera is None else (camera.fx, camera.fy, camera.cx, camera.cy)
+        self._camera = camera
 
     def detect(self, rgb: np.ndarray, *, depth: np.ndarray | None = None) -> np.ndarray:
         return self.inner.detect(rgb, camera=self._camera, depth=depth)
@@ -149,7 +149,7 @@ class _WithCamera:
 
 def load_shipped_detector(
     path: str | Path | None = None,
-    camera: CameraModel | None = None,
+    camera: Intrinsics | None = None,
     *,
     runtime: str = "auto",
     reading: str = "single",

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from rebar_data.servo.camera import CameraModel
+from rebar_data.camera import Intrinsics
 from rebar_data.servo.config import SuiteConfig
 from rebar_data.servo.detectors import Detector, Faults, FaultyDetector
 
@@ -22,7 +22,7 @@ def faults_label(suite: SuiteConfig) -> str:
     return ", ".join(parts) or "none"
 
 
-def faulty(detector: Detector, suite: SuiteConfig, rng: np.random.Generator, camera: CameraModel) -> Detector:
+def faulty(detector: Detector, suite: SuiteConfig, rng: np.random.Generator, camera: Intrinsics) -> Detector:
     """The suite's detector with its faults (or as it is when the suite has none)."""
     f = Faults(
         drop_fraction=suite.faults.drop_fraction,

@@ -6,8 +6,9 @@ image of its depth sensor model (:func:`rebar_data.render.depth_sensor.sense_dep
 
 - ``renderer``: :class:`rebar_data.render.renderer.Renderer` with the dataset's materials and lights, so
   a trained detector sees images like those it was trained on.
-- ``raycast``: exact geometry from :class:`Raycaster`, shaded with a headlight and a key light. About
-  ten times cheaper; for tests and for suites whose detector does not look at pixels (``ground_truth``).
+- ``raycast``: exact geometry from the labels' own ray caster (:class:`rebar_data.render.raycast.Raycaster`),
+  shaded with a headlight and a key light. About ten times cheaper; for tests and for suites whose detector
+  does not look at pixels (``ground_truth``).
 """
 
 from __future__ import annotations
@@ -17,13 +18,13 @@ from typing import Protocol
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.render.depth_sensor import sense_depth
+from rebar_data.render.raycast import Raycaster
 from rebar_data.scene.config import SceneConfig
 from rebar_data.scene.sample import DepthSensorSample, nominal_depth_sensor
-from rebar_data.servo.camera import CameraModel
-from rebar_data.servo.raycast import Raycaster
 
 
 @dataclass(frozen=True)
@@ -50,14 +51,14 @@ class RaycastFrames:
     def __init__(
         self,
         rm: RebarMesh,
-        camera: CameraModel,
+        camera: Intrinsics,
         raycaster: Raycaster,
         *,
         depth_sensor: DepthSensorSample | None = None,
     ):
         self.camera = camera
         self._raycaster = raycaster
-        self._dirs_camera = camera.ray_directions().astype(np.float32)
+        self._dirs_camera = camera.pixel_rays(unit=True).astype(np.float32)
         self._rays = np.empty((len(self._dirs_camera), 6), np.float32)
         self._albedo = np.array([150.0, 95.0, 62.0], np.float32)
         self._background = np.array([38.0, 40.0, 44.0], np.float32)
@@ -104,7 +105,7 @@ class RendererFrames:
     def __init__(
         self,
         rm: RebarMesh,
-        camera: CameraModel,
+        camera: Intrinsics,
         rng: np.random.Generator,
         *,
         shadows: bool = False,
@@ -113,7 +114,6 @@ class RendererFrames:
     ):
         try:
             from rebar_data.render.renderer import Renderer
-            from rebar_data.scene.cameras import Intrinsics
             from rebar_data.scene.config import RenderConfig
             from rebar_data.scene.sample import sample_scene, sample_sensor
         except ImportError as e:
@@ -122,8 +122,7 @@ class RendererFrames:
                 f"imported here ({e}); accepted: frames: raycast"
             ) from None
         self.camera = camera
-        intr = Intrinsics(camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
-        self._renderer = Renderer(intr, RenderConfig(shadows=shadows))
+        self._renderer = Renderer(camera, RenderConfig(shadows=shadows))
         self._renderer.set_mesh(rm)
         scene = scene if scene is not None else SceneConfig()
         sensor = scene.sensor.model_copy(update={"motion_blur_probability": 0.0, "defocus_probability": 0.0})

@@ -3,7 +3,8 @@
 Features are normalised image coordinates ``(x, y) = ((u - cx) / fx, (v - cy) / fy)`` of the tracked
 crossing, optionally with ``log(Z / Z*)`` so the camera also holds its standoff (Z from the RGB-D
 depth image). The control law is ``v = -lambda(|e|_inf) L+ e`` over the controlled camera axes, with
-ViSP's adaptive gain.
+ViSP's adaptive gain. The point's interaction matrix is the camera's
+(:func:`rebar_data.camera.point_interaction_matrix`).
 """
 
 from __future__ import annotations
@@ -12,20 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rebar_data.camera import point_interaction_matrix
 from rebar_data.servo.config import GainConfig
-
-
-def point_interaction_matrix(x: float, y: float, Z: float) -> np.ndarray:
-    """The 2x6 interaction matrix of an image point: ``d(x, y)/dt = L (v, w)`` for a still point at depth Z.
-
-    The twist (v, w) is the camera's, in the camera frame.
-    """
-    return np.array(
-        [
-            [-1.0 / Z, 0.0, x / Z, x * y, -(1.0 + x * x), y],
-            [0.0, -1.0 / Z, y / Z, 1.0 + y * y, -x * y, -x],
-        ]
-    )
 
 
 def log_depth_interaction_row(x: float, y: float, Z: float) -> np.ndarray:

@@ -24,15 +24,15 @@ import pyarrow.parquet as pq
 from rebar_data.config import ConfigError
 from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_stale, replace_folder
 from rebar_data.pipeline import load_pipeline
+from rebar_data.render.raycast import Raycaster
 from rebar_data.scene.sample import nominal_depth_sensor
-from rebar_data.servo.camera import CameraModel
+from rebar_data.servo.camera import kinect_intrinsics
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.context import ServoContext
 from rebar_data.servo.detectors import GroundTruthDetector, load_shipped_detector
 from rebar_data.servo.episode import EpisodeRunner
 from rebar_data.servo.faults import faulty
 from rebar_data.servo.frames import RaycastFrames, RendererFrames
-from rebar_data.servo.raycast import Raycaster
 from rebar_data.servo.recorder import Recorder
 from rebar_data.servo.records import EpisodeResult
 from rebar_data.servo.world import ServoWorld, build_world_mesh, check_reachable
@@ -55,7 +55,7 @@ def check_run_out(out: str | Path) -> Path:
 
 def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> ServoContext:
     """World, camera, frame source and detector factory for a suite (a missing model fails first, fast)."""
-    camera = CameraModel.kinect(suite.camera.fov_x_deg)
+    camera = kinect_intrinsics(suite.camera.fov_x_deg)
     shipped = (
         load_shipped_detector(
             suite.detector_path,

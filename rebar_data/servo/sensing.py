@@ -10,12 +10,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from rebar_data.camera import rigid_inverse
 from rebar_data.servo.camera import KINECT_RANGE_M, depth_at
 from rebar_data.servo.context import ServoContext
 from rebar_data.servo.detectors import Detector
 from rebar_data.servo.frames import Frame
 from rebar_data.servo.tracker import TargetTracker, TrackState
-from rebar_data.servo.transforms import apply, inverse
+from rebar_data.servo.transforms import apply
 
 # Frame-to-frame accuracy of the arm's own motion prediction of a still point: a floor, plus the pixel
 # error that a depth error of DEPTH_SIGMA_M makes of the camera's lateral motion.
@@ -104,7 +105,7 @@ class Sensing:
             return None
         cam = self.ctx.camera
         p_prev = cam.back_project(np.atleast_2d(t.tracker.point), np.array([t.depth_m]))[0]
-        p_now = apply(inverse(pose_now) @ t.pose, p_prev)
+        p_now = apply(rigid_inverse(pose_now) @ t.pose, p_prev)
         shift = float(np.linalg.norm(p_now[:2] - p_prev[:2]))
         sigma = MOTION_SIGMA_PX + cam.fx * shift * DEPTH_SIGMA_M / t.depth_m**2
         return cam.project(p_now)[0], sigma
@@ -113,12 +114,12 @@ class Sensing:
         """The true crossing in the camera frame and its true pixel (NaN when there is no true crossing)."""
         if crossing_id < 0:
             return np.full(3, np.nan), np.full(2, np.nan)
-        p = apply(inverse(self.ctx.world.world_from_camera()), self.ctx.rm.crossings.point[crossing_id])
+        p = apply(rigid_inverse(self.ctx.world.world_from_camera()), self.ctx.rm.crossings.point[crossing_id])
         return p, self.ctx.camera.project(p)[0]
 
     def true_crossing(self, uv: np.ndarray, world_from_camera: np.ndarray) -> int:
         """The true crossing whose projection is nearest the target pixel, if within the cluster radius."""
-        p = apply(inverse(world_from_camera), self.ctx.rm.crossings.point)
+        p = apply(rigid_inverse(world_from_camera), self.ctx.rm.crossings.point)
         px = self.ctx.camera.project(np.where((p[:, 2] > 0)[:, None], p, np.nan))
         d = np.linalg.norm(px - uv, axis=1)
         d[~np.isfinite(d)] = np.inf

@@ -1,4 +1,5 @@
-"""Small rigid-transform helpers (4x4 matrices, rotation vectors) shared by the servo modules."""
+"""Small rigid-transform helpers (4x4 matrices, rotation vectors) shared by the servo modules; the inverse of
+a rigid transform is :func:`rebar_data.camera.rigid_inverse`."""
 
 from __future__ import annotations
 
@@ -13,12 +14,6 @@ def make_transform(R: np.ndarray | None = None, t: np.ndarray | None = None) -> 
     if t is not None:
         T[:3, 3] = t
     return T
-
-
-def inverse(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 transform."""
-    R, t = T[:3, :3], T[:3, 3]
-    return make_transform(R.T, -R.T @ t)
 
 
 def translation(t) -> np.ndarray:

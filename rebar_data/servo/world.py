@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from rebar_data.camera import rigid_inverse
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
 from rebar_data.geometry.config import Pose
@@ -37,7 +38,7 @@ from rebar_data.scene.mat_surface import MatSurface
 from rebar_data.servo import ur5
 from rebar_data.servo.client import BulletClient, quiet_stdout
 from rebar_data.servo.config import StartPose, WorldConfig
-from rebar_data.servo.transforms import apply, inverse, make_transform, translation
+from rebar_data.servo.transforms import apply, make_transform, translation
 
 FLANGE_LINK, CAMERA_LINK, TCP_LINK = 6, 7, 8
 
@@ -59,7 +60,7 @@ class Layout:
 
     @cached_property
     def camera_from_tcp(self) -> np.ndarray:
-        return inverse(self.flange_from_camera) @ self.flange_from_tcp
+        return rigid_inverse(self.flange_from_camera) @ self.flange_from_tcp
 
     @staticmethod
     def of(world: WorldConfig) -> Layout:
@@ -241,7 +242,7 @@ class ServoWorld:
             p, _, _, n = MatSurface.of_crossings(lay, self.rm.crossings).frame(np.array([[axial_m, arc_m]]))
             return p[0], n[0]
         T = lay.world_from_mesh
-        local_crossings = apply(inverse(T), self.rm.crossings.point)
+        local_crossings = apply(rigid_inverse(T), self.rm.crossings.point)
         if lay.kind == "planar":
             p = np.array([axial_m, arc_m, float(np.median(local_crossings[:, 2]))])
             n = np.array([0.0, 0.0, 1.0])
@@ -273,7 +274,7 @@ class ServoWorld:
 
     def solve_start(self, world_from_camera: np.ndarray) -> tuple[np.ndarray, bool]:
         """Joint angles that put the camera at ``world_from_camera`` (IK from the home configuration)."""
-        base_from_camera = inverse(self.layout.world_from_base) @ world_from_camera
+        base_from_camera = rigid_inverse(self.layout.world_from_base) @ world_from_camera
         best: tuple[np.ndarray, bool] | None = None
         for seed in self.home_seeds():
             q, ok = ur5.inverse_kinematics(

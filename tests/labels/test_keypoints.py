@@ -1,25 +1,18 @@
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import open3d as o3d
 import pytest
 
+from rebar_data.camera import Intrinsics, project, rigid_inverse
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.geometry.config import MeshConfig
 from rebar_data.labels.keypoints import CrossingParts, label_frame
-from rebar_data.labels.projection import camera_from_world, project
 
 
-@dataclass(frozen=True)
-class K:
-    width: int = 640
-    height: int = 480
-    fx: float = 525.0
-    fy: float = 525.0
-    cx: float = 320.0
-    cy: float = 240.0
+def K() -> Intrinsics:
+    """The Kinect v1 preset's intrinsics."""
+    return Intrinsics(640, 480, 525.0, 525.0, 320.0, 240.0)
 
 
 def _look_down(height: float, x: float = 0.0, y: float = 0.0) -> np.ndarray:
@@ -72,12 +65,12 @@ def slab():
 def test_projection_matches_the_pinhole_formula():
     T = _look_down(1.0, 0.1, 0.2)
     pts = np.array([[0.1, 0.2, 0.0], [0.3, 0.2, 0.5], [0.0, 0.0, 2.0]])
-    p = project(pts, T, fx=500, fy=510, cx=320, cy=240, width=640, height=480)
+    p = project(pts, T, Intrinsics(640, 480, 500.0, 510.0, 320.0, 240.0))
     np.testing.assert_allclose(p.point_camera[0], [0, 0, 1.0], atol=1e-15)
     np.testing.assert_allclose([p.u[0], p.v[0]], [320, 240])
     np.testing.assert_allclose([p.u[1], p.v[1]], [320 + 500 * 0.2 / 0.5, 240])
     assert list(p.in_image) == [True, True, False]  # the last one is behind the camera
-    np.testing.assert_allclose(camera_from_world(T) @ T, np.eye(4), atol=1e-15)
+    np.testing.assert_allclose(rigid_inverse(T) @ T, np.eye(4), atol=1e-15)
 
 
 def test_top_view_sees_every_crossing_in_the_frame(slab):
@@ -138,22 +131,12 @@ def _oblique(tilt_deg: float) -> np.ndarray:
 
 def _centerlines_crossing_px(rm, parts, i: int, T: np.ndarray) -> np.ndarray:
     """Where the two projected centerlines of crossing ``i`` meet in the image (homogeneous lines)."""
-    k = K()
     lines = []
     for p, t in (
         (rm.crossings.point_a[i], parts.tangent_a[i]),
         (rm.crossings.point_b[i], parts.tangent_b[i]),
     ):
-        ends = project(
-            np.stack([p - 0.02 * t, p + 0.02 * t]),
-            T,
-            fx=k.fx,
-            fy=k.fy,
-            cx=k.cx,
-            cy=k.cy,
-            width=k.width,
-            height=k.height,
-        )
+        ends = project(np.stack([p - 0.02 * t, p + 0.02 * t]), T, K())
         lines.append(np.cross(np.r_[ends.u[0], ends.v[0], 1.0], np.r_[ends.u[1], ends.v[1], 1.0]))
     x = np.cross(*lines)
     return x[:2] / x[2]
@@ -165,7 +148,7 @@ def test_labels_sit_where_the_projected_centerlines_cross(slab):
     lab = label_frame(slab, parts, T, K(), _caster(slab))
     seen = np.flatnonzero(lab.visibility == 2)
     assert len(seen) > 20
-    mid = project(slab.crossings.point, T, fx=525.0, fy=525.0, cx=320.0, cy=240.0, width=640, height=480)
+    mid = project(slab.crossings.point, T, K())
     shift = []
     for i in seen:
         np.testing.assert_allclose(
@@ -190,7 +173,7 @@ def test_seen_along_the_normal_the_label_is_the_crossing(slab):
     i = int(np.argmin(np.hypot(c.point[:, 0], c.point[:, 1])))
     T = _look_down(0.6, *c.point[i, :2])
     lab = label_frame(slab, parts, T, K(), _caster(slab))
-    mid = project(c.point[i : i + 1], T, fx=525.0, fy=525.0, cx=320.0, cy=240.0, width=640, height=480)
+    mid = project(c.point[i : i + 1], T, K())
     assert lab.visibility[i] == 2
     assert np.hypot(lab.u[i] - mid.u[0], lab.v[i] - mid.v[0]) < 1e-6
 

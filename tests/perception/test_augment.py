@@ -6,8 +6,9 @@ import cv2
 import numpy as np
 import pytest
 
+from rebar_data.camera import Intrinsics
 from rebar_data.perception.evaluation.data import Sample
-from rebar_data.perception.inference.detector import ray_grid
+from rebar_data.perception.inference.detector import first_stage_rays
 from rebar_data.perception.training.augment import (
     Source,
     apply_affine,
@@ -67,7 +68,7 @@ def test_crop_rays_are_the_source_pixels_rays():
     camera = (200.0, 210.0, 81.0, 59.0)
     shift = np.array([[1.0, 0.0, -32.0], [0.0, 1.0, -20.0]])  # crop = source window starting at (32, 20)
     rays = crop_rays(shift, 64, camera)
-    full = ray_grid(120, 160, camera)  # output cells of 4 px
+    full = first_stage_rays(Intrinsics(160, 120, *camera))  # output cells of 4 px
     assert rays.shape == (2, 16, 16)
     np.testing.assert_allclose(rays, full[:, 5:21, 8:24], atol=1e-6)
 
@@ -95,7 +96,9 @@ def test_crop_rays_are_those_of_the_camera_that_films_the_crop(seed):
     s = np.sqrt(abs(np.linalg.det(m[:, :2])))
     c = apply_affine(np.array([camera[2:]]), m)[0]
     virtual = (s * camera[0], s * camera[1], c[0], c[1])
-    np.testing.assert_allclose(crop_rays(m, 64, camera), ray_grid(64, 64, virtual), atol=1e-5)
+    np.testing.assert_allclose(
+        crop_rays(m, 64, camera), first_stage_rays(Intrinsics(64, 64, *virtual)), atol=1e-5
+    )
 
 
 def test_single_crop_keeps_points_in_the_crop_and_on_their_spots():

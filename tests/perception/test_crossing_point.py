@@ -8,6 +8,7 @@ import shutil
 import numpy as np
 import pytest
 
+from rebar_data.camera import Intrinsics
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_image
 from rebar_data.perception.inference import model_file
@@ -60,7 +61,8 @@ def test_turns_flips_and_scales_move_the_offset_and_the_ray_with_the_patch():
 
 def test_patch_rays_are_the_normalised_pixel():
     np.testing.assert_allclose(
-        patch_rays(np.array([[420.0, 140.0]]), (500.0, 400.0, 320.0, 240.0)), [[0.2, -0.25]]
+        patch_rays(np.array([[420.0, 140.0]]), Intrinsics(640, 480, 500.0, 400.0, 320.0, 240.0)),
+        [[0.2, -0.25]],
     )
 
 
@@ -69,7 +71,7 @@ def test_onnx_crossing_point_gives_what_pytorch_gives(tmp_path):
     net = build(cfg)
     image = np.random.default_rng(1).integers(0, 256, (60, 80, 3)).astype(np.uint8)
     uv = np.array([[10.2, 12.7], [40.0, 30.0], [79.5, 59.5]])
-    camera = (70.0, 70.0, 40.0, 30.0)
+    camera = Intrinsics(80, 60, 70.0, 70.0, 40.0, 30.0)
     in_torch = eager.crossing_point(net).points(image, uv, camera)
     onnx = model_file.read_crossing_point(export_onnx(net, tmp_path / "c.onnx"), threads=1)
     np.testing.assert_allclose(onnx.points(image, uv, camera), in_torch, atol=1e-4)
@@ -91,7 +93,7 @@ def test_a_trained_run_ships_the_stage_and_detect_gives_the_crossing_points(
     crossing = det.detect(rgb, threshold=1e-3, camera=s.camera, point="crossing")
     assert len(sight) and len(crossing) == len(sight)
     np.testing.assert_allclose(crossing[:, 2], sight[:, 2])  # the same detections, moved
-    expected = det.crossing_point.points(rgb, sight[:, :2], s.camera)
+    expected = det.crossing_point.points(rgb, sight[:, :2], s.intrinsics)
     np.testing.assert_allclose(crossing[:, :2], expected, atol=1e-6)
     with pytest.raises(ConfigError, match="point = 'middle' is not accepted"):
         det.detect(rgb, point="middle")

@@ -7,12 +7,23 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
+from rebar_data.camera import Intrinsics
+from rebar_data.errors import ConfigError
 from rebar_data.perception.evaluation.metrics import Truth, match, pixel_metrics
 from rebar_data.perception.inference import detector as infer
 from rebar_data.perception.inference.detector import Detector
-from rebar_data.perception.inference.image import TOLERANCE, focal_scale, resample, scaled_camera
+from rebar_data.perception.inference.image import TOLERANCE, focal_scale, resample
 
 CAMERA = (525.0, 525.0, 320.0, 240.0)
+
+
+def _twice(camera: tuple[float, float, float, float]) -> Intrinsics:
+    """The intrinsics (fx, fy, cx, cy) of a 640x480 frame, for that frame enlarged to 1280x960."""
+    return Intrinsics(640, 480, *camera).resized(1280, 960)
+
+
+def _camera(fx: float, fy: float) -> Intrinsics:
+    return Intrinsics(1280, 960, fx, fy, 640.0, 480.0)
 
 
 def _shipped() -> Detector:
@@ -35,13 +46,14 @@ def _frame() -> tuple[np.ndarray, np.ndarray, Truth]:
 
 
 def test_the_scale_brings_the_focal_length_to_the_trained_one():
-    assert focal_scale(525.0, (1050.0, 1050.0, 640.0, 480.0)) == 0.5
-    assert focal_scale(525.0, (1000.0, 1100.0, 640.0, 480.0)) == 0.5  # the mean of fx and fy
-    assert focal_scale(525.0, (525.0 * (1 + TOLERANCE / 2), 525.0, 320.0, 240.0)) == 1.0  # near enough
-    assert focal_scale(525.0, (589.4, 589.4, 320.0, 240.0)) == 1.0  # the servo suites' Kinect: as it comes
-    assert focal_scale(525.0, (700.0, 700.0, 320.0, 240.0)) == 0.75
-    assert focal_scale(None, (1050.0, 1050.0, 640.0, 480.0)) == 1.0  # a file that does not say
-    assert scaled_camera((600.0, 610.0, 320.0, 240.0), 0.5, 0.25) == (300.0, 152.5, 160.0, 60.0)
+    assert focal_scale(525.0, _camera(1050.0, 1050.0)) == 0.5
+    assert focal_scale(525.0, _camera(1000.0, 1100.0)) == 0.5  # the mean of fx and fy
+    assert focal_scale(525.0, _camera(525.0 * (1 + TOLERANCE / 2), 525.0)) == 1.0  # near enough
+    assert focal_scale(525.0, _camera(589.4, 589.4)) == 1.0  # the servo suites' Kinect: as it comes
+    assert focal_scale(525.0, _camera(700.0, 700.0)) == 0.75
+    assert focal_scale(None, _camera(1050.0, 1050.0)) == 1.0  # a file that does not say
+    resized = Intrinsics(640, 480, 600.0, 610.0, 320.0, 240.0).resized(320, 120)
+    assert resized == Intrinsics(320, 120, 300.0, 152.5, 160.0, 60.0)
     depth = np.array([[1.0, 0.0], [0.0, 2.0]], np.float32)
     assert set(np.unique(resample(depth, (4, 4), nearest=True))) == {0.0, 1.0, 2.0}  # no blend across edges
 
@@ -57,14 +69,14 @@ def test_a_frame_twice_as_large_is_read_at_the_trained_scale_and_answered_in_its
     run = det._run
     det._run = lambda image, rays: shapes.append(image.shape[:2]) or run(image, rays)
     large = resample(rgb, (960, 1280))
-    found = det.detect(large, camera=scaled_camera(camera, 2.0, 2.0))
+    found = det.detect(large, camera=_twice(camera))
     assert set(shapes) == {(480, 640)}  # the frame and its mirror image, at the trained scale
     px = pixel_metrics([Truth(truth * 2.0, box * 2.0)], [found])  # the large frame's pixels
     assert px.recall >= 0.95 and px.precision >= 0.95, (px.recall, px.precision)
     assert px.pck[5.0] >= 0.95 and px.median_px < 2.0, (px.pck, px.median_px)
     shapes.clear()
     det.resample = False
-    det.detect(large, camera=scaled_camera(camera, 2.0, 2.0))
+    det.detect(large, camera=_twice(camera))
     assert set(shapes) == {(960, 1280)}
 
 
@@ -81,7 +93,9 @@ def test_a_frame_at_the_trained_focal_length_is_read_as_it_comes(monkeypatch):
     assert len(det.detect(rgb, camera=near, depth=depth))
     np.testing.assert_array_equal(det.detect(rgb, camera=CAMERA), expected)
     det.focal_px = None  # a file written before the focal length was stored: read as it comes
-    assert len(det.detect(rgb, camera=scaled_camera(CAMERA, 2.0, 2.0)))
+    assert len(det.detect(rgb, camera=(1050.0, 1050.0, 640.0, 480.0)))
+    with pytest.raises(ConfigError, match="camera: intrinsics of a 1280x960 image for a 640x480 one"):
+        det.detect(rgb, camera=_twice(CAMERA))
 
 
 def test_the_depth_image_is_resampled_with_the_frame(monkeypatch):
@@ -94,7 +108,7 @@ def test_the_depth_image_is_resampled_with_the_frame(monkeypatch):
     monkeypatch.setattr(det.depth_check, "veto", lambda d, uv: read.append((d, uv.copy())) or veto(d, uv))
     at_scale = det.detect(rgb, camera=CAMERA, depth=depth)
     large, large_depth = resample(rgb, (960, 1280)), resample(depth, (960, 1280), nearest=True)
-    resampled = det.detect(large, camera=scaled_camera(CAMERA, 2.0, 2.0), depth=large_depth)
+    resampled = det.detect(large, camera=_twice(CAMERA), depth=large_depth)
     p, g, _ = match(at_scale[:, :2], resampled[:, :2] / 2.0, 1.5)
     assert len(at_scale) >= 20 and len(p) >= 0.9 * max(len(at_scale), len(resampled)), (
         len(at_scale),
@@ -120,7 +134,8 @@ def test_detect_on_images_takes_the_camera_and_answers_in_the_images_pixels(rend
     rgb, truth, box, camera = rendered_frame
     image = tmp_path / "frame.png"
     cv2.imwrite(str(image), cv2.cvtColor(resample(rgb, (960, 1280)), cv2.COLOR_RGB2BGR))
-    text = ",".join(f"{c:g}" for c in scaled_camera(camera, 2.0, 2.0))
+    k = _twice(camera)
+    text = ",".join(f"{c:g}" for c in (k.fx, k.fy, k.cx, k.cy))
     assert main(["detect", str(image), "--out", str(tmp_path / "out"), "--camera", text]) == 0
     rows = pq.read_table(tmp_path / "out/detections.parquet").to_pandas()
     found = rows[["u", "v", "score"]].to_numpy()

@@ -11,11 +11,12 @@ import trimesh
 
 pytest.importorskip("bpy", reason="Blender's bpy module is not installed (pip install -e '.[cycles]')")
 
+from rebar_data.camera import Intrinsics  # noqa: E402
 from rebar_data.geometry.solids import Part  # noqa: E402
 from rebar_data.labels.keypoints import CrossingParts, label_frame  # noqa: E402
 from rebar_data.render.cycles import CyclesRenderer, camera_settings  # noqa: E402
 from rebar_data.render.cycles_looks import draw_look  # noqa: E402
-from rebar_data.scene.cameras import Intrinsics, look_at  # noqa: E402
+from rebar_data.scene.cameras import look_at  # noqa: E402
 from rebar_data.scene.config import CyclesConfig, RenderConfig, SceneConfig  # noqa: E402
 from rebar_data.scene.sample import sample_scene, sample_sensor  # noqa: E402
 

@@ -13,7 +13,8 @@ import numpy as np
 from rebar_data.geometry.config import MeshConfig
 from rebar_data.geometry.build import build_rebar_mesh
 from rebar_data.render.renderer import Renderer
-from rebar_data.scene.cameras import Intrinsics, trajectory_poses
+from rebar_data.camera import Intrinsics
+from rebar_data.scene.cameras import trajectory_poses
 from rebar_data.scene.config import CameraConfig, RenderConfig, SceneConfig
 from rebar_data.scene.sample import sample_scene, sample_sensor
 from tests.scene.conftest import TUNNEL

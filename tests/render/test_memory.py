@@ -4,9 +4,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.render.bench import _rss_mb
 from rebar_data.render.renderer import Renderer
-from rebar_data.scene.cameras import Intrinsics, look_at
+from rebar_data.scene.cameras import look_at
 from rebar_data.scene.config import RenderConfig, SceneConfig
 from rebar_data.scene.sample import sample_scene
 from tests.render.test_sensor import OFF

@@ -8,9 +8,10 @@ import numpy as np
 import pytest
 import trimesh
 
+from rebar_data.camera import Intrinsics
 from rebar_data.geometry.solids import Part
 from rebar_data.render.renderer import Renderer
-from rebar_data.scene.cameras import Intrinsics, look_at
+from rebar_data.scene.cameras import look_at
 from rebar_data.scene.config import RenderConfig, SceneConfig
 from rebar_data.scene.sample import sample_scene
 from rebar_data.scene.surroundings import build_surroundings

@@ -5,22 +5,14 @@ from dataclasses import replace
 import numpy as np
 import pytest
 
-from rebar_data.servo.camera import CameraModel, depth_at
+from rebar_data.servo.camera import depth_at, kinect_intrinsics
 
 
 def test_kinect_field_of_view_is_57_degrees_with_square_pixels():
-    cam = CameraModel.kinect()
+    cam = kinect_intrinsics()
     assert cam.fx == cam.fy == pytest.approx(589.4, abs=0.05)
     assert cam.fov_deg[0] == pytest.approx(57.0)
-    assert (cam.cx, cam.cy) == (320.0, 240.0)
-
-
-def test_projection_and_back_projection_round_trip():
-    cam = CameraModel.kinect()
-    P = np.array([[0.1, -0.05, 0.6], [-0.2, 0.15, 1.1]])
-    uv = cam.project(P)
-    np.testing.assert_allclose(uv[0], [cam.fx * 0.1 / 0.6 + 320, cam.fy * -0.05 / 0.6 + 240])
-    np.testing.assert_allclose(cam.back_project(uv, P[:, 2]), P, atol=1e-12)
+    assert (cam.width, cam.height, cam.cx, cam.cy) == (640, 480, 320.0, 240.0)
 
 
 def test_the_robots_default_depth_sensor_keeps_the_kinect_noise_range_and_quantisation():
@@ -31,7 +23,7 @@ def test_the_robots_default_depth_sensor_keeps_the_kinect_noise_range_and_quanti
     from rebar_data.scene.sample import nominal_depth_sensor
     from rebar_data.servo.config import CameraConfig
 
-    cam = CameraModel.kinect()
+    cam = kinect_intrinsics()
     s = nominal_depth_sensor(CameraConfig().depth_sensor)
     assert (s.model, s.baseline_m, s.focal_px, s.disparity_step_px) == (
         "structured_light",

@@ -3,12 +3,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from rebar_data.servo.ibvs import (
-    AdaptiveGain,
-    ibvs_twist,
-    log_depth_interaction_row,
-    point_interaction_matrix,
-)
+from rebar_data.camera import point_interaction_matrix
+from rebar_data.servo.ibvs import AdaptiveGain, ibvs_twist, log_depth_interaction_row
 from rebar_data.servo.transforms import from_rotvec
 
 

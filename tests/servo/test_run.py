@@ -267,16 +267,16 @@ def test_a_missing_model_writes_nothing_not_even_the_parent_of_out(tmp_path, roo
 
 def test_a_suite_pins_what_runs_the_shipped_detector(tmp_path, root, capsys):
     from rebar_data.perception.inference import detector as infer
-    from rebar_data.servo.camera import CameraModel
+    from rebar_data.servo.camera import kinect_intrinsics
     from rebar_data.servo.detectors import load_shipped_detector
 
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
-    det = load_shipped_detector(None, CameraModel.kinect(), runtime="onnxruntime", reading="mirrored")
+    det = load_shipped_detector(None, kinect_intrinsics(), runtime="onnxruntime", reading="mirrored")
     assert det.inner.backend == "onnxruntime" and det.inner.reading == "mirrored"
-    default = load_shipped_detector(None, CameraModel.kinect()).inner
+    default = load_shipped_detector(None, kinect_intrinsics()).inner
     assert default.reading == "single" and not default.flatten_behind  # the servo's defaults
-    assert load_shipped_detector(None, CameraModel.kinect(), flatten_behind=True).inner.flatten_behind
+    assert load_shipped_detector(None, kinect_intrinsics(), flatten_behind=True).inner.flatten_behind
     path = tmp_path / "suite.yaml"
     path.write_text(yaml.safe_dump(suite_dict(detector="shipped", detector_runtime="tensorrt")))
     assert main(["servo", "run", str(path), "--out", str(tmp_path / "o"), "--quiet"]) == 2

@@ -2,8 +2,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from rebar_data.camera import rigid_inverse
 from rebar_data.servo import ur5
-from rebar_data.servo.transforms import inverse
 
 
 def test_zero_pose_is_the_dh_table_sum():
@@ -38,7 +38,7 @@ def test_simulated_arm_from_the_written_urdf_matches_the_dh_kinematics(servo_ctx
     for _ in range(4):
         q = rng.uniform(-2.5, 2.5, 6)
         world.reset_joints(q)
-        flange = inverse(world.layout.world_from_base) @ world.world_from_link(6)
+        flange = rigid_inverse(world.layout.world_from_base) @ world.world_from_link(6)
         np.testing.assert_allclose(flange, ur5.forward_kinematics(q), atol=2e-6)
         np.testing.assert_allclose(world.world_from_camera(), world.world_from_camera_model(q), atol=2e-6)
 

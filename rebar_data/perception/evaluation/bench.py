@@ -121,7 +121,8 @@ def run(repeats: int = 100) -> list[str]:
     """Lines to print: the shipped detector's latency and its network's in eager PyTorch."""
     import torch
 
-    from rebar_data.perception.inference.detector import Detector, ray_grid
+    from rebar_data.camera import Intrinsics
+    from rebar_data.perception.inference.detector import Detector, first_stage_rays
     from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
 
     threads_before = torch.get_num_threads()
@@ -154,7 +155,8 @@ def run(repeats: int = 100) -> list[str]:
             )
         net = KeypointNet(ModelConfig()).eval()
         x = torch.from_numpy(frames[0][0]).permute(2, 0, 1)[None].float()
-        rays = torch.from_numpy(ray_grid(*FRAME_HW, (525.0, 525.0, 320.0, 240.0)))[None]
+        camera = Intrinsics(FRAME_HW[1], FRAME_HW[0], 525.0, 525.0, 320.0, 240.0)
+        rays = torch.from_numpy(first_stage_rays(camera))[None]
         with torch.inference_mode():
             eager = _time_ms(lambda: net(x, rays), repeats=max(10, repeats // 5))
         reference = lat.first_stage_ms or med

@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 import pyarrow.parquet as pq
 
+from rebar_data.camera import Intrinsics
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import SPLITS
@@ -56,6 +57,11 @@ class Sample:
     crossings: np.ndarray | None = None
     dataset: Path | None = None
     instance_path: Path | None = None
+
+    @property
+    def intrinsics(self) -> Intrinsics | None:
+        """``camera`` as the image's :class:`~rebar_data.camera.Intrinsics` (None without one)."""
+        return None if self.camera is None else Intrinsics(self.width, self.height, *self.camera)
 
 
 def read_image(path: str | Path) -> np.ndarray:

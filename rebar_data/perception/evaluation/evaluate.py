@@ -62,7 +62,7 @@ def at_crossing_points(
     for s, p in zip(samples, predictions, strict=True):
         moved = np.array(p, dtype=np.float64, copy=True).reshape(-1, 3)
         if len(moved):
-            camera = s.camera or detector.default_camera(s.height, s.width)
+            camera = s.intrinsics or detector.default_camera(s.height, s.width)
             moved[:, :2] = detector.crossing_point.points(read_image(s.path), moved[:, :2], camera)
         out.append(moved)
     return out

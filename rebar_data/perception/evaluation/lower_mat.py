@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 import pyarrow.parquet as pq
 
+from rebar_data.camera import Projection, project
 from rebar_data.config import ConfigError, validate
 from rebar_data.dataset.layout import mesh_sections
 from rebar_data.geometry.build import build_rebar_mesh
@@ -22,7 +23,6 @@ from rebar_data.geometry.config import MeshConfig
 from rebar_data.geometry.crossings import find_crossings
 from rebar_data.geometry.curves import sample
 from rebar_data.geometry.specs import build_layout
-from rebar_data.labels.projection import Projection, project
 from rebar_data.perception.evaluation.data import Sample, read_distractors, read_info, read_uint16
 from rebar_data.scene.mat_surface import MatSurface
 
@@ -108,16 +108,15 @@ class _Camera:
     def __init__(self, world_from_camera: np.ndarray, s: Sample) -> None:
         self.world_from_camera = world_from_camera
         self.centre = world_from_camera[:3, 3]
-        fx, fy, cx, cy = s.camera
-        self.intrinsics = dict(fx=fx, fy=fy, cx=cx, cy=cy, width=s.width, height=s.height)
+        self.intrinsics = s.intrinsics
 
     def _project(self, points: np.ndarray) -> Projection:
-        return project(points, self.world_from_camera, **self.intrinsics)
+        return project(points, self.world_from_camera, self.intrinsics)
 
     def visible(self, chords: np.ndarray) -> np.ndarray:
         """The chords (N, 2, 3) with both ends in front of the camera and one near the frame."""
         pr = self._project(chords.reshape(-1, 3))
-        w, h = self.intrinsics["width"], self.intrinsics["height"]
+        w, h = self.intrinsics.width, self.intrinsics.height
         margin = 0.1 * max(w, h)
         u, v = pr.u.reshape(-1, 2), pr.v.reshape(-1, 2)
         inside = (u > -margin) & (u < w + margin) & (v > -margin) & (v < h + margin)

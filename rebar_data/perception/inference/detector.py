@@ -6,18 +6,19 @@ the checks (:mod:`.checks`) score them again."""
 from __future__ import annotations
 
 import json
-from collections.abc import Callable
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any, Literal, get_args
 
 import cv2
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.errors import ConfigError
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.checks import DepthCheck, LineCheck, as_depth_m
-from rebar_data.perception.inference.image import Camera, flatten_behind, focal_scale, resample, scaled_camera
+from rebar_data.perception.inference.image import flatten_behind, focal_scale, resample
 from rebar_data.perception.inference.refine import CrossingPoint, Refiner, accepted
 
 STRIDE = 4
@@ -36,12 +37,10 @@ DUPLICATE_PX = 3.0  # two detections placed nearer than this are one crossing
 Run = Callable[[np.ndarray, np.ndarray], np.ndarray]  # the first stage: images and rays to its output
 
 
-def ray_grid(height: int, width: int, camera: Camera) -> np.ndarray:
-    """(2, H / 4, W / 4) viewing rays ((u - cx) / fx, (v - cy) / fy) of the output cells' centres."""
-    fx, fy, cx, cy = camera
-    u = (STRIDE * (np.arange(-(-width // STRIDE), dtype=np.float64) + 0.5) - cx) / fx
-    v = (STRIDE * (np.arange(-(-height // STRIDE), dtype=np.float64) + 0.5) - cy) / fy
-    return np.stack(np.broadcast_arrays(u[None, :], v[:, None])).astype(np.float32)
+def first_stage_rays(camera: Intrinsics) -> np.ndarray:
+    """(2, ceil(H / 4), ceil(W / 4)) float32 viewing rays ((u - cx) / fx, (v - cy) / fy) of the output cells'
+    centres: what the first stage reads beside the image."""
+    return camera.ray_grid(STRIDE).astype(np.float32)
 
 
 def decode(
@@ -152,30 +151,40 @@ class Detector:
         det.reading = reading
         return det
 
-    def default_camera(self, height: int, width: int) -> Camera:
+    def default_camera(self, height: int, width: int) -> Intrinsics:
         """The principal point at the centre and the training data's focal length for this width."""
         f = float(self.meta.get("focal_per_width", DEFAULT_FOCAL_PER_WIDTH)) * width
-        return f, f, width / 2.0, height / 2.0
+        return Intrinsics(width, height, f, f, width / 2.0, height / 2.0)
 
-    def _camera(self, image: np.ndarray, camera: Camera | None) -> Camera:
+    def _camera(self, image: np.ndarray, camera: Intrinsics | Sequence[float] | None) -> Intrinsics:
+        h, w = image.shape[:2]
         if camera is None:
-            return self.default_camera(*image.shape[:2])
-        return tuple(float(c) for c in camera)
+            return self.default_camera(h, w)
+        if isinstance(camera, Intrinsics):
+            if (camera.width, camera.height) != (w, h):
+                raise ConfigError(
+                    f"camera: intrinsics of a {camera.width}x{camera.height} image for a {w}x{h} one; "
+                    "accepted: the image's own, or (fx, fy, cx, cy)"
+                )
+            camera = (camera.fx, camera.fy, camera.cx, camera.cy)
+        fx, fy, cx, cy = (float(c) for c in camera)
+        return Intrinsics(w, h, fx, fy, cx, cy)
 
-    def raw(self, rgb: np.ndarray, *, camera: Camera | None = None) -> np.ndarray:
+    def raw(self, rgb: np.ndarray, *, camera: Intrinsics | Sequence[float] | None = None) -> np.ndarray:
         """The first stage's (3, ceil(H/4), ceil(W/4)) output: heatmap logit and offsets (mirrored reading:
-        the mean of the image's and its mirror image's, turned back)."""
+        the mean of the image's and its mirror image's, turned back). ``camera`` as :meth:`detect` takes it."""
         accepted("reading", self.reading, READINGS)
         image = _check_image(rgb)
         h, w = image.shape[:2]
-        fx, fy, cx, cy = camera = self._camera(image, camera)
+        camera = self._camera(image, camera)
         ph, pw = -h % INPUT_MULTIPLE, -w % INPUT_MULTIPLE
         if ph or pw:
             image = np.pad(image, ((0, ph), (0, pw), (0, 0)))
-        rays = ray_grid(h + ph, w + pw, camera)
+        padded = replace(camera, width=w + pw, height=h + ph)  # the padding adds pixels, moves none
+        rays = first_stage_rays(padded)
         if self.reading == "mirrored":
             mirror = cv2.flip(image, 1)
-            mirror_rays = ray_grid(h + ph, w + pw, (fx, fy, w + pw - cx, cy))
+            mirror_rays = first_stage_rays(padded.mirrored())
             if self._run_pair is not None:
                 out, mirrored = self._run_pair(np.stack([image, mirror]), np.stack([rays, mirror_rays]))
             else:
@@ -194,15 +203,16 @@ class Detector:
         rgb: np.ndarray,
         *,
         threshold: float = OPERATING_THRESHOLD,
-        camera: Camera | None = None,
+        camera: Intrinsics | Sequence[float] | None = None,
         depth: np.ndarray | None = None,
         point: str = "sight",
     ) -> np.ndarray:
         """(N, 3) float64 u, v, score of the crossings in an (H, W, 3) uint8 RGB image, best first, scoring
-        ``threshold`` or more. ``camera``: (fx, fy, cx, cy), None: :meth:`default_camera`. ``depth``: the
-        registered depth image, (H, W) float metres or uint16 millimetres (0 = none): the depth check then
-        lowers the scores it doubts, and raises none. ``point``: "sight", where the image shows the bars
-        cross, or "crossing", where the 3D crossing point projects."""
+        ``threshold`` or more. ``camera``: the image's :class:`~rebar_data.camera.Intrinsics` or its
+        (fx, fy, cx, cy) in pixels, None: :meth:`default_camera`. ``depth``: the registered depth image,
+        (H, W) float metres or uint16 millimetres (0 = none): the depth check then lowers the scores it
+        doubts, and raises none. ``point``: "sight", where the image shows the bars cross, or "crossing",
+        where the 3D crossing point projects."""
         if not 0.0 < threshold < 1.0:
             raise ConfigError(f"threshold = {threshold} is not accepted; accepted: a score between 0 and 1")
         accepted("point", point, POINTS)
@@ -220,7 +230,7 @@ class Detector:
         if scale != 1.0:  # read at the trained scale
             h, w = max(1, round(h * scale)), max(1, round(w * scale))
             sx, sy = w / image.shape[1], h / image.shape[0]
-            image, camera = resample(image, (h, w)), scaled_camera(camera, sx, sy)
+            image, camera = resample(image, (h, w)), camera.resized(w, h)
             depth_m = None if depth_m is None else resample(depth_m, (h, w), nearest=True)
         as_it_comes = image  # what the crossing-point stage trained on
         if depth_m is not None and self.flatten_behind:

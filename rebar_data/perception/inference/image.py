@@ -6,16 +6,17 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from rebar_data.camera import Intrinsics
+
 TOLERANCE = 0.15  # a frame whose focal length is within this share of the trained one is read as it comes
-Camera = tuple[float, float, float, float]  # fx, fy, cx, cy in pixels
 
 
-def focal_scale(trained_focal_px: float | None, camera: Camera) -> float:
+def focal_scale(trained_focal_px: float | None, camera: Intrinsics) -> float:
     """The factor that brings ``camera``'s focal length to ``trained_focal_px``; 1 when that is unknown or
     within :data:`TOLERANCE`."""
     if not trained_focal_px:
         return 1.0
-    focal = 0.5 * (float(camera[0]) + float(camera[1]))
+    focal = 0.5 * (float(camera.fx) + float(camera.fy))
     if focal <= 0:
         return 1.0
     scale = float(trained_focal_px) / focal
@@ -28,12 +29,6 @@ def resample(image: np.ndarray, size: tuple[int, int], *, nearest: bool = False)
     h, w = image.shape[:2]
     smooth = cv2.INTER_AREA if size[0] * size[1] < h * w else cv2.INTER_LINEAR
     return cv2.resize(image, (size[1], size[0]), interpolation=cv2.INTER_NEAREST if nearest else smooth)
-
-
-def scaled_camera(camera: Camera, sx: float, sy: float) -> Camera:
-    """The intrinsics of a frame resized by ``sx`` across and ``sy`` down."""
-    fx, fy, cx, cy = camera
-    return fx * sx, fy * sy, cx * sx, cy * sy
 
 
 GAP_M = 0.08  # farther than the nearest surface around by this much: behind (a lower mat lies 80-250 mm)

@@ -9,8 +9,8 @@ from fractions import Fraction
 import cv2
 import numpy as np
 
+from rebar_data.camera import Intrinsics
 from rebar_data.errors import ConfigError
-from rebar_data.perception.inference.image import Camera
 
 BORDERS = ("mirror", "mask")  # how a patch shows what lies beyond the image's border
 # (flip rows, flip columns, swap axes) in the order ``views`` takes them; exact about a patch's centre corner:
@@ -200,11 +200,9 @@ class Refiner:
         return plain
 
 
-def patch_rays(corners: np.ndarray, camera: Camera) -> np.ndarray:
+def patch_rays(corners: np.ndarray, camera: Intrinsics) -> np.ndarray:
     """(N, 2) float32 viewing ray ((u - cx) / fx, (v - cy) / fy) of each patch centre."""
-    fx, fy, cx, cy = camera
-    c = np.asarray(corners, np.float64).reshape(-1, 2)
-    return np.c_[(c[:, 0] - cx) / fx, (c[:, 1] - cy) / fy].astype(np.float32)
+    return camera.normalized(np.asarray(corners, np.float64).reshape(-1, 2)).astype(np.float32)
 
 
 class CrossingPoint:
@@ -215,7 +213,7 @@ class CrossingPoint:
         self._run = run
         self.patch_px = patch_px
 
-    def points(self, image: np.ndarray, uv: np.ndarray, camera: Camera) -> np.ndarray:
+    def points(self, image: np.ndarray, uv: np.ndarray, camera: Intrinsics) -> np.ndarray:
         uv = np.asarray(uv, np.float64).reshape(-1, 2)
         if not len(uv):
             return uv.copy()

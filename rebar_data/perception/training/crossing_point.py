@@ -70,7 +70,7 @@ class PatchSet:
             # the label's own offset from the sight point: at inference it is added to the refined detection,
             # so the patch centre's error (the detection's, the rounding to a corner) is not this stage's
             offset.append(s.crossings[ok] - s.visible[ok])  # in the patch's pixels
-            rays.append(patch_rays(corners, s.camera))
+            rays.append(patch_rays(corners, s.intrinsics))
         if not context:
             raise ConfigError(
                 "the training images have no visible crossings with a 3D crossing point; accepted: a "

@@ -85,7 +85,7 @@ class TrainingImages:
     ):
         self.samples = samples
         # each image's crops drawn at the focal length focal_px (None: as it comes), as the detector reads it
-        self.gains = [1.0 if s.camera is None else focal_scale(focal_px, s.camera) for s in samples]
+        self.gains = [1.0 if s.camera is None else focal_scale(focal_px, s.intrinsics) for s in samples]
         self.ignore_occluded = occluded == "ignore"
         self.images = read_images(samples) if cache else None
         self.distractors = distractors
