@@ -44,7 +44,7 @@ class WorldConfig(Strict):
     home_joints_rad: tuple[float, float, float, float, float, float] | None = None
 
 
-class CameraConfig(Strict):
+class RobotCameraConfig(Strict):
     """Kinect v1: 640x480 with square pixels; ``fov_x_deg`` sets fx = fy (57 deg gives 589.4 px). Its depth
     image comes from ``depth_sensor``, a model of :mod:`rebar_data.render.depth_sensor` at the middle of the
     dataset default's parameters (``rebar_data.scene.sample.nominal_depth_sensor``)."""
@@ -225,7 +225,7 @@ class SuiteConfig(Strict):
     scene: SceneConfig = SceneConfig()
     faults: FaultsConfig = FaultsConfig()
     world: WorldConfig = WorldConfig()
-    camera: CameraConfig = CameraConfig()
+    camera: RobotCameraConfig = RobotCameraConfig()
     ibvs: IbvsConfig = IbvsConfig()
     pbvs: PbvsConfig = PbvsConfig()
     motion: MotionConfig = MotionConfig()

@@ -11,7 +11,7 @@ import numpy as np
 from rebar_data.camera import Intrinsics
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.servo.config import SuiteConfig
-from rebar_data.servo.detectors import Detector
+from rebar_data.servo.detectors import ServoDetector
 from rebar_data.servo.frames import FrameSource
 from rebar_data.servo.world import ServoWorld
 
@@ -30,7 +30,7 @@ class ServoContext:
     rm: RebarMesh
     camera: Intrinsics
     frames: FrameSource
-    make_detector: Callable[[np.random.Generator], Detector]
+    make_detector: Callable[[np.random.Generator], ServoDetector]
     depth_offset_m: float
     detector_name: str
     new_sensor: Callable[[np.random.Generator], None] | None = None

@@ -12,7 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol
+from typing import TYPE_CHECKING, Protocol
 
 import numpy as np
 
@@ -20,10 +20,11 @@ from rebar_data.camera import Intrinsics
 from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
 
-CastRays = Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]
+if TYPE_CHECKING:
+    from rebar_data.labels.keypoints import CastRays
 
 
-class Detector(Protocol):
+class ServoDetector(Protocol):
     """What the loop calls. ``dropped`` says whether the last :meth:`detect` lost its frame to a fault (its
     step rows count it); a detector that never drops one declares ``dropped = False``."""
 
@@ -105,7 +106,9 @@ class FaultyDetector:
     a uniformly random pixel with a random score in [0.5, 1].
     """
 
-    def __init__(self, inner: Detector, faults: Faults, rng: np.random.Generator, *, width: int, height: int):
+    def __init__(
+        self, inner: ServoDetector, faults: Faults, rng: np.random.Generator, *, width: int, height: int
+    ):
         self.inner, self.faults, self._rng = inner, faults, rng
         self._size = (width, height)
         self.dropped = False
@@ -154,7 +157,7 @@ def load_shipped_detector(
     runtime: str = "auto",
     reading: str = "single",
     flatten_behind: bool = False,
-) -> Detector:
+) -> ServoDetector:
     """The shipped crossing detector (``path`` None) or a given model, run by ``runtime``
     (:mod:`rebar_data.perception.inference.model_file`), reading each frame as ``reading`` says
     (:mod:`rebar_data.perception.inference.detector`), flattening what lies behind the bars in front with

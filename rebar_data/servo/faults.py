@@ -6,7 +6,7 @@ import numpy as np
 
 from rebar_data.camera import Intrinsics
 from rebar_data.servo.config import SuiteConfig
-from rebar_data.servo.detectors import Detector, Faults, FaultyDetector
+from rebar_data.servo.detectors import Faults, FaultyDetector, ServoDetector
 
 
 def faults_label(suite: SuiteConfig) -> str:
@@ -22,7 +22,9 @@ def faults_label(suite: SuiteConfig) -> str:
     return ", ".join(parts) or "none"
 
 
-def faulty(detector: Detector, suite: SuiteConfig, rng: np.random.Generator, camera: Intrinsics) -> Detector:
+def faulty(
+    detector: ServoDetector, suite: SuiteConfig, rng: np.random.Generator, camera: Intrinsics
+) -> ServoDetector:
     """The suite's detector with its faults (or as it is when the suite has none)."""
     f = Faults(
         drop_fraction=suite.faults.drop_fraction,

@@ -28,7 +28,7 @@ from rebar_data.scene.sample import DepthSensorSample, nominal_depth_sensor
 
 
 @dataclass(frozen=True)
-class Frame:
+class CameraFrame:
     """One camera frame: RGB (H, W, 3) uint8 and the sensor's metric z depth (H, W) float32, 0 = none."""
 
     rgb: np.ndarray
@@ -36,7 +36,7 @@ class Frame:
 
 
 class FrameSource(Protocol):
-    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> Frame: ...
+    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> CameraFrame: ...
 
     def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """First hit per world ray against everything the frames show: distance (inf: none), instance id."""
@@ -66,7 +66,7 @@ class RaycastFrames:
             depth_sensor if depth_sensor is not None else nominal_depth_sensor("structured_light")
         )
 
-    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> Frame:
+    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> CameraFrame:
         cam = self.camera
         R = world_from_camera[:3, :3].astype(np.float32)
         rays = self._rays
@@ -85,7 +85,7 @@ class RaycastFrames:
         rgb += rng.standard_normal(rgb.shape, dtype=np.float32) * 1.5
         rgb = np.clip(rgb, 0, 255).astype(np.uint8).reshape(cam.height, cam.width, 3)
         depth = sense_depth(z.reshape(cam.height, cam.width), self._depth_sensor, rng, fx=cam.fx)
-        return Frame(rgb, depth)
+        return CameraFrame(rgb, depth)
 
     def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self._raycaster.cast_rays(origins, dirs)
@@ -138,10 +138,10 @@ class RendererFrames:
         """Draw the camera's sensor settings (done per episode)."""
         self._sensor = self._sample_sensor(self._scene_cfg, rng)
 
-    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> Frame:
+    def render(self, world_from_camera: np.ndarray, rng: np.random.Generator) -> CameraFrame:
         f = self._renderer.render(world_from_camera, self._sensor, rng)
         depth = sense_depth(np.asarray(f.depth_m), self._depth_sensor, rng, fx=self.camera.fx)
-        return Frame(np.ascontiguousarray(f.rgb[..., :3]), depth)
+        return CameraFrame(np.ascontiguousarray(f.rgb[..., :3]), depth)
 
     def cast_rays(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self._renderer.cast_rays(origins, dirs)

@@ -8,14 +8,14 @@ from __future__ import annotations
 
 import numpy as np
 
-from rebar_data.servo.frames import Frame
+from rebar_data.servo.frames import CameraFrame
 from rebar_data.servo.world import ServoWorld
 
 
 class Recorder:
     """What the loop tells a recording; this base records nothing (see :mod:`rebar_data.servo.recording`)."""
 
-    def frame(self, step: int, frame: Frame, detections: np.ndarray, **kw) -> None: ...
+    def frame(self, step: int, frame: CameraFrame, detections: np.ndarray, **kw) -> None: ...
 
     def state(self, step: int, world: ServoWorld, **kw) -> None: ...
 

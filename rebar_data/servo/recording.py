@@ -26,7 +26,7 @@ from rebar_data.servo import ur5
 from rebar_data.servo.camera import KINECT_RANGE_M
 from rebar_data.servo.config import EpisodeSpec, SuiteConfig
 from rebar_data.servo.context import ServoContext
-from rebar_data.servo.frames import Frame
+from rebar_data.servo.frames import CameraFrame
 from rebar_data.servo.recorder import Recorder
 from rebar_data.servo.tracker import TrackState
 from rebar_data.servo.world import ServoWorld
@@ -199,7 +199,7 @@ class RerunRecorder(Recorder):
     def frame(
         self,
         step: int,
-        frame: Frame,
+        frame: CameraFrame,
         detections: np.ndarray,
         *,
         track: TrackState | None = None,

@@ -13,8 +13,8 @@ import numpy as np
 from rebar_data.camera import rigid_inverse
 from rebar_data.servo.camera import KINECT_RANGE_M, depth_at
 from rebar_data.servo.context import ServoContext
-from rebar_data.servo.detectors import Detector
-from rebar_data.servo.frames import Frame
+from rebar_data.servo.detectors import ServoDetector
+from rebar_data.servo.frames import CameraFrame
 from rebar_data.servo.tracker import TargetTracker, TrackState
 from rebar_data.servo.transforms import apply
 
@@ -41,7 +41,7 @@ class Target:
 class Sensed:
     """One frame, its detections (N, 3) above the suite's score floor, and whether a fault dropped them."""
 
-    frame: Frame
+    frame: CameraFrame
     detections: np.ndarray
     dropped: bool
 
@@ -52,7 +52,7 @@ class Sensing:
     def __init__(
         self,
         ctx: ServoContext,
-        detector: Detector,
+        detector: ServoDetector,
         rng: np.random.Generator,
         camera_pose: Callable[[], np.ndarray],
     ):
@@ -92,7 +92,7 @@ class Sensing:
         """The crossing depth taken where the sensor reads none: its near limit (plus the crossing offset)."""
         return KINECT_RANGE_M[0] + self.ctx.depth_offset_m
 
-    def crossing_depth(self, frame: Frame, uv: np.ndarray) -> float:
+    def crossing_depth(self, frame: CameraFrame, uv: np.ndarray) -> float:
         """Depth of the crossing under a pixel: the surface reading plus the offset to the crossing point
         (the crossing lies a bar diameter behind the front bar's surface)."""
         z = depth_at(frame.depth_m, uv, window_px=self.ctx.suite.camera.depth_window_px)

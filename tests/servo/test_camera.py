@@ -21,10 +21,10 @@ def test_the_robots_default_depth_sensor_keeps_the_kinect_noise_range_and_quanti
     0.5-4.5 m."""
     from rebar_data.render.depth_sensor import kinect_sigma_m, sense_depth
     from rebar_data.scene.sample import nominal_depth_sensor
-    from rebar_data.servo.config import CameraConfig
+    from rebar_data.servo.config import RobotCameraConfig
 
     cam = kinect_intrinsics()
-    s = nominal_depth_sensor(CameraConfig().depth_sensor)
+    s = nominal_depth_sensor(RobotCameraConfig().depth_sensor)
     assert (s.model, s.baseline_m, s.focal_px, s.disparity_step_px) == (
         "structured_light",
         0.075,

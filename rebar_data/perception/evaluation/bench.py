@@ -14,7 +14,7 @@ FRAME_HW = (480, 640)
 THREADS = 2
 BUDGET_MS = 15.0  # a 31 Hz servo loop leaves 32 ms a step; the detector may take under half
 RENDERED_FRAMES = 8
-Frame = tuple[np.ndarray, np.ndarray | None]  # RGB (H, W, 3) uint8 and its depth (H, W) metres, 0 = none
+BenchFrame = tuple[np.ndarray, np.ndarray | None]  # RGB (H, W, 3) uint8 and its depth (H, W) metres, 0 = none
 
 
 def runtime_description(runtime: str) -> str:
@@ -37,7 +37,7 @@ def _time_ms(fn: Callable[[], object], *, repeats: int, warmup: int = 5) -> np.n
     return out
 
 
-def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[Frame]:
+def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[BenchFrame]:
     """``count`` paper-tunnel frames at 640x480 (Kinect v1 intrinsics), each under a new scene and sensor."""
     from rebar_data.config import PAPER_PIPELINE
     from rebar_data.geometry.build import build_rebar_mesh
@@ -64,7 +64,7 @@ def rendered_frames(count: int = RENDERED_FRAMES, *, seed: int = 0) -> list[Fram
     return frames
 
 
-def latency_frames() -> tuple[list[Frame], str]:
+def latency_frames() -> tuple[list[BenchFrame], str]:
     """The frames latency is measured on, and what they are."""
     return rendered_frames(), f"{RENDERED_FRAMES} rendered paper-tunnel frames"
 
@@ -87,7 +87,7 @@ class DetectorLatency:
             return 1e3 * (self.median_ms - self.first_stage_ms) / max(self.candidates, 1.0)
 
 
-def detector_latency(det, frames: list[Frame], *, repeats: int) -> DetectorLatency:
+def detector_latency(det, frames: list[BenchFrame], *, repeats: int) -> DetectorLatency:
     """Time ``det.detect`` on ``frames`` with their depth (``repeats`` calls in all), and right after each
     frame its first stage alone when it has later ones."""
     from rebar_data.perception.evaluation.evaluate import first_stage_only
