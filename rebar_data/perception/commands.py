@@ -180,7 +180,7 @@ def run_adapt(args: argparse.Namespace) -> None:
 
 
 def run_detect(args: argparse.Namespace) -> int:
-    from rebar_data.perception.inference.detector import resolve_model_path
+    from rebar_data.perception.inference.detector import Detector, resolve_model_path
 
     target = Path(args.input)
     accepted = "a dataset folder, an image or a folder of images"
@@ -224,11 +224,14 @@ def run_detect(args: argparse.Namespace) -> int:
         _images_out(target, args)
         camera = _camera_of(args.camera)
     resolve_model_path(args.model)  # a wrong --model is named before anything loads
-    from rebar_data.perception.training.train import load_detector
-
-    detector = load_detector(args.model, threads=args.threads, runtime=args.runtime, reading=args.reading)
-    detector.resample = not args.no_resample
-    detector.flatten_behind = args.flatten_behind
+    detector = Detector.load(
+        args.model,
+        threads=args.threads,
+        runtime=args.runtime,
+        reading=args.reading,
+        resample=not args.no_resample,
+        flatten_behind=args.flatten_behind,
+    )
     if dataset:
         return _detect_dataset(detector, target, args)
     return _detect_images(detector, target, files, camera, args)

@@ -17,7 +17,6 @@ from typing import TYPE_CHECKING, Protocol
 import numpy as np
 
 from rebar_data.camera import Intrinsics
-from rebar_data.config import ConfigError
 from rebar_data.geometry.build import RebarMesh
 
 if TYPE_CHECKING:
@@ -158,25 +157,10 @@ def load_shipped_detector(
     reading: str = "single",
     flatten_behind: bool = False,
 ) -> ServoDetector:
-    """The shipped crossing detector (``path`` None) or a given model, run by ``runtime``
-    (:mod:`rebar_data.perception.inference.model_file`), reading each frame as ``reading`` says
-    (:mod:`rebar_data.perception.inference.detector`), flattening what lies behind the bars in front with
-    ``flatten_behind`` (:mod:`rebar_data.perception.inference.image`) and told the camera's intrinsics when it takes
-    them; one clear ConfigError when it is not available."""
-    try:
-        from rebar_data.perception import Detector as ShippedDetector
-    except ImportError as e:
-        raise ConfigError(
-            f"detector = 'shipped' needs rebar_data.perception, which cannot be imported ({e}); "
-            "accepted: detector: ground_truth until the detector is built"
-        ) from None
-    try:
-        det = ShippedDetector.load(path, runtime=runtime, reading=reading)
-    except FileNotFoundError as e:
-        where = path or "the shipped model"
-        raise ConfigError(
-            f"detector = 'shipped': no model at {where} ({e}); accepted: train one with `make train`, "
-            "give detector_path, or use detector: ground_truth"
-        ) from None
-    det.flatten_behind = flatten_behind
+    """A suite's ``detector: shipped``: :meth:`rebar_data.perception.Detector.load` of ``path`` (None: the
+    shipped model) with the suite's ``runtime``, ``reading`` and ``flatten_behind``, bound to ``camera``'s
+    intrinsics (None: the detector's default camera)."""
+    from rebar_data.perception import Detector as ShippedDetector
+
+    det = ShippedDetector.load(path, runtime=runtime, reading=reading, flatten_behind=flatten_behind)
     return _WithCamera(det, camera)

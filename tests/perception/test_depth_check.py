@@ -25,7 +25,6 @@ from rebar_data.perception.training.depth_check import (
     patch_batches,
     train_depth_check,
 )
-from rebar_data.perception.training.train import load_detector
 from tests.perception.conftest import TINY_TRAIN
 
 
@@ -225,7 +224,7 @@ def test_a_checkpoint_reads_its_depth_check_as_its_onnx_file_does(trained_run):
     """A run's .pt checkpoint and .onnx file take the depth check's patch and veto from the same meta entry;
     an older entry without the veto's settings takes the defaults."""
     out = trained_run.out_dir
-    from_files, from_checkpoint = Detector.load(out, threads=1), load_detector(out / "best.pt")
+    from_files, from_checkpoint = Detector.load(out, threads=1), Detector.load(out / "best.pt")
 
     def settings(check: DepthCheck) -> tuple:
         return check.patch_px, check.scale_m, check.clip, check.power, check.margin

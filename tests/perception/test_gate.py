@@ -11,7 +11,7 @@ import pytest
 from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.perception.evaluation import gate
 from rebar_data.perception.evaluation.data import Sample
-from rebar_data.perception.inference.detector import SHIPPED_MODEL
+from rebar_data.perception.inference.detector import SHIPPED_MODEL, Detector
 from rebar_data.pipeline import load_pipeline
 
 
@@ -39,7 +39,7 @@ def reference():
 @pytest.fixture(scope="session")
 def measured(gate_set):
     """The shipped model's gate figures on the session's gate set, per mode."""
-    return gate.measure(gate.load_detector(), gate_set)
+    return gate.measure(Detector.load(runtime=gate.RUNTIME), gate_set)
 
 
 def test_the_reference_is_the_shipped_models_on_this_gate_set(reference):
@@ -65,7 +65,7 @@ def test_the_shipped_detector_holds_its_gate_figures(gate_set, reference, measur
 def test_the_gate_catches_the_detector_without_its_second_stage(gate_set, reference, measured):
     """Without the second stage the crossings are placed by the heatmap network alone, about 0.06 of PCK@2px
     lower: the gate must name PCK@2px in both modes."""
-    detector = gate.load_detector()
+    detector = Detector.load(runtime=gate.RUNTIME)
     detector.refiner = None
     degraded = gate.measure(detector, gate_set)
     found = gate.failures(degraded, reference)

@@ -11,7 +11,6 @@ from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
-from rebar_data.perception.training.train import load_detector
 
 from .conftest import TINY_MODEL
 
@@ -70,9 +69,9 @@ def test_checkpoint_round_trip(tiny_net, tmp_path):
     x = torch.rand(1, 3, 32, 32) * 255
     rays = torch.zeros(1, 2, 8, 8)
     torch.testing.assert_close(net(x, rays), tiny_net(x, rays))
-    assert load_detector(tmp_path / "m.pt").backend == "torch"
-    with pytest.raises(ConfigError, match="reads .onnx files"):
-        Detector.load(tmp_path / "m.pt")
+    # the one loader reads a checkpoint too, through training's reader (READERS), in PyTorch
+    det = Detector.load(tmp_path / "m.pt", reading="single", resample=False)
+    assert det.backend == "torch" and det.reading == "single" and not det.resample
 
 
 def test_load_names_what_is_wrong(tmp_path, monkeypatch):
@@ -88,7 +87,7 @@ def test_load_names_what_is_wrong(tmp_path, monkeypatch):
         Detector.load(tmp_path)
     (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
     with pytest.raises(ConfigError, match="cannot be read"):
-        load_detector(tmp_path / "bad.pt")
+        Detector.load(tmp_path / "bad.pt")
 
 
 def test_detect_rejects_what_is_not_an_rgb_image(tiny_net):
@@ -193,3 +192,13 @@ def test_a_file_without_detector_metadata_is_refused(tmp_path):
     (tmp_path / "junk.onnx").write_bytes(b"not onnx")
     with pytest.raises(ConfigError, match="cannot be read as an ONNX file"):
         network_from_onnx(tmp_path / "junk.onnx")
+
+
+def test_every_reader_the_run_time_names_is_there():
+    """The readers :data:`~.detector.READERS` names by string exist: a rename breaks this test, not a user's
+    call (tests/test_imports.py checks that loading an .onnx file imports none of them)."""
+    import importlib
+
+    for suffix, name in infer.READERS.items():
+        module, _, function = name.partition(":")
+        assert callable(getattr(importlib.import_module(module), function)), suffix

@@ -29,7 +29,6 @@ from rebar_data.perception.training.refine_data import (
     patch_geometry,
     training_patch,
 )
-from rebar_data.perception.training.train import load_detector
 
 from .conftest import STILL, TINY_TRAIN, refined
 
@@ -480,7 +479,7 @@ def test_a_trained_run_ships_both_stages_and_says_which_file_is_missing(trained_
     expected = expected[expected[:, 2] >= 0.01]
     np.testing.assert_allclose(both, expected[np.argsort(-expected[:, 2], kind="stable")])
     det.refiner = None
-    assert load_detector(out / "best.pt").refiner is not None
+    assert Detector.load(out / "best.pt").refiner is not None
     lone = tmp_path / "lone"
     lone.mkdir()
     shutil.copy(out / "best.onnx", lone / "best.onnx")

@@ -30,7 +30,7 @@ GATE_FILE = MODELS_DIR / GATE_NAME
 FIGURES = ("oks_ap50", "pck2", "recall_at_p99")
 MODES = {"rgb": False, "rgbd": True}  # mode -> whether the detector reads the depth image
 MODE_NAMES = {"rgb": "RGB only", "rgbd": "with depth"}  # depth: the set's sensor depth
-RUNTIME = "onnxruntime"
+RUNTIME = "onnxruntime"  # the gate scores `Detector.load(runtime=RUNTIME)`
 K_SE = 3.0
 BOOTSTRAP_REPLICATES = 1000
 BOOTSTRAP_SEED = 0
@@ -68,11 +68,6 @@ def set_digest(root: str | Path) -> str:
         if p.startswith(SET_FOLDERS)
     )
     return hashlib.sha256("".join(rows).encode()).hexdigest()
-
-
-def load_detector(model: str | Path | None = None) -> Detector:
-    """The detector as the gate scores it: ``model`` (None: the shipped one) in ``RUNTIME``."""
-    return Detector.load(model, runtime=RUNTIME)
 
 
 def gate_predictions(detector: Detector, samples: Sequence[Sample]) -> dict[str, list[np.ndarray]]:
@@ -172,7 +167,7 @@ def write_reference(
 ) -> Path:
     """Measure ``model`` (None: the shipped one) on the gate set, found or built in ``data_root`` (None: a
     temporary folder), and write :func:`reference` to ``out`` (None: ``gate.json`` beside the model)."""
-    detector = load_detector(model)
+    detector = Detector.load(model, runtime=RUNTIME)
     out = Path(out) if out is not None else detector.path.with_name(GATE_NAME)
     with tempfile.TemporaryDirectory(prefix="rebar-gate-") as tmp:
         root = build_gate_set(data_root if data_root is not None else tmp)

@@ -5,6 +5,7 @@ the checks (:mod:`.checks`) score them again."""
 
 from __future__ import annotations
 
+import importlib
 import json
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -33,6 +34,12 @@ DEFAULT_FOCAL_PER_WIDTH = 525.0 / 640.0  # Kinect v1 colour camera, when neither
 MODELS_DIR = Path(__file__).parent.parent / "models"
 SHIPPED_MODEL = MODELS_DIR / "rebar_keypoint.onnx"
 RUN_FILES = ("best.onnx", "best.pt", "last.pt")
+# the readers of the model files the run time does not read itself, by suffix: "module:function", imported
+# when such a file is loaded. A .pt checkpoint runs in PyTorch through training code, which the run time may
+# not import: named, not imported, loading an .onnx file imports neither torch nor training, and every caller
+# of `Detector.load` reads a .pt file too (a registry that training filled in would hold nothing until some
+# caller had imported training first).
+READERS = {".pt": "rebar_data.perception.training.checkpoint:read_checkpoint"}
 DUPLICATE_PX = 3.0  # two detections placed nearer than this are one crossing
 Run = Callable[[np.ndarray, np.ndarray], np.ndarray]  # the first stage: images and rays to its output
 
@@ -126,16 +133,23 @@ class Detector:
         threads: int = 2,
         runtime: str = "auto",
         reading: str = "mirrored",
+        resample: bool = True,
+        flatten_behind: bool = False,
     ) -> Detector:
-        """Load a ``.onnx`` model file with its later stages (None: the shipped model; a run folder: its
-        best); ``runtime``: "auto", "onnxruntime" or "openvino" (:mod:`.model_file`)."""
+        """The one way to load a detector: ``path`` a ``.onnx`` model file with its later stages beside it, a
+        ``.pt`` checkpoint (run in PyTorch, :data:`READERS`), a training run folder (its best model) or None
+        (the shipped model). ``runtime`` runs an ``.onnx`` file: "auto", "onnxruntime" or "openvino"
+        (:mod:`.model_file`); ``reading``, ``resample`` and ``flatten_behind`` as the attributes say."""
         accepted("reading", reading, READINGS)
         p = resolve_model_path(path)
-        if p.suffix != ".onnx":
-            raise ConfigError(
-                f"{p}: Detector.load reads .onnx files; accepted: a .onnx file, or a .pt checkpoint through "
-                "rebar_data.perception.training.train.load_detector"
-            )
+        read = _reader(p) if p.suffix in READERS else cls._read_onnx
+        det = read(p, threads=threads, runtime=runtime)
+        det.reading, det.resample, det.flatten_behind = reading, resample, flatten_behind
+        return det
+
+    @classmethod
+    def _read_onnx(cls, p: Path, *, threads: int, runtime: str) -> Detector:
+        """The detector in the ``.onnx`` file ``p`` with its later stages."""
         runtime = model_file.resolve_runtime(runtime)
         sess = model_file.onnx_session(p, threads, runtime)
         raw = sess.get_modelmeta().custom_metadata_map.get(model_file.META_KEY)
@@ -148,7 +162,6 @@ class Detector:
         det.refiner, det.depth_check, det.crossing_point = model_file.load_stages(
             p, det.meta, threads, runtime
         )
-        det.reading = reading
         return det
 
     def default_camera(self, height: int, width: int) -> Intrinsics:
@@ -324,6 +337,18 @@ def shifted_score(score: np.ndarray, shift: float | np.ndarray) -> np.ndarray:
     """sigmoid(logit(score) + shift)."""
     s = np.clip(np.asarray(score, np.float64), 1e-12, 1.0 - 1e-12)
     return 1.0 / (1.0 + np.exp(-(np.log(s) - np.log1p(-s) + shift)))
+
+
+def _reader(p: Path) -> Callable[..., Detector]:
+    """The function :data:`READERS` names for ``p``'s suffix, imported now."""
+    module, _, name = READERS[p.suffix].partition(":")
+    try:
+        return getattr(importlib.import_module(module), name)
+    except ImportError as e:
+        raise ConfigError(
+            f"{p}: a {p.suffix} file runs in PyTorch, which cannot be imported here ({e}); accepted: the "
+            "model's .onnx file"
+        ) from None
 
 
 def _check_image(rgb: np.ndarray) -> np.ndarray:

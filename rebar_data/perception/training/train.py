@@ -64,7 +64,7 @@ from rebar_data.perception.evaluation.metrics import (
 )
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.checks import LineCheck
-from rebar_data.perception.inference.detector import Detector, resolve_model_path, score_bias_of
+from rebar_data.perception.inference.detector import Detector, score_bias_of
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, quantize_onnx, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
@@ -822,24 +822,3 @@ def _finish(
         plots.plot_pr_modes({"detections": curve}, out / "pr_curve.png", title=title)
         plots.plot_prediction_grid(samples, preds, out / "predictions.png")
     return TrainResult(out, state["best_epoch"], state["epoch"], state["stopped"], state["history"], results)
-
-
-def load_detector(path: str | Path | None = None, **kwargs: Any):
-    """A detector from a model file: ``.onnx`` through :meth:`Detector.load` (``kwargs`` its arguments), a
-    ``.pt`` checkpoint (with its later stages' ``.pt`` files beside it) run in eager PyTorch."""
-    p = resolve_model_path(path)
-    if p.suffix == ".onnx":
-        return Detector.load(p, **kwargs)
-    net, meta, _ = load_checkpoint(p)
-    det = eager.detector(net, meta=meta, path=p)
-    found = model_file.stage_entries(p, det.meta)
-    if f := found.get("refiner"):
-        det.refiner = eager.refiner(refine.load(f[0])[0], **model_file.refiner_passes(f[1]))
-    if f := found.get("depth_check"):
-        det.depth_check = eager.depth_check(
-            depth_check.load(f[0])[0], **model_file.depth_check_settings(f[1])
-        )
-    if f := found.get("crossing_point"):
-        det.crossing_point = eager.crossing_point(crossing_point.load(f[0])[0])
-    det.reading = kwargs.get("reading", "mirrored")
-    return det
