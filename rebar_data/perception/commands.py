@@ -110,7 +110,7 @@ def run_train(args: argparse.Namespace) -> None:
         device=args.device,
     )
     if args.ship:
-        from rebar_data.perception.evaluation.card import ship
+        from rebar_data.perception.training.ship import ship
 
         model = ship(out, evaluate_on=args.eval or (), progress=not args.quiet)
         print(f"shipped {model}", file=sys.stderr)

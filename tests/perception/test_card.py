@@ -3,8 +3,9 @@ from __future__ import annotations
 import pytest
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.evaluation.card import CARD_NAME, ship
 from rebar_data.perception.inference.detector import Detector
+from rebar_data.perception.training.card import CARD_NAME
+from rebar_data.perception.training.ship import ship
 
 
 def test_ship_copies_the_best_model_and_writes_its_card(trained_run, tmp_path):
@@ -44,8 +45,8 @@ def test_the_card_has_the_hubs_form_and_its_figures(trained_run, tmp_path):
     import numpy as np
     import yaml
 
-    from rebar_data.perception.evaluation.card import FIGURES_DIR
     from rebar_data.perception.evaluation.plots import MAX_FIGURE_BYTES
+    from rebar_data.perception.training.card import FIGURES_DIR
 
     (tmp_path / FIGURES_DIR).mkdir()
     (tmp_path / FIGURES_DIR / "pr-stale.png").write_bytes(b"stale")  # a figure of an earlier card goes
@@ -104,7 +105,7 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
 
     from rebar_data.dataset.build import build_dataset
     from rebar_data.perception.evaluation import evaluate
-    from rebar_data.perception.evaluation.card import evaluation_rows
+    from rebar_data.perception.evaluation.card_rows import evaluation_rows
     from rebar_data.resume import Steps
     from tests.dataset.conftest import TINY, write_config
 
@@ -141,7 +142,7 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
         "other v0.0.1, cycles renderer": ["RGB only", "with depth"],
     }
     assert all(len(p) == len(h.samples) for h in held_out.values() for p in h.modes.values())
-    from rebar_data.perception.evaluation.card import FIGURES_DIR, write_figures
+    from rebar_data.perception.training.card import FIGURES_DIR, write_figures
 
     figures = write_figures(trained_run.out_dir, tmp_path / "models", held_out, frame_from="drawn test")
     assert sorted(figures["pr"].values()) == [
@@ -155,7 +156,7 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     assert rgb["n_gt"] == vs_3d["n_gt"] == rows["own v0.0.1 (all splits)"]["n_gt"] > 0
     assert rgb["mean_px"] != vs_3d["mean_px"]
     # and with its depth images, as they come and with what lies behind flattened: the same crossings
-    from rebar_data.perception.evaluation.card import FLATTENED
+    from rebar_data.perception.evaluation.card_rows import FLATTENED
 
     with_depth = rows["other v0.0.1, cycles renderer, with depth"]
     flat = rows[f"other v0.0.1, cycles renderer, with depth, {FLATTENED}"]
@@ -185,8 +186,8 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
         "false_detections" in m for k, m in rows.items() if k != "other v0.0.1, cycles renderer, RGB only"
     )
     from rebar_data.perception.evaluation.bench import DetectorLatency
-    from rebar_data.perception.evaluation.card import write_card
     from rebar_data.perception.evaluation.false_detections import format_census
+    from rebar_data.perception.training.card import write_card
 
     card = write_card(
         trained_run.out_dir,
@@ -207,7 +208,7 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
 def test_the_card_names_every_renderer_that_drew_training_images():
     """The Training data counts the frames another renderer drew (a dataset that names no renderer was built
     by Open3D, before datasets recorded it)."""
-    from rebar_data.perception.evaluation.card import renderers
+    from rebar_data.perception.training.card import renderers
 
     own = {"renderer": "open3d", "supplements": [{"name": "lower", "images": 720}]}
     assert renderers(own) == ("Open3D", "", 0)

@@ -1,5 +1,6 @@
 """The detector's regression gate (:mod:`rebar_data.perception.evaluation.gate`): the shipped model scored on the gate set,
-which the suite builds once, against the reference figures shipped beside it (``models/gate.json``)."""
+which the suite builds once, against the reference figures shipped beside it (``models/gate.json``, written by
+:mod:`rebar_data.perception.training.gate_reference`)."""
 
 from __future__ import annotations
 
@@ -31,7 +32,7 @@ def reference():
         pytest.skip("no model shipped yet (make train ships one)")
     assert gate.GATE_FILE.exists(), (
         f"the shipped model has no {gate.GATE_FILE.name} beside it: write it with "
-        "`python -m rebar_data.perception.evaluation.gate` (shipping a model writes it)"
+        "`python -m rebar_data.perception.training.gate_reference` (shipping a model writes it)"
     )
     return gate.read_reference()
 
@@ -44,7 +45,7 @@ def measured(gate_set):
 
 def test_the_reference_is_the_shipped_models_on_this_gate_set(reference):
     assert reference["model"]["sha256"] == sha256_file(SHIPPED_MODEL), (
-        f"{gate.GATE_FILE.name} was written for another model: rewrite it with `python -m rebar_data.perception.evaluation.gate`"
+        f"{gate.GATE_FILE.name} was written for another model: rewrite it with `python -m rebar_data.perception.training.gate_reference`"
     )
     cfg = load_pipeline(gate.GATE_PIPELINE)
     assert (reference["set"]["name"], reference["set"]["version"]) == (cfg.name, cfg.version)
@@ -77,7 +78,9 @@ def test_the_gate_catches_the_detector_without_its_second_stage(gate_set, refere
 
 
 def test_the_reference_writes_what_the_gate_reads(gate_set, measured, tmp_path):
-    out = gate.write_reference(out=tmp_path / "gate.json", data_root=gate_set.parents[1], replicates=20)
+    from rebar_data.perception.training.gate_reference import write_reference
+
+    out = write_reference(out=tmp_path / "gate.json", data_root=gate_set.parents[1], replicates=20)
     ref = gate.read_reference(out)
     assert ref["set"]["digest"] == gate.set_digest(gate_set)
     assert ref["set"]["visible_crossings"] == ref["modes"]["rgb"]["summary"]["n_gt"] > 250

@@ -58,7 +58,7 @@ def test_the_later_passes_read_the_int8_copy_and_the_first_pass_the_float_file()
 
 
 def test_the_detector_reads_its_later_passes_with_the_int8_copy(drawn_dataset, tmp_path):
-    from rebar_data.perception.evaluation.card import stage_rows
+    from rebar_data.perception.training.card import stage_rows
 
     model = shipped_model_copy(tmp_path)
     out = model_file.int8_passes_path(model)

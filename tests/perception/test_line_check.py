@@ -128,7 +128,7 @@ def checked_model(drawn_dataset, tmp_path_factory):
 
 
 def test_the_fitted_check_in_the_model_file_loads_with_it(checked_model):
-    from rebar_data.perception.evaluation.card import stage_rows
+    from rebar_data.perception.training.card import stage_rows
 
     model, entry = checked_model
     assert entry["fitted_on"] == ["drawn"] and entry["candidates"] > entry["crossings"] > 0

@@ -143,7 +143,8 @@ def test_a_supplement_adds_its_images_to_training_and_is_recorded(drawn_dataset,
     recorded = json.loads((tmp_path / "both/results.json").read_text())["dataset"]["supplements"]
     assert [(d["name"], d["images"]) for d in recorded] == [("drawn-extra", n_extra)]
     assert set(both.results) == {"val", "test"}  # scored on the first dataset's splits alone
-    from rebar_data.perception.evaluation.card import CARD_NAME, ship
+    from rebar_data.perception.training.card import CARD_NAME
+    from rebar_data.perception.training.ship import ship
 
     ship(tmp_path / "both", models_dir=tmp_path / "models", gate=False)
     assert "`drawn-extra` v0.0.0 (6 images)" in (tmp_path / "models" / CARD_NAME).read_text()
@@ -157,9 +158,10 @@ def test_a_second_stage_supplement_trains_the_second_stage_alone(trained_run, dr
     """A finished run resumed with a second-stage supplement keeps its first stage and trains the second
     again on its images and the supplement's (each repeated), and the card says so; resumed again with the
     same supplement, nothing trains."""
-    from rebar_data.perception.evaluation.card import CARD_NAME, ship
     from rebar_data.perception.networks.files import load_checkpoint
+    from rebar_data.perception.training.card import CARD_NAME
     from rebar_data.perception.training.refine import load as load_refiner
+    from rebar_data.perception.training.ship import ship
     from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
@@ -217,10 +219,11 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
     """With a second-stage supplement the first stage trains its adapt epochs from its best epoch (kept in
     best.pt) on its images and the supplement's; the adapted weights ship in best.onnx and the later stages
     train beside them; resumed again nothing trains, and with no adapt epochs the best epoch ships again."""
-    from rebar_data.perception.evaluation.card import CARD_NAME, ship
     from rebar_data.perception.networks.files import load_checkpoint
     from rebar_data.perception.training.adapt import ADAPT_LAST, ADAPTED
+    from rebar_data.perception.training.card import CARD_NAME
     from rebar_data.perception.training.refine import load as load_refiner
+    from rebar_data.perception.training.ship import ship
     from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)
@@ -288,7 +291,8 @@ def test_adapt_epochs_train_the_first_stage_on_the_supplement_and_ship_it(
 def test_other_renderer_repeats_put_the_second_stage_supplements_in_the_first_epochs(drawn_dataset, tmp_path):
     """With ``other_renderer_repeats`` the second-stage supplements' images join the first epochs that many
     times (their steps count them), the card says so, and a resumed run must keep those supplements."""
-    from rebar_data.perception.evaluation.card import CARD_NAME, ship
+    from rebar_data.perception.training.card import CARD_NAME
+    from rebar_data.perception.training.ship import ship
     from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
 
     spec = SyntheticSpec(width=192, height=144, focal_px=157.5, trajectories=3, frames=2)

@@ -1,5 +1,6 @@
 """The detector's regression gate: the shipped model scored on a fixed held-out set
-(``pipelines/detector-gate.yaml``) against its own reference (``gate.json``, :func:`write_reference`).
+(``pipelines/detector-gate.yaml``) against its own reference (``gate.json``: :func:`reference`, which
+shipping a model writes, :mod:`rebar_data.perception.training.gate_reference`).
 
 AP@0.5, PCK@2px and recall@P0.99, with RGB alone and with the set's sensor depth, pass when at least the reference minus
 ``K_SE`` bootstrap standard errors over the set's scenes (why: ``docs/detector/design.md``, "The regression
@@ -7,10 +8,8 @@ gate")."""
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 
@@ -18,11 +17,10 @@ import numpy as np
 import pyarrow.parquet as pq
 
 from rebar_data.config import PAPER_PIPELINE
-from rebar_data.outputs import replace_file
 from rebar_data.perception.evaluation.data import Sample, load_split, read_info, stated_oks_sigma
 from rebar_data.perception.evaluation.evaluate import predict, truth_of
 from rebar_data.perception.evaluation.metrics import keypoint_ap, pixel_metrics, summary
-from rebar_data.perception.inference.detector import MODELS_DIR, SHIPPED_MODEL, Detector
+from rebar_data.perception.inference.detector import MODELS_DIR, Detector
 
 GATE_PIPELINE = PAPER_PIPELINE.with_name("detector-gate.yaml")
 GATE_NAME = "gate.json"
@@ -158,23 +156,6 @@ def reference(
     }
 
 
-def write_reference(
-    model: str | Path | None = None,
-    *,
-    out: str | Path | None = None,
-    data_root: str | Path | None = None,
-    replicates: int = BOOTSTRAP_REPLICATES,
-) -> Path:
-    """Measure ``model`` (None: the shipped one) on the gate set, found or built in ``data_root`` (None: a
-    temporary folder), and write :func:`reference` to ``out`` (None: ``gate.json`` beside the model)."""
-    detector = Detector.load(model, runtime=RUNTIME)
-    out = Path(out) if out is not None else detector.path.with_name(GATE_NAME)
-    with tempfile.TemporaryDirectory(prefix="rebar-gate-") as tmp:
-        root = build_gate_set(data_root if data_root is not None else tmp)
-        ref = reference(detector, root, replicates=replicates)
-    return replace_file(out, lambda tmp: tmp.write_text(json.dumps(ref, indent=1, sort_keys=True) + "\n"))
-
-
 def read_reference(path: str | Path = GATE_FILE) -> dict:
     return json.loads(Path(path).read_text())
 
@@ -198,24 +179,3 @@ def failures(measured: dict[str, dict[str, float]], ref: dict) -> list[str]:
                     f"{entry['margin'][f]:.4f}, {ref['margin_rule']['k_se']:g} bootstrap SEs)"
                 )
     return out
-
-
-def main(argv: Sequence[str] | None = None) -> None:
-    parser = argparse.ArgumentParser(
-        prog="python -m rebar_data.perception.evaluation.gate",
-        description="Measure a model on the regression gate's set and write its reference (gate.json).",
-    )
-    parser.add_argument("--model", help="model file (default: the shipped model)")
-    parser.add_argument("--out", help="JSON to write (default: gate.json beside the model)")
-    parser.add_argument("--data", help="folder the gate set is built in, or found (default: a temporary one)")
-    args = parser.parse_args(argv)
-    path = write_reference(args.model or SHIPPED_MODEL, out=args.out, data_root=args.data)
-    ref = read_reference(path)
-    for mode, entry in ref["modes"].items():
-        parts = [f"{f} {entry['figures'][f]:.4f} (margin {entry['margin'][f]:.4f})" for f in FIGURES]
-        print(f"{mode}: " + ", ".join(parts))
-    print(path)
-
-
-if __name__ == "__main__":
-    main()
