@@ -1,5 +1,24 @@
-"""Shipping a trained model with the package: its files copied into the models folder, its card's rows
-scored, the regression gate's reference written beside it, its card and figures written."""
+"""Shipping a trained model: one pipeline of named steps.
+
+Finishing a run, in its folder (:func:`finish`, the end of ``rebar train``):
+
+- ``export``: the first stage (best or adapted) and the later stages as ONNX files (:mod:`.export`);
+- ``int8 copy``: the second stage's int8 copy for its later passes (:func:`.export.int8_copy`);
+- ``operating point`` and ``line check``: placed and fitted on the validation split (:mod:`.operating_point`);
+- ``scores``: the figures of the validation and test splits (:mod:`.scores`);
+- ``results``: ``best.onnx`` and ``best.pt`` carrying them, and ``results.json``;
+- ``plots``: ``curves.png``, ``pr_curve.png`` and ``predictions.png``.
+
+Shipping it with the package (:func:`ship`, ``rebar train --ship``):
+
+- ``copy``: the run's model files into the package's models folder;
+- ``card: <set>``: the card's rows, one step a dataset (:mod:`~rebar_data.perception.evaluation.card_rows`);
+- ``gate``: the regression gate's reference beside the model (:mod:`.gate_reference`) and its card rows;
+- ``card``: the card's figures and ``MODEL_CARD.md`` (:mod:`.card`).
+
+The steps that take long (the int8 copy, the operating point, the line check, the scores and each dataset's
+card rows) are kept in the run folder's ``steps.json`` (:class:`~rebar_data.resume.Steps`): run again after a
+kill, a step whose inputs are the same is taken from there."""
 
 from __future__ import annotations
 
@@ -10,18 +29,101 @@ import sys
 import tempfile
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 from rebar_data.config import ConfigError
 from rebar_data.outputs import replace_file
 from rebar_data.perception.evaluation import data
 from rebar_data.perception.evaluation.bench import detector_latency, latency_frames, runtime_description
 from rebar_data.perception.evaluation.card_rows import HeldOut, evaluation_rows
+from rebar_data.perception.evaluation.evaluate import predict, truth_of
+from rebar_data.perception.evaluation.metrics import OPERATING_THRESHOLD, keypoint_ap, pixel_metrics
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.detector import MODELS_DIR, SHIPPED_MODEL, Detector
+from rebar_data.perception.networks.files import export_onnx, save_checkpoint
+from rebar_data.perception.networks.keypoint_net import count_parameters
 from rebar_data.perception.training.card import CARD_NAME, write_card, write_figures
+from rebar_data.perception.training.export import Exported, export_model
+from rebar_data.perception.training.operating_point import place_operating_point
+from rebar_data.perception.training.run import TrainRun
+from rebar_data.perception.training.scores import score_model
 from rebar_data.resume import STEPS_FILE, Steps, key_of
 
 MAX_SHIPPED_BYTES = 5 * 1024 * 1024
+
+
+def finish(
+    run: TrainRun, state: dict[str, Any], first_path: Path, stages: dict[str, tuple[Any, list]]
+) -> dict[str, dict[str, float]]:
+    """The finishing steps on ``first_path`` (best or adapted) and the later ``stages`` (key -> network, None
+    when off, and history), after the epochs that ``state`` records; returns the model's metrics per split."""
+    exported = export_model(run, first_path, stages)
+    detector, meta, model_key = exported.detector, exported.meta, exported.model_key
+    place_operating_point(run, detector, meta, model_key)
+    found = score_model(run, detector, key_of(model_key, meta.get("score_bias"), meta.get("line_check")))
+    write_results(run, state, exported, stages, found)
+    draw_plots(run, state, detector)
+    return found["results"]
+
+
+def write_results(
+    run: TrainRun,
+    state: dict[str, Any],
+    exported: Exported,
+    stages: dict[str, tuple[Any, list]],
+    found: dict[str, Any],
+) -> None:
+    """The step ``results``: the first stage's files carrying the score bias and results, and ``results.json``
+    (the run's epochs, times, parameters and every figure ``found``)."""
+    out, net, results = run.out, exported.net, found["results"]
+    meta = {**exported.meta, "results": results}
+    save_checkpoint(exported.first_path, net, meta)
+    export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
+    seconds = {k: float(sum(r.get("seconds", 0.0) for r in history)) for k, (_, history) in stages.items()}
+    summary_doc = {
+        "best_epoch": state["best_epoch"],
+        "epochs_run": state["epoch"],
+        "stopped_early": state["stopped"],
+        "oks_sigma": run.sigma,
+        "threshold": OPERATING_THRESHOLD,
+        "dataset": run.dataset,
+        "parameters": count_parameters(net),
+        "train_seconds_this_call": run.train_seconds,
+        "train_seconds_total": float(
+            sum(r.get("train_seconds", 0.0) for r in state["history"]) + sum(seconds.values())
+        ),
+        "adapt_epochs": len(stages["adapt"][1]),
+        "results": results,
+        "results_against_crossing_points": found["points"],
+        "results_first_stage": found["first_stage"],
+        "results_without_depth": found["without_depth"],
+    }
+    for key, (stage_net, history) in stages.items():
+        if key != "adapt":
+            name = "refiner" if key == "refine" else key
+            summary_doc[f"{name}_parameters"] = count_parameters(stage_net) if stage_net is not None else 0
+        summary_doc[f"{key}_seconds"] = seconds[key]
+        summary_doc[f"{key}_history"] = history
+    (out / "results.json").write_text(json.dumps(summary_doc, indent=2, sort_keys=True) + "\n")
+
+
+def draw_plots(run: TrainRun, state: dict[str, Any], detector: Detector) -> None:
+    """The step ``plots``: the epochs' curves, and the precision-recall curve and detections of the test split
+    (the validation split without one)."""
+    from rebar_data.perception.evaluation import plots
+
+    cfg, out, sigma, test_samples = run.cfg, run.out, run.sigma, run.test
+    if state["history"]:
+        plots.plot_history(state["history"], out / "curves.png", mosaic_epochs=cfg.augment.mosaic_epochs)
+    split = "test" if test_samples else ("val" if run.val else None)
+    if split:
+        samples = test_samples if split == "test" else run.val
+        preds = predict(detector, samples, progress=run.progress)
+        truths = [truth_of(s) for s in samples]
+        curve = (keypoint_ap(truths, preds, sigma=sigma), pixel_metrics(truths, preds))
+        title = f"{split} split, OKS sigma {sigma:g}"
+        plots.plot_pr_modes({"detections": curve}, out / "pr_curve.png", title=title)
+        plots.plot_prediction_grid(samples, preds, out / "predictions.png")
 
 
 def ship(

@@ -13,29 +13,25 @@ A run folder holds everything about one run:
 - ``results.json``: the best model's metrics on the validation and test splits;
 - ``curves.png``, ``pr_curve.png``, ``predictions.png``.
 
-The weights evaluated and saved are an exponential moving average of the trained ones."""
+The epochs done, the run ends with the finishing steps of :mod:`~rebar_data.perception.training.ship`
+(export, int8 copy, operating point, line check, scores, results, plots). The weights evaluated and saved are an exponential moving average of the trained ones."""
 
 from __future__ import annotations
 
 import copy
 import csv
-import hashlib
 import json
 import math
-import shutil
-import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 import torch
-from tqdm import tqdm
 
 from rebar_data.config import ConfigError
-from rebar_data.dataset.writers.manifest import sha256_file
 from rebar_data.outputs import OutputLock, mark_output, output_folder, replace_file
 from rebar_data.perception.evaluation.data import (
     Sample,
@@ -45,36 +41,18 @@ from rebar_data.perception.evaluation.data import (
     read_info,
     renderer_engine,
 )
-from rebar_data.perception.evaluation.evaluate import (
-    CALIBRATION_FLOOR,
-    at_crossing_points,
-    calibrate_score_bias,
-    first_stage_only,
-    load_splits,
-    predict,
-    score,
-    truth_of,
-)
-from rebar_data.perception.evaluation.metrics import (
-    DEFAULT_OKS_SIGMA,
-    OPERATING_THRESHOLD,
-    format_summary,
-    keypoint_ap,
-    pixel_metrics,
-)
-from rebar_data.perception.inference import model_file
-from rebar_data.perception.inference.checks import LineCheck
-from rebar_data.perception.inference.detector import Detector, score_bias_of
+from rebar_data.perception.evaluation.evaluate import first_stage_only, load_splits, predict, score
+from rebar_data.perception.evaluation.metrics import DEFAULT_OKS_SIGMA, OPERATING_THRESHOLD, format_summary
+from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks import eager
-from rebar_data.perception.networks.files import export_onnx, load_checkpoint, quantize_onnx, save_checkpoint
+from rebar_data.perception.networks.files import load_checkpoint, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, count_parameters
 from rebar_data.perception.training import crossing_point, depth_check, epochs, refine
 from rebar_data.perception.training.adapt import ADAPTED, adapt_first_stage
 from rebar_data.perception.training.config import InitConfig, TrainConfig, resolve_config
 from rebar_data.perception.training.epochs import training_device
+from rebar_data.perception.training.export import STAGES
 from rebar_data.perception.training.init import (
-    SCORING_STAGES,
-    STAGE_NAMES,
     InitModel,
     first_stage_settings,
     parse_stages,
@@ -82,18 +60,15 @@ from rebar_data.perception.training.init import (
     settings_from,
     stage_settings,
 )
-from rebar_data.perception.training.line_check import UnfitLineCheck, fit_line_check, fitted_on
+from rebar_data.perception.training.run import TrainRun, supplement_names, weights_key
+from rebar_data.perception.training.ship import finish
 from rebar_data.resume import STEPS_FILE, Steps, key_of
 
 COMMAND = "rebar train"
 EARLY_STOP_METRIC = "val_oks_ap"
 # settings newer than some run folders, at their old value
 NEWER_FIELDS = {"other_renderer_repeats": 0, "init": InitConfig().model_dump(mode="json")}
-# the later stages' files: best.<name>.pt
-STAGES = {"refine": "refine", "depth_check": "depth", "crossing_point": "crossing"}
 RESUMABLE_CHANGES = {"epochs", "patience", "val_every", "adapt", "line_check", *STAGES}
-STAGE_META = ("refiner", "depth_check", "crossing_point", "line_check")  # the later stages' metadata entries
-DEPTH_CHECK_META = {"patch_px", "scale_m", "clip", "veto_power", "veto_margin"}  # its entry's settings
 
 
 @dataclass
@@ -107,50 +82,6 @@ class TrainResult:
     stopped_early: bool
     history: list[dict[str, Any]] = field(default_factory=list)
     results: dict[str, dict[str, float]] = field(default_factory=dict)
-
-
-@dataclass
-class _Run:
-    """What one call of :func:`train` works on."""
-
-    cfg: TrainConfig
-    out: Path
-    sigma: float
-    dataset: dict[str, Any]  # what the run records of its data
-    train: list[Sample]
-    val: list[Sample]
-    test: list[Sample]
-    refine_extra: list[Sample]
-    line_extra: list[Sample]
-    line_supplements: list[dict[str, Any]]
-    progress: bool
-    init: InitModel | None = None  # the model whose weights the run starts from (--init)
-    steps: Steps | None = None  # the finishing steps done (steps.json)
-    device: torch.device = torch.device("cpu")  # where the networks train
-    stages: tuple[str, ...] = STAGE_NAMES  # the stages it trains; the others are the init model's
-    started: float = 0.0  # when the first stage's epochs began
-    train_seconds: float = 0.0  # from then until the later stages were trained
-
-    def log(self, msg: str) -> None:
-        if self.progress:
-            tqdm.write(msg, file=sys.stderr)
-
-    def trains(self, stage: str) -> bool:
-        """Whether the run trains ``stage`` (one of :data:`~.init.STAGE_NAMES`) rather than keep the init
-        model's."""
-        return stage in self.stages
-
-    def kept(self, stage: str) -> bool:
-        """Whether ``stage`` is the init model's, kept as it is."""
-        return (
-            self.init is not None
-            and not self.trains(stage)
-            and (stage == "first" or stage in self.init.stages)
-        )
-
-    @property
-    def init_record(self) -> dict[str, Any] | None:
-        return None if self.init is None else self.init.record(self.stages)
 
 
 def is_run_folder(folder: Path) -> bool:
@@ -226,7 +157,9 @@ def train(
     val, test = load_split(root, "val"), load_split(root, "test")
     if model is not None:
         dataset["init"] = model.record(chosen)
-    run = _Run(cfg, out, sigma, dataset, samples, val, test, refine_extra, line_extra, line_meta, progress)
+    run = TrainRun(
+        cfg, out, sigma, dataset, samples, val, test, refine_extra, line_extra, line_meta, progress
+    )
     run.init, run.stages, run.device = model, chosen, training_device(device)
     run.steps = Steps(out / STEPS_FILE, log=run.log)
     threads_before = torch.get_num_threads()
@@ -244,13 +177,16 @@ def train(
                 run.train,
                 refine_extra if run.trains("first") else [],
                 base_epoch=state["best_epoch"],
-                data=_names(refine_meta),
+                data=supplement_names(refine_meta),
                 log=run.log,
                 progress=progress,
                 device=run.device,
             )
             stages = _later_stages(run, state, first_path)
-            return _finish(run, state, first_path, {"adapt": (None, adapt_history), **stages})
+            results = finish(run, state, first_path, {"adapt": (None, adapt_history), **stages})
+            return TrainResult(
+                out, state["best_epoch"], state["epoch"], state["stopped"], state["history"], results
+            )
         finally:
             torch.set_num_threads(threads_before)
 
@@ -284,11 +220,6 @@ def _record(root: Path, info: dict[str, Any]) -> dict[str, Any]:
     )
 
 
-def _names(supplements: list[dict[str, Any]]) -> list[str]:
-    """Supplements as a run compares them: name and version of each."""
-    return [f"{d.get('name')} v{d.get('version')}" for d in supplements]
-
-
 def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> None:
     """ConfigError unless the run ``saved`` settings describe may resume with ``cfg``."""
     now = cfg.model_dump(mode="json")
@@ -301,11 +232,14 @@ def _check_resumable(saved: dict[str, Any], cfg: TrainConfig, path: Path) -> Non
             )
 
 
-def _check_same_supplements(payload: dict[str, Any], run: _Run, path: Path) -> None:
+def _check_same_supplements(payload: dict[str, Any], run: TrainRun, path: Path) -> None:
     """ConfigError unless the run in ``payload`` trained its first epochs on ``run``'s supplements."""
     # the second-stage supplements count when they trained the first epochs too
     for key in ("supplements", "refine_supplements")[: 1 + bool(run.cfg.other_renderer_repeats)]:
-        was, now_names = _names(payload["meta"]["dataset"].get(key, [])), _names(run.dataset[key])
+        was, now_names = (
+            supplement_names(payload["meta"]["dataset"].get(key, [])),
+            supplement_names(run.dataset[key]),
+        )
         if was != now_names:
             raise ConfigError(
                 f"{path}: holds a run trained with supplements {was or 'none'}, not {now_names or 'none'}; "
@@ -313,7 +247,7 @@ def _check_same_supplements(payload: dict[str, Any], run: _Run, path: Path) -> N
             )
 
 
-def _kept_first_stage(run: _Run) -> dict[str, Any]:
+def _kept_first_stage(run: TrainRun) -> dict[str, Any]:
     """The init model's first stage as the run's ``best.pt``, untrained; returns the state."""
     init = run.init
     meta = {**init.meta, "dataset": run.dataset, "train_config": run.cfg.model_dump(mode="json")}
@@ -330,7 +264,7 @@ def _kept_first_stage(run: _Run) -> dict[str, Any]:
     )
 
 
-def _first_stage(run: _Run, resume: bool) -> dict[str, Any]:
+def _first_stage(run: TrainRun, resume: bool) -> dict[str, Any]:
     """Train the first stage's epochs (resuming ``last.pt``), the best in ``best.pt``; returns the state. From
     an init model: its first stage trains on (:func:`~.init.first_stage_settings`), or is kept as it is."""
     if run.kept("first"):
@@ -445,7 +379,7 @@ def _start(record: dict[str, Any] | None) -> str:
     return f"{record['model']} (sha256 {record['sha256'][:16]}, stages {','.join(record['stages'])})"
 
 
-def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[str, tuple[Any, list]]:
+def _later_stages(run: TrainRun, state: dict[str, Any], first_path: Path) -> dict[str, tuple[Any, list]]:
     """Train the later stages the settings enable; returns each one's network (None when off) and history."""
     cfg, out = run.cfg, run.out
     # what the later stages' negatives come from: a changed first stage trains them again
@@ -463,7 +397,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
         if id(samples) not in found:
             first, _, _ = load_checkpoint(first_path)
             # a step: the first stage's detections on these images, kept in steps.json for a later run
-            key = key_of(_weights_key(first), [str(s.path) for s in samples], cfg.refine.negative_score)
+            key = key_of(weights_key(first), [str(s.path) for s in samples], cfg.refine.negative_score)
 
             def mine() -> list:
                 if run.kept("first"):  # the model's own file (faster), read as the network below reads:
@@ -519,7 +453,7 @@ def _later_stages(run: _Run, state: dict[str, Any], first_path: Path) -> dict[st
                 cfg.augment,
                 seed=cfg.seed,
                 negatives_of=negatives_of,
-                data=_names(run.dataset["refine_supplements"]) + negatives_from + since,
+                data=supplement_names(run.dataset["refine_supplements"]) + negatives_from + since,
                 progress=run.progress,
                 init=start,
                 device=run.device,
@@ -568,257 +502,3 @@ def _write_history(path: Path, history: list[dict[str, Any]]) -> None:
             )
 
     replace_file(path, write)
-
-
-def _weights_key(net: torch.nn.Module) -> str:
-    """The SHA-256 of a network's weights (what a step that runs it depends on)."""
-    h = hashlib.sha256()
-    for k, v in sorted(net.state_dict().items()):
-        h.update(k.encode())
-        h.update(v.detach().cpu().contiguous().numpy().tobytes())
-    return h.hexdigest()
-
-
-def _export_stages(run: _Run, stages: dict[str, tuple[Any, list]], meta: dict[str, Any]) -> dict[str, Path]:
-    """Write each later stage's ``.pt`` and ONNX file (a kept stage's file copied from the init model) and its
-    meta entry; returns the ONNX files by stage."""
-    cfg, out = run.cfg, run.out
-    for name in STAGES.values():
-        for suffix in ("onnx", "pt"):
-            (out / f"best.{name}.{suffix}").unlink(missing_ok=True)
-    int8 = model_file.int8_passes_path(out / "best.onnx")
-    files: dict[str, Path] = {}
-    for module, (key, name) in zip((refine, depth_check, crossing_point), STAGES.items(), strict=True):
-        net = stages[key][0]
-        if net is None:
-            continue
-        target = out / f"best.{name}.onnx"
-        if run.kept(key):  # byte for byte, so its SHA-256 and int8 copy stay the model's
-            replace_file(target, lambda tmp, src=run.init.files[key]: shutil.copyfile(src, tmp))
-            module.save(out / f"best.{name}.pt", net, getattr(run.init.trained_with, key))
-            files[key] = target
-        else:
-            module.save(out / f"best.{name}.pt", net, getattr(cfg, key))
-            files[key] = export_onnx(net, target)
-    if run.kept("refine") and "refine" in files:
-        meta["refiner"] = dict(run.init.meta["refiner"])
-        if "int8" in run.init.files:
-            replace_file(int8, lambda tmp: shutil.copyfile(run.init.files["int8"], tmp))
-        else:
-            int8.unlink(missing_ok=True)
-    elif "refine" in files:
-        r = cfg.refine
-        kept = {"patch_px", "iterations", "step", "quantize", "verify_power", "views", "first_pass_views"}
-        meta["refiner"] = r.model_dump(include=kept) | {
-            "shrink_above_px": list(r.shrink_above_px) if r.size else None,
-            "verify": stages["refine"][0].verify,
-            "sha256": sha256_file(files["refine"]),
-        }
-        if r.quantize == "later":  # an int8 copy beside it for the passes after the first
-            meta["refiner"] |= _int8_copy(run, files["refine"], int8)
-        else:
-            int8.unlink(missing_ok=True)
-    else:
-        int8.unlink(missing_ok=True)
-    for key, kept in (("depth_check", DEPTH_CHECK_META), ("crossing_point", {"patch_px"})):
-        if key in files:
-            own = getattr(run.init.trained_with if run.kept(key) else cfg, key)
-            entry = run.init.meta.get(key) if run.kept(key) else None
-            meta[key] = entry or own.model_dump(include=kept) | {"sha256": sha256_file(files[key])}
-    return files
-
-
-def _int8_copy(run: _Run, refine_file: Path, int8: Path) -> dict[str, Any]:
-    """The second stage's int8 copy for its later passes (a step: reused while its float file and settings
-    are the same); returns its meta entry's part."""
-    r, steps = run.cfg.refine, run.steps
-    key = key_of(
-        sha256_file(refine_file), r.model_dump(mode="json"), run.cfg.seed, _names(run.dataset["supplements"])
-    )
-    if (
-        steps.done("int8 copy", key)
-        and int8.exists()
-        and sha256_file(int8) == steps.result("int8 copy")["int8_sha256"]
-    ):
-        run.log("int8 copy: done before, reused")
-        return steps.result("int8 copy")
-    run.log("int8 copy ...")
-    patches = refine.calibration_patches(run.train, r, seed=run.cfg.seed)
-    quantize_onnx(refine_file, int8, patches)
-    run.log(f"second stage's later passes quantized to int8 ({len(patches)} calibration patches)")
-    calibrated_on = [f"{run.dataset.get('name')} train"] + _names(run.dataset["supplements"])
-    entry = {
-        "int8_sha256": sha256_file(int8),
-        "int8_calibrated_on": {"data": calibrated_on, "patches": len(patches)},
-    }
-    steps.keep("int8 copy", key, entry)
-    return entry
-
-
-def _operating_point(run: _Run, detector: Detector, meta: dict[str, Any], model_key: str) -> None:
-    """Place the score bias (score 0.5 = best F1 on val, from the RGB stages' raw scores: depth only lowers)
-    and fit the line check on val, each a step; from an init model whose first and second stage are both
-    kept, the model's own are kept."""
-    cfg, val = run.cfg, run.val
-    if run.init is not None and not any(run.trains(s) for s in SCORING_STAGES):
-        meta["score_bias"] = detector.score_bias = score_bias_of(run.init.meta)  # as the run time reads it
-        if "line_check" in run.init.meta:
-            meta["line_check"] = run.init.meta["line_check"]
-        detector.line_check = (
-            LineCheck.from_meta(meta["line_check"], "the init model") if meta.get("line_check") else None
-        )
-        run.log("operating point and line check kept: the init model's (its first and second stage are kept)")
-        return
-    if not val:
-        return
-    ids = [s.image_id for s in val]
-
-    def bias() -> float:
-        raw = predict(detector, val, threshold=CALIBRATION_FLOOR, depth=False, progress=run.progress)
-        return calibrate_score_bias(val, raw)
-
-    meta["score_bias"] = detector.score_bias = run.steps.run("operating point", key_of(model_key, ids), bias)
-    run.log(f"score bias {meta['score_bias']:+.3f} (score 0.5 = best F1 on val)")
-    if not cfg.line_check.enabled:
-        return
-    data = fitted_on(run.dataset.get("name"), run.line_supplements)
-
-    def line_check() -> dict[str, Any] | None:
-        try:
-            entry, _ = fit_line_check(
-                detector, val + run.line_extra, val, cfg.line_check, data=data, progress=run.progress
-            )
-        except UnfitLineCheck as e:  # a run too small to have false detections: the model goes without
-            run.log(f"no line check: {e}")
-            return None
-        run.log(f"line check fitted on {entry['candidates']} candidates of {entry['images']} images")
-        return entry
-
-    settings = cfg.line_check.model_dump(mode="json")
-    key = key_of(model_key, meta["score_bias"], ids, settings, data, [s.image_id for s in run.line_extra])
-    entry = run.steps.run("line check", key, line_check)
-    if entry is not None:
-        meta["line_check"] = entry
-        detector.line_check = LineCheck.from_meta(entry, str(run.out / "best.onnx"))
-
-
-def _scores(run: _Run, detector: Detector, model_key: str) -> dict[str, Any]:
-    """The shipped detector's figures (a step): each split, the first stage alone and the test split
-    without depth and against the 3D crossing points."""
-    sigma, val_samples, test_samples = run.sigma, run.val, run.test
-
-    def compute() -> dict[str, Any]:
-        results: dict[str, dict[str, float]] = {}
-        for split, samples in (("val", val_samples), ("test", test_samples)):
-            if samples:
-                results[split] = score(
-                    samples, predict(detector, samples, progress=run.progress), sigma=sigma
-                )
-        first_stage: dict[str, dict[str, float]] = {}
-        if detector.refiner is not None and test_samples:  # what the second stage adds, on the reported split
-            with first_stage_only(detector):
-                first_stage["test"] = score(test_samples, predict(detector, test_samples), sigma=sigma)
-        without_depth: dict[str, dict[str, float]] = {}
-        against_points: dict[str, dict[str, float]] = {}
-        wanted = (detector.depth_check is not None, detector.crossing_point is not None)
-        rgb_only = predict(detector, test_samples, depth=False) if test_samples and any(wanted) else []
-        if detector.depth_check is not None and test_samples:  # what the depth check adds
-            without_depth["test"] = score(test_samples, rgb_only, sigma=sigma)
-        if detector.crossing_point is not None and test_samples and test_samples[0].crossings is not None:
-            # the 3D crossing points as truth, found from RGB alone: the sight points and the stage's output
-            points = [replace(s, visible=s.crossings) for s in test_samples]
-            found = {
-                "sight points": rgb_only,
-                "crossing points": at_crossing_points(detector, test_samples, rgb_only),
-            }
-            against_points = {name: score(points, preds, sigma=sigma) for name, preds in found.items()}
-        return {
-            "results": results,
-            "first_stage": first_stage,
-            "without_depth": without_depth,
-            "points": against_points,
-        }
-
-    ids = [[s.image_id for s in val_samples], [s.image_id for s in test_samples]]
-    found = run.steps.run("scores", key_of(model_key, ids, sigma), compute)
-    for split, m in found["results"].items():
-        run.log(f"the model on {split}: {format_summary(m)}")
-    for name, m in (
-        ("first stage alone", found["first_stage"].get("test")),
-        ("without the depth check", found["without_depth"].get("test")),
-    ):
-        if m:
-            run.log(f"{name} on test: {format_summary(m)}")
-    for name, m in found["points"].items():
-        run.log(f"against the 3D crossing points on test, RGB only, {name}: {format_summary(m)}")
-    return found
-
-
-def _finish(
-    run: _Run, state: dict[str, Any], first_path: Path, stages: dict[str, tuple[Any, list]]
-) -> TrainResult:
-    """Export ``first_path`` (best or adapted) and the later stages to ONNX, place the operating point, score
-    them, draw the plots. The int8 copy, the operating point, the line check and the scores are steps kept in
-    ``steps.json``: run again after a kill, the run reuses every one whose inputs are the same."""
-    from rebar_data.perception.evaluation import plots
-
-    cfg, out, sigma, test_samples = run.cfg, run.out, run.sigma, run.test
-    net, meta, _ = load_checkpoint(first_path)
-    stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)  # the second: older files
-    meta = {k: v for k, v in meta.items() if k not in stale}
-    # the run as it finished (its later stages may have trained on other settings or data)
-    meta.update(dataset=run.dataset, train_config=cfg.model_dump(mode="json"))
-    files = _export_stages(run, stages, meta)
-    detector = Detector.load(
-        export_onnx(net, out / "best.onnx", meta), threads=cfg.threads, runtime="onnxruntime"
-    )
-    # what the steps below read: the first stage's weights and every later stage's file
-    stage_keys = {k: sha256_file(f) for k, f in files.items()}
-    int8 = model_file.int8_passes_path(out / "best.onnx")
-    if int8.exists():
-        stage_keys["int8"] = sha256_file(int8)
-    model_key = key_of(_weights_key(net), stage_keys, meta.get("refiner"), meta.get("depth_check"))
-    _operating_point(run, detector, meta, model_key)
-    found = _scores(run, detector, key_of(model_key, meta.get("score_bias"), meta.get("line_check")))
-    results = found["results"]
-    meta = {**meta, "results": results}
-    save_checkpoint(first_path, net, meta)
-    export_onnx(net, out / "best.onnx", meta)  # the file now carries its score bias and results
-    seconds = {k: float(sum(r.get("seconds", 0.0) for r in history)) for k, (_, history) in stages.items()}
-    summary_doc = {
-        "best_epoch": state["best_epoch"],
-        "epochs_run": state["epoch"],
-        "stopped_early": state["stopped"],
-        "oks_sigma": sigma,
-        "threshold": OPERATING_THRESHOLD,
-        "dataset": run.dataset,
-        "parameters": count_parameters(net),
-        "train_seconds_this_call": run.train_seconds,
-        "train_seconds_total": float(
-            sum(r.get("train_seconds", 0.0) for r in state["history"]) + sum(seconds.values())
-        ),
-        "adapt_epochs": len(stages["adapt"][1]),
-        "results": results,
-        "results_against_crossing_points": found["points"],
-        "results_first_stage": found["first_stage"],
-        "results_without_depth": found["without_depth"],
-    }
-    for key, (stage_net, history) in stages.items():
-        if key != "adapt":
-            name = "refiner" if key == "refine" else key
-            summary_doc[f"{name}_parameters"] = count_parameters(stage_net) if stage_net is not None else 0
-        summary_doc[f"{key}_seconds"] = seconds[key]
-        summary_doc[f"{key}_history"] = history
-    (out / "results.json").write_text(json.dumps(summary_doc, indent=2, sort_keys=True) + "\n")
-    if state["history"]:
-        plots.plot_history(state["history"], out / "curves.png", mosaic_epochs=cfg.augment.mosaic_epochs)
-    split = "test" if test_samples else ("val" if run.val else None)
-    if split:
-        samples = test_samples if split == "test" else run.val
-        preds = predict(detector, samples, progress=run.progress)
-        truths = [truth_of(s) for s in samples]
-        curve = (keypoint_ap(truths, preds, sigma=sigma), pixel_metrics(truths, preds))
-        title = f"{split} split, OKS sigma {sigma:g}"
-        plots.plot_pr_modes({"detections": curve}, out / "pr_curve.png", title=title)
-        plots.plot_prediction_grid(samples, preds, out / "predictions.png")
-    return TrainResult(out, state["best_epoch"], state["epoch"], state["stopped"], state["history"], results)
