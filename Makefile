@@ -127,7 +127,7 @@ clean:
 # set when missing (24 images, 5-15 minutes on 2 cores), validates and audits it, then scores the shipped
 # detector on it from RGB alone: its sight points against the labels and against the projected 3D crossing
 # points, and its crossing-point stage's points against the 3D points; and with each depth sensor model's image
-# of the scene (`rebar detect --depth-from`; predictions and metrics in $(CROSSVAL_OUT)).
+# of the scene (`rebar score --depth-from`; predictions and metrics in $(CROSSVAL_OUT)).
 CROSSVAL := crossval-planar crossval-tunnel
 CROSSVAL_OUT ?= runs/crossval
 .PHONY: crossval
@@ -140,11 +140,11 @@ crossval: setup | $(DATA)
 	  $(REBAR) dataset validate "$$ds" || exit 1; \
 	  $(REBAR) dataset audit "$$ds" || exit 1; \
 	  for tp in sight:sight crossing:sight crossing:crossing; do t=$${tp%:*}; pt=$${tp#*:}; \
-	    $(REBAR) detect "$$ds" --split test --no-depth --truth $$t --point $$pt --quiet \
+	    $(REBAR) score "$$ds" --split test --no-depth --truth $$t --point $$pt --quiet \
 	      --out $(CROSSVAL_OUT)/$$p.$$pt.parquet --metrics $(CROSSVAL_OUT)/$$p.$$t-truth.$$pt-points.json >/dev/null || exit 1; \
 	  done; \
 	  for src in structured_light active_stereo time_of_flight; do \
-	    $(REBAR) detect "$$ds" --split test --depth-from $$src --quiet --out $(CROSSVAL_OUT)/$$p.depth-$$src.parquet \
+	    $(REBAR) score "$$ds" --split test --depth-from $$src --quiet --out $(CROSSVAL_OUT)/$$p.depth-$$src.parquet \
 	      --metrics $(CROSSVAL_OUT)/$$p.depth-$$src.json >/dev/null || exit 1; \
 	  done; \
 	done

@@ -372,7 +372,7 @@ def cases(smoke: Path, images: Path, *, mounts: bool = True) -> list[Case]:
         return rebar("dataset", "validate", str(d))
 
     add("validate with Ultralytics' cache", ultralytics_cache, "ok")
-    # --- detect ---
+    # --- detect, score ---
     add(
         "detect IMAGES --out IMAGES",
         lambda w: rebar("detect", str(images), "--out", str(images)),
@@ -412,14 +412,14 @@ def cases(smoke: Path, images: Path, *, mounts: bool = True) -> list[Case]:
         return f
 
     add(
-        "detect dataset --out a user's parquet",
-        lambda w: rebar("detect", str(smoke), "--split", "test", "--out", str(user_parquet(w))),
+        "score dataset --out a user's parquet",
+        lambda w: rebar("score", str(smoke), "--split", "test", "--out", str(user_parquet(w))),
         "refused",
         protect=lambda w: [user_parquet(w)],
     )
     add(
-        "detect dataset --out a folder",
-        lambda w: rebar("detect", str(smoke), "--split", "test", "--out", str(w)),
+        "score dataset --out a folder",
+        lambda w: rebar("score", str(smoke), "--split", "test", "--out", str(w)),
         "refused",
     )
     add(
@@ -627,8 +627,8 @@ def cases(smoke: Path, images: Path, *, mounts: bool = True) -> list[Case]:
         return d
 
     add(
-        "detect a dataset with a depth image of the wrong size",
-        lambda w: rebar("detect", str(wrong_depth(w)), "--split", "test", "--out", str(w / "o.parquet")),
+        "score a dataset with a depth image of the wrong size",
+        lambda w: rebar("score", str(wrong_depth(w)), "--split", "test", "--out", str(w / "o.parquet")),
         "refused",
         check=lambda w, r: None if "depth image of 64x48" in r.err else "no line names the depth file's size",
     )

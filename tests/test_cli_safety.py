@@ -44,13 +44,15 @@ def test_every_numeric_flag_states_and_enforces_its_bounds():
         ("train", "--epochs"),
         ("detect", "--threshold"),
         ("detect", "--threads"),
+        ("score", "--threshold"),
+        ("score", "--threads"),
     }
     for name, flag, action in flags:
-        if (name, flag) == ("detect", "--oks-sigma"):
+        if (name, flag) == ("score", "--oks-sigma"):
             continue  # its own one-line check (exit 2 from main), the range in its help
         assert isinstance(action.type, bounded), (name, flag)
         assert str(action.type) in action.help, (name, flag, action.help)
-    oks = next(a for n, f, a in flags if (n, f) == ("detect", "--oks-sigma"))
+    oks = next(a for n, f, a in flags if (n, f) == ("score", "--oks-sigma"))
     assert "above 0" in oks.help
 
 
@@ -64,6 +66,7 @@ def test_every_numeric_flag_states_and_enforces_its_bounds():
         (["detect", "x", "--out", "o", "--threshold", "1.5"], "--threshold", "from 0 to 1"),
         (["detect", "x", "--out", "o", "--threshold", "nan"], "--threshold", "from 0 to 1"),
         (["detect", "x", "--out", "o", "--threads", "0"], "--threads", "from 1 to 256"),
+        (["score", "x", "--out", "o.parquet", "--threshold", "-1"], "--threshold", "from 0 to 1"),
         (["servo", "run", "s.yaml", "--out", "o", "--episodes", "-1"], "--episodes", ">= 1"),
     ],
 )

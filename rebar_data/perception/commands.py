@@ -1,4 +1,5 @@
-"""`rebar train`, `adapt`, `add-crossing-point` and `detect`: train the detector, run it."""
+"""`rebar train`, `adapt`, `add-crossing-point`, `detect` and `score`: train the detector, run it on images,
+score it on a dataset."""
 
 from __future__ import annotations
 
@@ -22,6 +23,7 @@ if TYPE_CHECKING:
 
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp")
 DETECT = "rebar detect"
+SCORE = "rebar score"
 ADAPT = "rebar adapt"
 ADD_CROSSING_POINT = "rebar add-crossing-point"
 SHIPPED = "shipped"  # `rebar train --init` without a model: the shipped one
@@ -32,8 +34,9 @@ THRESHOLD = bounded(float, 0, 1)
 THREADS = bounded(int, 1, 256)
 
 
-def _detect_wrote_predictions(path: Path) -> bool:
-    """``path`` is a predictions file `rebar detect` wrote: its mark, or (older files) its columns."""
+def _score_wrote_predictions(path: Path) -> bool:
+    """``path`` is a predictions file `rebar score` wrote: its mark (older files: `rebar detect`'s, which
+    scored datasets before), or (older still) its columns."""
     import pyarrow.parquet as pq
 
     try:
@@ -41,17 +44,19 @@ def _detect_wrote_predictions(path: Path) -> bool:
     except Exception:  # not a Parquet file at all
         return False
     meta = schema.metadata or {}
-    return meta.get(WRITTEN_BY.encode()) == DETECT.encode() or schema.names == PREDICTION_COLUMNS
+    marks = {SCORE.encode(), DETECT.encode()}
+    return meta.get(WRITTEN_BY.encode()) in marks or schema.names == PREDICTION_COLUMNS
 
 
-def _detect_wrote_metrics(path: Path) -> bool:
-    """``path`` is a metrics file `rebar detect` wrote: its mark, or (older files) its keys."""
+def _score_wrote_metrics(path: Path) -> bool:
+    """``path`` is a metrics file `rebar score` wrote: its mark (older files: `rebar detect`'s), or (older
+    still) its keys."""
     try:
         record = json.loads(path.read_text())
     except (OSError, ValueError):
         return False
     keys = {"split", "dataset", "truth", "point", "runtime"}
-    return isinstance(record, dict) and (record.get(WRITTEN_BY) == DETECT or keys <= set(record))
+    return isinstance(record, dict) and (record.get(WRITTEN_BY) in (SCORE, DETECT) or keys <= set(record))
 
 
 def _detect_wrote_overlays(folder: Path) -> bool:
@@ -180,61 +185,66 @@ def run_adapt(args: argparse.Namespace) -> None:
 
 
 def run_detect(args: argparse.Namespace) -> int:
-    from rebar_data.perception.inference.detector import Detector, resolve_model_path
+    from rebar_data.perception.inference.detector import resolve_model_path
 
     target = Path(args.input)
-    accepted = "a dataset folder, an image or a folder of images"
+    accepted = "an image or a folder of images"
     if not target.exists():
-        raise ConfigError(f"{target}: no such dataset, image or folder; accepted: {accepted}")
+        raise ConfigError(f"{target}: no such image or folder; accepted: {accepted}")
     (outputs.input_folder if target.is_dir() else outputs.input_file)(target, arg="input", what=accepted)
-    dataset = (target / "tables/samples.parquet").exists()
-    if dataset:
-        from rebar_data.perception.evaluation.data import check_depth_source
-
-        check_depth_source(args.depth_from, f"--depth-from {args.depth_from}")  # before anything is written
-        if args.flatten_behind and args.no_depth:
-            raise ConfigError(
-                "--flatten-behind reads the depth images, which --no-depth leaves out; accepted: one of the "
-                "two"
-            )
-        if args.camera is not None or args.no_exif:
-            given = f"--camera {args.camera}" if args.camera is not None else "--no-exif"
-            raise ConfigError(
-                f"{given}: a dataset's frames carry their own intrinsics; accepted: {given.split()[0]} "
-                "with an image or a folder of images"
-            )
-        _dataset_outputs(target, args)
-    else:
-        if args.flatten_behind:
-            raise ConfigError(
-                f"--flatten-behind: {target} is read without depth (images given as files have none); "
-                "accepted: --flatten-behind with a dataset that has depth images"
-            )
-        if args.metrics:
-            raise ConfigError(
-                f"--metrics {args.metrics}: images given as files have no labels to score; accepted: "
-                "--metrics with a dataset"
-            )
-        if args.coco_results:
-            raise ConfigError(
-                f"--coco-results {args.coco_results}: images given as files have no COCO annotations; "
-                "accepted: --coco-results with a dataset"
-            )
-        files = _image_files(target)
-        _images_out(target, args)
-        camera = _camera_of(args.camera)
+    if (target / "tables/samples.parquet").exists():
+        raise ConfigError(
+            f"{target}: is a dataset, which `{SCORE} {target}` scores; accepted: {accepted} to detect in"
+        )
+    files = _image_files(target)
+    _images_out(target, args)
+    camera = _camera_of(args.camera)
     resolve_model_path(args.model)  # a wrong --model is named before anything loads
-    detector = Detector.load(
+    return _detect_images(_detector_of(args), target, files, camera, args)
+
+
+def run_score(args: argparse.Namespace) -> int:
+    from rebar_data.perception.evaluation.data import check_depth_source
+    from rebar_data.perception.inference.detector import resolve_model_path
+
+    root = _dataset_input(args.dataset)
+    check_depth_source(args.depth_from, f"--depth-from {args.depth_from}")  # before anything is written
+    if args.flatten_behind and args.no_depth:
+        raise ConfigError(
+            "--flatten-behind reads the depth images, which --no-depth leaves out; accepted: one of the two"
+        )
+    _score_outputs(root, args)
+    resolve_model_path(args.model)  # a wrong --model is named before anything loads
+    return _score_dataset(_detector_of(args, flatten_behind=args.flatten_behind), root, args)
+
+
+def _dataset_input(path: str) -> Path:
+    """`rebar score`'s dataset, checked: a folder you may read, with the dataset's tables."""
+    from rebar_data.perception.evaluation.data import check_dataset
+
+    root = Path(path)
+    if root.exists():
+        outputs.input_folder(root, arg="dataset", what="a dataset folder")
+        if not (root / "tables/samples.parquet").exists():
+            raise ConfigError(
+                f"{root}: is not a dataset (it has no tables/samples.parquet); accepted: a dataset folder "
+                f"written by `rebar dataset build`, or images to detect in with `{DETECT} {root}`"
+            )
+    return check_dataset(root)
+
+
+def _detector_of(args: argparse.Namespace, *, flatten_behind: bool = False):
+    """The detector ``--model`` names, read as the flags say."""
+    from rebar_data.perception.inference.detector import Detector
+
+    return Detector.load(
         args.model,
         threads=args.threads,
         runtime=args.runtime,
         reading=args.reading,
         resample=not args.no_resample,
-        flatten_behind=args.flatten_behind,
+        flatten_behind=flatten_behind,
     )
-    if dataset:
-        return _detect_dataset(detector, target, args)
-    return _detect_images(detector, target, files, camera, args)
 
 
 def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
@@ -253,17 +263,17 @@ def _camera_of(text: str | None) -> tuple[float, float, float, float] | None:
     return camera
 
 
-def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path | None, Path | None]:
+def _score_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path | None, Path | None]:
     """``--out``, ``--metrics`` and ``--coco-results`` of a dataset's predictions (the last two None when not
-    asked for), each checked as `rebar detect` may write it."""
+    asked for), each checked as `rebar score` may write it."""
     out = Path(args.out)
     if out.suffix != ".parquet":
         raise ConfigError(
             f"--out {out}: predictions on a dataset go to a .parquet file, such as pred.parquet"
         )
     outputs.outside_inputs(out, [root], arg="--out")
-    what = "a new .parquet file, or one an earlier `rebar detect` wrote"
-    outputs.output_file(out, arg="--out", what=what, owned=_detect_wrote_predictions)
+    what = "a new .parquet file, or one an earlier `rebar score` wrote"
+    outputs.output_file(out, arg="--out", what=what, owned=_score_wrote_predictions)
     if args.oks_sigma is not None and not args.oks_sigma > 0:
         raise ConfigError(
             f"--oks-sigma {args.oks_sigma} is not accepted; accepted: a number above 0, such as 0.04"
@@ -271,8 +281,8 @@ def _dataset_outputs(root: Path, args: argparse.Namespace) -> tuple[Path, Path |
     metrics = None
     if args.metrics:
         outputs.outside_inputs(Path(args.metrics), [root], arg="--metrics")
-        what = "a new JSON file, or one an earlier `rebar detect` wrote"
-        metrics = outputs.output_file(args.metrics, arg="--metrics", what=what, owned=_detect_wrote_metrics)
+        what = "a new JSON file, or one an earlier `rebar score` wrote"
+        metrics = outputs.output_file(args.metrics, arg="--metrics", what=what, owned=_score_wrote_metrics)
         if metrics.resolve() == out.resolve():
             raise ConfigError(f"--metrics {metrics}: is --out as well; accepted: another file than --out")
     return out, metrics, _coco_results_output(root, args, [out, metrics])
@@ -300,7 +310,7 @@ def _coco_results_output(root: Path, args: argparse.Namespace, others: list[Path
             "--coco-results with --point sight and --truth sight (the defaults)"
         )
     outputs.outside_inputs(path, [root, *([args.model] if args.model else [])], arg="--coco-results")
-    what = "a new JSON file, or COCO results an earlier `rebar detect` wrote"
+    what = "a new JSON file, or COCO results an earlier `rebar score` wrote"
     path = outputs.output_file(path, arg="--coco-results", what=what, owned=is_coco_results)
     for other, flag in zip(others, ("--out", "--metrics"), strict=True):
         if other is not None and path.resolve() == Path(other).resolve():
@@ -319,21 +329,21 @@ def _write_coco_results(path: Path, image_ids: list[int], preds: list) -> None:
         print(f"note: {path}: no detections, an empty list (COCO.loadRes refuses it)", file=sys.stderr)
 
 
-def _write_marked_predictions(path: Path, image_ids: list[str], preds: list) -> None:
-    """The predictions file, with `rebar detect`'s mark in its Parquet metadata."""
+def _write_marked_predictions(path: Path, image_ids: list[str], preds: list, *, command: str) -> None:
+    """The predictions file, with ``command``'s mark in its Parquet metadata."""
     import pyarrow.parquet as pq
 
     from rebar_data.perception.evaluation.evaluate import write_predictions
 
     def write(tmp: Path) -> None:
         table = pq.read_table(write_predictions(tmp, image_ids, preds))
-        meta = {**(table.schema.metadata or {}), WRITTEN_BY.encode(): DETECT.encode()}
+        meta = {**(table.schema.metadata or {}), WRITTEN_BY.encode(): command.encode()}
         pq.write_table(table.replace_schema_metadata(meta), tmp)
 
     outputs.replace_file(path, write)
 
 
-def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
+def _score_dataset(detector, root: Path, args: argparse.Namespace) -> int:
     from rebar_data.perception.evaluation.bench import runtime_description
     from rebar_data.perception.evaluation.coco_results import coco_image_ids
     from rebar_data.perception.evaluation.data import SPLITS, stated_oks_sigma
@@ -347,17 +357,17 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
     threshold = args.threshold if args.threshold is not None else LOW_THRESHOLD
     point = args.point or args.truth
     with ExitStack() as held:
-        out, metrics_path, coco_path = _dataset_outputs(root, args)
-        held.enter_context(outputs.OutputLock(out, command=DETECT))
+        out, metrics_path, coco_path = _score_outputs(root, args)
+        held.enter_context(outputs.OutputLock(out, command=SCORE))
         if metrics_path is not None:
-            held.enter_context(outputs.OutputLock(metrics_path, command=DETECT, arg="--metrics"))
+            held.enter_context(outputs.OutputLock(metrics_path, command=SCORE, arg="--metrics"))
         coco_ids: list[int] = []
         if coco_path is not None:
-            held.enter_context(outputs.OutputLock(coco_path, command=DETECT, arg="--coco-results"))
+            held.enter_context(outputs.OutputLock(coco_path, command=SCORE, arg="--coco-results"))
             # each image's id in annotations/<split>.json, read before any work: a bad file writes nothing
             files = [s.path.relative_to(root).as_posix() for s in samples]
             coco_ids = coco_image_ids(root, args.split, files)
-        _dataset_outputs(root, args)  # again under the locks: another writer may have finished meanwhile
+        _score_outputs(root, args)  # again under the locks: another writer may have finished meanwhile
         depth, progress = not args.no_depth, not args.quiet
         preds = predict(
             detector,
@@ -368,7 +378,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
             progress=progress,
             point=point,
         )
-        _write_marked_predictions(out, [s.image_id for s in samples], preds)
+        _write_marked_predictions(out, [s.image_id for s in samples], preds, command=SCORE)
         if coco_path is not None:
             _write_coco_results(coco_path, coco_ids, preds)
         sigma = args.oks_sigma if args.oks_sigma is not None else stated_oks_sigma(root)
@@ -386,7 +396,7 @@ def _detect_dataset(detector, root: Path, args: argparse.Namespace) -> int:
             runtime = "PyTorch, float32" if torch else runtime_description(detector.backend)
             record = dict(split=args.split, dataset=str(root), truth=args.truth, point=point, runtime=runtime)
             record |= dict(reading=detector.reading, resample=detector.resample)
-            record |= {WRITTEN_BY: DETECT, **metrics}
+            record |= {WRITTEN_BY: SCORE, **metrics}
             if census is not None:
                 record["false_detections"] = census
             text = json.dumps(record, indent=2) + "\n"
@@ -450,7 +460,7 @@ def _detect_images(detector, target: Path, files: list[Path], camera, args: argp
                 det, cameras[f.stem] = _detect_image(detector, f, rgb, out, camera, threshold, args)
                 preds.append(det)
                 ids.append(f.stem)
-            _write_marked_predictions(out / "detections.parquet", ids, preds)
+            _write_marked_predictions(out / "detections.parquet", ids, preds, command=DETECT)
             # the intrinsics each image was read with, beside its detections (COCO corner origin, pixels)
             (out / "cameras.json").write_text(json.dumps(cameras, indent=2) + "\n")
             outputs.mark_output(out, DETECT)
@@ -476,7 +486,7 @@ def _detect_image(detector, f: Path, rgb: np.ndarray, out: Path, camera, thresho
         used, how = None, "the training camera's field of view" + (", --no-exif" if args.no_exif else "")
         if found is not None:
             used, how = found.camera, f"EXIF {found.focal_35mm:g} mm equivalent, fx {found.camera[0]:.0f} px"
-    det = detector.detect(rgb, threshold=threshold, camera=used, point=args.point or "sight")
+    det = detector.detect(rgb, threshold=threshold, camera=used, point=args.point)
     overlay = draw_overlay(rgb, det, threshold=threshold, scale=2 if max(rgb.shape[:2]) <= 1024 else 1)
     cv2.imwrite(str(out / f"{f.stem}.png"), cv2.cvtColor(overlay, cv2.COLOR_RGB2BGR))
     h, w = rgb.shape[:2]
@@ -549,46 +559,62 @@ def register(sub: argparse._SubParsersAction) -> None:
     p.add_argument("--quiet", action="store_true", help=quiet)
     p.set_defaults(func=run_adapt)
 
-    d = sub.add_parser("detect", help="detect crossings in a dataset split (Parquet) or in images (overlays)")
-    d.add_argument("input", help="a dataset folder, an image, or a folder of images")
-    d.add_argument("--out", required=True, help="PRED.parquet for a dataset; a folder for images")
-    d.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="default test")
-    d.add_argument("--model", help="model file (.onnx, .pt) or run folder (default: the shipped model)")
-    low = f"lowest score written, {THRESHOLD} (default 0.05 for a dataset, 0.5 for images)"
-    d.add_argument("--threshold", type=THRESHOLD, help=low)
-    d.add_argument("--metrics", help="dataset: also write the split's metrics to this JSON file")
+    d = sub.add_parser("detect", help="detect crossings in images: overlays and their detections")
+    d.add_argument("input", metavar="IMAGES", help="an image, or a folder of images")
     d.add_argument(
-        "--coco-results",
-        metavar="FILE.json",
-        help="dataset: also write the detections as COCO keypoint results (image_id the split's id in "
-        "annotations/<split>.json) for pycocotools' COCO.loadRes and COCOeval",
+        "--out", required=True, help="folder for the overlays, detections.parquet and cameras.json"
     )
-    d.add_argument("--no-depth", action="store_true", help="leave the dataset's depth images out")
-    depth_from = (
-        "dataset: the depth read: sensor, the dataset's depth sensor (default; its exact depth before 2.3.0), "
-        "exact, or structured_light, active_stereo or time_of_flight, that model's image of the exact depth"
-    )
-    d.add_argument("--depth-from", default="sensor", metavar="SOURCE", help=depth_from)
-    behind = "dataset: take what lies far behind the front bars (lower mat, ground) out of each image"
-    d.add_argument("--flatten-behind", action="store_true", help=behind)
-    d.add_argument("--oks-sigma", type=float, help="dataset: score OKS AP at this sigma (above 0)")
+    _model_flags(d)
+    d.add_argument("--threshold", type=THRESHOLD, help=f"lowest score written, {THRESHOLD} (default 0.5)")
     points = ("sight", "crossing")
-    truth = "dataset: score against the labels' sight points (default) or the projected 3D crossing points"
-    d.add_argument("--truth", default="sight", choices=points, help=truth)
-    point = "each detection's u, v: sight or 3D crossing point (default: as --truth; images: sight)"
-    d.add_argument("--point", choices=points, help=point)
-    d.add_argument("--threads", type=THREADS, default=2, help=f"CPU threads, {THREADS} (default 2)")
-    runtime = "auto (OpenVINO in bfloat16 where the CPU has it, else ONNX Runtime), onnxruntime or openvino"
-    d.add_argument("--runtime", choices=RUNTIMES, default="auto", help=runtime)
-    reading = "mirrored (the image and its mirror image, the mean; the default) or single (once, faster)"
-    d.add_argument("--reading", choices=READINGS, default="mirrored", help=reading)
+    point = "each detection's u, v: the sight point (default) or where the 3D crossing point projects"
+    d.add_argument("--point", choices=points, default="sight", help=point)
     d.add_argument(
         "--camera",
         metavar="FX,FY,CX,CY",
-        help="images: the intrinsics in pixels (default: from EXIF, else the training field of view); a "
-        f"frame whose focal length differs over {TOLERANCE * 100:.0f}%% is read resized to the model's",
+        help="the intrinsics in pixels (default: from EXIF, else the training field of view); a frame whose "
+        f"focal length differs over {TOLERANCE * 100:.0f}%% is read resized to the model's",
     )
-    d.add_argument("--no-exif", action="store_true", help="images: leave the EXIF focal length unread")
-    d.add_argument("--no-resample", action="store_true", help="read every frame at its own scale")
+    d.add_argument("--no-exif", action="store_true", help="leave the EXIF focal length unread")
     d.add_argument("--quiet", action="store_true", help="no progress bar")
     d.set_defaults(func=run_detect)
+
+    s = sub.add_parser("score", help="detect crossings in a dataset split and score them against its labels")
+    s.add_argument("dataset", help="dataset folder ROOT/<name>/v<version>/, as `rebar dataset build` prints")
+    s.add_argument("--out", required=True, help="PRED.parquet: one row a detection")
+    s.add_argument("--split", default="test", choices=("train", "val", "test", "all"), help="default test")
+    _model_flags(s)
+    s.add_argument("--threshold", type=THRESHOLD, help=f"lowest score written, {THRESHOLD} (default 0.05)")
+    s.add_argument("--metrics", help="also write the split's metrics to this JSON file")
+    s.add_argument(
+        "--coco-results",
+        metavar="FILE.json",
+        help="also write the detections as COCO keypoint results (image_id the split's id in "
+        "annotations/<split>.json) for pycocotools' COCO.loadRes and COCOeval",
+    )
+    s.add_argument("--no-depth", action="store_true", help="leave the dataset's depth images out")
+    depth_from = (
+        "the depth read: sensor, the dataset's depth sensor (default; its exact depth before 2.3.0), exact, or "
+        "structured_light, active_stereo or time_of_flight, that model's image of the exact depth"
+    )
+    s.add_argument("--depth-from", default="sensor", metavar="SOURCE", help=depth_from)
+    behind = "take what lies far behind the front bars (lower mat, ground) out of each image"
+    s.add_argument("--flatten-behind", action="store_true", help=behind)
+    s.add_argument("--oks-sigma", type=float, help="score OKS AP at this sigma (above 0)")
+    truth = "score against the labels' sight points (default) or the projected 3D crossing points"
+    s.add_argument("--truth", default="sight", choices=points, help=truth)
+    point = "each detection's u, v: sight or 3D crossing point (default: as --truth)"
+    s.add_argument("--point", choices=points, help=point)
+    s.add_argument("--quiet", action="store_true", help="no progress bar")
+    s.set_defaults(func=run_score)
+
+
+def _model_flags(parser: argparse.ArgumentParser) -> None:
+    """The flags `rebar detect` and `rebar score` share: the model and how it runs."""
+    parser.add_argument("--model", help="model file (.onnx, .pt) or run folder (default: the shipped model)")
+    parser.add_argument("--threads", type=THREADS, default=2, help=f"CPU threads, {THREADS} (default 2)")
+    runtime = "auto (OpenVINO in bfloat16 where the CPU has it, else ONNX Runtime), onnxruntime or openvino"
+    parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=runtime)
+    reading = "mirrored (the image and its mirror image, the mean; the default) or single (once, faster)"
+    parser.add_argument("--reading", choices=READINGS, default="mirrored", help=reading)
+    parser.add_argument("--no-resample", action="store_true", help="read every frame at its own scale")

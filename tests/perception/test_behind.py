@@ -99,7 +99,7 @@ def test_the_shipped_model_reads_a_rendered_frame_with_depth_through_it(
     assert seen == [1, 1]
 
 
-def test_detect_flattens_a_datasets_frames_when_asked_and_refuses_it_without_depth(
+def test_score_flattens_a_datasets_frames_when_asked_and_refuses_it_without_depth(
     drawn_dataset, tmp_path, capsys, monkeypatch
 ):
     from rebar_data.cli import main
@@ -108,15 +108,19 @@ def test_detect_flattens_a_datasets_frames_when_asked_and_refuses_it_without_dep
         pytest.skip("no model shipped yet (make train ships one)")
     seen = []
     monkeypatch.setattr(infer, "flatten_behind", lambda image, depth_m: seen.append(depth_m.shape) or image)
-    args = ["detect", str(drawn_dataset), "--split", "test", "--threads", "1"]
+    args = ["score", str(drawn_dataset), "--split", "test", "--threads", "1"]
     assert main([*args, "--out", str(tmp_path / "plain.parquet")]) == 0 and not seen
     assert main([*args, "--out", str(tmp_path / "flat.parquet"), "--flatten-behind"]) == 0
     assert len(seen) == 2  # each test frame, with its depth image
     capsys.readouterr()
-    for extra, says in ((["--no-depth"], "which --no-depth leaves out"), ([], "read without depth")):
-        target = str(drawn_dataset) if extra else str(next((drawn_dataset / "images").rglob("*.png")))
-        out = tmp_path / "refused"
-        assert main(["detect", target, "--out", str(out), "--flatten-behind", *extra]) == 2
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and says in err[0], err
-        assert not out.exists()
+    out = tmp_path / "refused"
+    assert main(["score", str(drawn_dataset), "--out", str(out), "--flatten-behind", "--no-depth"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "which --no-depth leaves out" in err[0], err
+    # images given as files have no depth: `rebar detect` takes no --flatten-behind
+    image = str(next((drawn_dataset / "images").rglob("*.png")))
+    with pytest.raises(SystemExit) as e:
+        main(["detect", image, "--out", str(out), "--flatten-behind"])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and "unrecognized arguments: --flatten-behind" in err[-1], err
+    assert not out.exists()

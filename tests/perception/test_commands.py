@@ -15,14 +15,12 @@ from rebar_data.perception.evaluation.false_detections import PLACES
 from .conftest import TINY_TRAIN
 
 
-def test_detect_on_a_dataset_split_writes_one_row_per_prediction(
-    trained_run, drawn_dataset, tmp_path, capsys
-):
+def test_score_on_a_dataset_split_writes_one_row_per_prediction(trained_run, drawn_dataset, tmp_path, capsys):
     out = tmp_path / "pred.parquet"
     metrics = tmp_path / "m.json"
     rc = main(
         [
-            "detect",
+            "score",
             str(drawn_dataset),
             "--split",
             "test",
@@ -51,7 +49,7 @@ def test_detect_on_a_dataset_split_writes_one_row_per_prediction(
 
     assert json.loads(metrics.read_text())["runtime"] == runtime_description("auto")
     with pytest.raises(SystemExit) as e:  # argparse names the accepted runtimes
-        main(["detect", str(drawn_dataset), "--out", str(out), "--runtime", "tensorrt"])
+        main(["score", str(drawn_dataset), "--out", str(out), "--runtime", "tensorrt"])
     err = capsys.readouterr().err
     assert e.value.code == 2 and "invalid choice: 'tensorrt'" in err and "onnxruntime" in err, err
 
@@ -114,10 +112,22 @@ def test_train_command_runs_from_a_settings_file(drawn_dataset, tmp_path, capsys
     assert rc == 2 and "gone" in capsys.readouterr().err and not (tmp_path / "r/last.pt").exists()
 
 
-def test_user_errors_are_one_line_and_exit_2(tmp_path, capsys):
-    assert main(["detect", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.parquet")]) == 2
+def test_user_errors_are_one_line_and_exit_2(drawn_dataset, tmp_path, capsys):
+    assert main(["detect", str(tmp_path / "nowhere"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "no such dataset, image or folder" in err[0]
+    assert len(err) == 1 and "no such image or folder" in err[0]
+    assert main(["score", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.parquet")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "no such dataset folder" in err[0]
+    # each command names the other where it is given what the other reads
+    assert main(["detect", str(drawn_dataset), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"`rebar score {drawn_dataset}` scores" in err[0], err
+    images = drawn_dataset / "images" / "test"
+    assert main(["score", str(images), "--out", str(tmp_path / "p.parquet")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is not a dataset" in err[0] and f"`rebar detect {images}`" in err[0], err
+    assert not (tmp_path / "o").exists() and not (tmp_path / "p.parquet").exists()
     bad = tmp_path / "bad.yaml"
     bad.write_text("epochs: -3\n")
     (tmp_path / "ds").mkdir()
@@ -141,10 +151,10 @@ def test_train_checks_its_settings_file_whole_even_where_a_flag_overrides(drawn_
         assert not (tmp_path / "runs").exists()
 
 
-def test_detect_scores_at_a_given_oks_sigma(drawn_dataset, tmp_path, capsys):
+def test_score_at_a_given_oks_sigma(drawn_dataset, tmp_path, capsys):
     def run(*extra: str) -> dict:
         metrics = tmp_path / "m.json"
-        args = ["detect", str(drawn_dataset), "--out", str(tmp_path / "p.parquet"), "--metrics", str(metrics)]
+        args = ["score", str(drawn_dataset), "--out", str(tmp_path / "p.parquet"), "--metrics", str(metrics)]
         assert main([*args, "--no-depth", "--quiet", *extra]) == 0  # the shipped model
         return json.loads(metrics.read_text())
 
@@ -157,18 +167,16 @@ def test_detect_scores_at_a_given_oks_sigma(drawn_dataset, tmp_path, capsys):
     assert loose["pck2"] == stated["pck2"]  # pixel figures do not depend on the sigma
     assert loose["oks_ap"] > stated["oks_ap"]  # a looser sigma forgives larger errors
     capsys.readouterr()
-    assert main(["detect", str(drawn_dataset), "--out", str(tmp_path / "q.parquet"), "--oks-sigma", "0"]) == 2
+    assert main(["score", str(drawn_dataset), "--out", str(tmp_path / "q.parquet"), "--oks-sigma", "0"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--oks-sigma 0.0 is not accepted" in err[0]
     assert not (tmp_path / "q.parquet").exists()
 
 
-def test_detect_writes_coco_results_that_the_cards_cocoeval_snippet_scores_as_written(
-    drawn_dataset, tmp_path
-):
+def test_score_writes_coco_results_that_the_cards_cocoeval_snippet_scores_as_written(drawn_dataset, tmp_path):
     """--coco-results: each detection with its image's integer id in annotations/<split>.json (what a user
     mapped from the string key by hand before), scored by the dataset card's snippet without a change as
-    `rebar detect` scores the detections itself."""
+    `rebar score` scores the detections itself."""
     import pandas as pd
 
     from rebar_data.dataset.writers.card import cocoeval_snippet, max_visible_per_image
@@ -186,7 +194,7 @@ def test_detect_writes_coco_results_that_the_cards_cocoeval_snippet_scores_as_wr
     (dataset / "annotations/val.json").write_text(json.dumps(gt))
 
     out, results, metrics = tmp_path / "pred.parquet", tmp_path / "results.json", tmp_path / "m.json"
-    args = ["detect", str(dataset), "--split", "val", "--out", str(out), "--coco-results", str(results)]
+    args = ["score", str(dataset), "--split", "val", "--out", str(out), "--coco-results", str(results)]
     assert main([*args, "--metrics", str(metrics), "--no-depth", "--quiet"]) == 0  # the shipped model
     written = json.loads(results.read_text())
     preds = pq.read_table(out).to_pandas()
@@ -206,7 +214,7 @@ def test_detect_writes_coco_results_that_the_cards_cocoeval_snippet_scores_as_wr
 
     work = tmp_path / "eval"  # the snippet reads DATASET/annotations and RESULTS, from where it runs
     (work / "annotations").mkdir(parents=True)
-    # the visible crossings alone, as `rebar dataset build` writes its COCO files and `rebar detect` scores
+    # the visible crossings alone, as `rebar dataset build` writes its COCO files and `rebar score` scores
     # (the drawn dataset's files also hold the occluded ones)
     gt["annotations"] = [a for a in gt["annotations"] if a["keypoints"][2] == 2]
     (work / "annotations/val.json").write_text(json.dumps(gt))

@@ -57,11 +57,11 @@ def test_an_unknown_depth_source_is_refused_naming_the_accepted_ones(drawn_datas
         sample_depth(s, "lidar")
 
 
-def test_detect_refuses_an_unknown_depth_source_in_one_line(drawn_dataset, tmp_path, capsys):
+def test_score_refuses_an_unknown_depth_source_in_one_line(drawn_dataset, tmp_path, capsys):
     from rebar_data.cli import main
 
     out = tmp_path / "pred.parquet"
-    assert main(["detect", str(drawn_dataset), "--out", str(out), "--depth-from", "lidar", "--quiet"]) == 2
+    assert main(["score", str(drawn_dataset), "--out", str(out), "--depth-from", "lidar", "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "--depth-from lidar" in err[0] and "structured_light" in err[0]
     assert not out.exists()

@@ -1,4 +1,5 @@
-"""`rebar detect`: never writes into its input or over what it did not write, and reads past a bad image."""
+"""`rebar detect` and `rebar score`: never write into their input or over what they did not write; `rebar detect`
+reads past a bad image."""
 
 from __future__ import annotations
 
@@ -107,7 +108,7 @@ def test_an_unreadable_image_is_named_and_the_rest_are_detected(photos, model, t
 
 def test_dataset_outputs_are_checked_before_any_work(drawn_dataset, model, tmp_path, capsys, read_only):
     def detect(*args: str) -> int:
-        return main(["detect", str(drawn_dataset), "--model", str(model), "--no-depth", "--quiet", *args])
+        return main(["score", str(drawn_dataset), "--model", str(model), "--no-depth", "--quiet", *args])
 
     folder = tmp_path / "pred.parquet"
     folder.mkdir()
@@ -138,11 +139,13 @@ def test_dataset_outputs_are_checked_before_any_work(drawn_dataset, model, tmp_p
     assert "--metrics" in (err := _one_line(capsys)) and "did not write" in err, err
     assert notes.read_text() == '{"mine": true}\n' and not out.exists()
 
-    # its own files are replaced, and say who wrote them
+    # its own files are replaced, and say who wrote them; so are those `rebar detect` wrote (it scored before)
+    pq.write_table(pa.table({"x": [1]}).replace_schema_metadata({b"written_by": b"rebar detect"}), out)
+    metrics.write_text('{"written_by": "rebar detect"}\n')
     for _ in range(2):
         assert detect("--out", str(out), "--metrics", str(metrics), "--split", "val") == 0
-    assert pq.read_schema(out).metadata[b"written_by"] == b"rebar detect"
-    assert json.loads(metrics.read_text())["written_by"] == "rebar detect"
+    assert pq.read_schema(out).metadata[b"written_by"] == b"rebar score"
+    assert json.loads(metrics.read_text())["written_by"] == "rebar score"
     assert sorted(p.name for p in tmp_path.iterdir()) == [
         "file", "m.json", "model", "notes.json", "p.parquet", "pred.parquet", "ro", "theirs.parquet"
     ]  # fmt: skip
@@ -150,7 +153,7 @@ def test_dataset_outputs_are_checked_before_any_work(drawn_dataset, model, tmp_p
 
 def test_coco_results_are_checked_before_any_work_and_written_whole(drawn_dataset, model, tmp_path, capsys):
     def detect(*args: str, dataset=drawn_dataset) -> int:
-        return main(["detect", str(dataset), "--model", str(model), "--no-depth", "--quiet", *args])
+        return main(["score", str(dataset), "--model", str(model), "--no-depth", "--quiet", *args])
 
     out, coco = tmp_path / "p.parquet", tmp_path / "coco.json"
     refused = [
@@ -168,8 +171,10 @@ def test_coco_results_are_checked_before_any_work_and_written_whole(drawn_datase
     for extra, words in refused:
         assert detect("--out", str(out), *extra) == 2, extra
         assert "--coco-results" in (err := _one_line(capsys)) and words in err, (extra, err)
-    assert main(["detect", str(model.parent), "--out", str(tmp_path / "o"), "--coco-results", str(coco)]) == 2
-    assert "--coco-results" in (err := _one_line(capsys)) and "with a dataset" in err, err
+    with pytest.raises(SystemExit) as e:  # images have no COCO annotations: `rebar detect` has no such flag
+        main(["detect", str(model.parent), "--out", str(tmp_path / "o"), "--coco-results", str(coco)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert e.value.code == 2 and "unrecognized arguments: --coco-results" in err[-1], err
     theirs = tmp_path / "theirs.json"
     theirs.write_text('[{"image_id": 1, "bbox": [0, 0, 1, 1]}]\n')
     assert detect("--out", str(out), "--coco-results", str(theirs)) == 2

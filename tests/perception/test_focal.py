@@ -123,8 +123,7 @@ def test_the_depth_image_is_resampled_with_the_frame(monkeypatch):
 
 def test_detect_on_images_takes_the_camera_and_answers_in_the_images_pixels(rendered_frame, tmp_path, capsys):
     """`rebar detect IMAGE --camera FX,FY,CX,CY`: the rendered frame saved at 1280x960 with its intrinsics
-    gives its crossings in its own pixels; a malformed camera, or one beside a dataset, is refused in one
-    line with nothing written."""
+    gives its crossings in its own pixels; a malformed camera is refused in one line with nothing written."""
     import cv2
     import pyarrow.parquet as pq
 
@@ -150,10 +149,11 @@ def test_detect_on_images_takes_the_camera_and_answers_in_the_images_pixels(rend
 
 
 def test_a_camera_beside_a_dataset_is_refused(drawn_dataset, tmp_path, capsys):
+    """A dataset's frames carry their own intrinsics: `rebar score` takes no --camera."""
     from rebar_data.cli import main
 
-    _shipped()
     out = tmp_path / "p.parquet"
-    assert main(["detect", str(drawn_dataset), "--out", str(out), "--camera", "525,525,320,240"]) == 2
+    with pytest.raises(SystemExit) as e:
+        main(["score", str(drawn_dataset), "--out", str(out), "--camera", "525,525,320,240"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "carry their own intrinsics" in err[0] and not out.exists(), err
+    assert e.value.code == 2 and "unrecognized arguments: --camera" in err[-1] and not out.exists(), err

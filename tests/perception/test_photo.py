@@ -119,12 +119,12 @@ def test_detect_reads_a_photographs_focal_length_from_its_exif(rendered_frame, t
 
 
 def test_no_exif_beside_a_dataset_is_refused(drawn_dataset, tmp_path, capsys):
+    """A dataset's frames carry their own intrinsics: `rebar score` takes no --no-exif."""
     from rebar_data.cli import main
 
-    if not infer.SHIPPED_MODEL.exists():
-        pytest.skip("no model shipped yet (make train ships one)")
     out = tmp_path / "p.parquet"
-    assert main(["detect", str(drawn_dataset), "--out", str(out), "--no-exif"]) == 2
+    with pytest.raises(SystemExit) as e:
+        main(["score", str(drawn_dataset), "--out", str(out), "--no-exif"])
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "--no-exif: a dataset's frames carry their own intrinsics" in err[0], err
+    assert e.value.code == 2 and "unrecognized arguments: --no-exif" in err[-1], err
     assert not out.exists()

@@ -46,12 +46,12 @@ def test_crossing_truth_is_the_3d_crossing_point_projected_by_the_frames_camera(
     assert moved.max() > 0.3 and np.median(moved) < 10.0
 
 
-def test_detect_scores_against_the_chosen_truth(rendered, tmp_path, capsys):
+def test_score_scores_against_the_chosen_truth(rendered, tmp_path, capsys):
     figures = {}
     for truth, point in (("sight", "sight"), ("crossing", "sight"), ("crossing", None)):
         name = f"{truth}-{point}"
         metrics = tmp_path / f"{name}.json"
-        args = ["detect", str(rendered), "--split", "all", "--no-depth", "--quiet", "--truth", truth]
+        args = ["score", str(rendered), "--split", "all", "--no-depth", "--quiet", "--truth", truth]
         args += ["--out", str(tmp_path / f"{name}.parquet"), "--metrics", str(metrics)]
         assert main(args + (["--point", point] if point else [])) == 0
         figures[name] = json.loads(metrics.read_text())

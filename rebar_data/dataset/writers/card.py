@@ -55,7 +55,7 @@ def cocoeval_snippet(oks_sigma: float, *, max_visible: int | None, split: str = 
             "from pycocotools.cocoeval import COCOeval",
             "",
             'DATASET = "."  # this folder',
-            f'RESULTS = "{PREDICTIONS}"  # `rebar detect DATASET --split {split} --coco-results {PREDICTIONS}`',
+            f'RESULTS = "{PREDICTIONS}"  # `rebar score DATASET --split {split} --coco-results {PREDICTIONS}`',
             f'gt = COCO(f"{{DATASET}}/annotations/{split}.json")',
             f'dt = gt.loadRes(RESULTS)  # [{{"image_id": its id in {split}.json, "category_id": 1, "keypoints": [u, v, 2], "score"}}]',
             'E = COCOeval(gt, dt, iouType="keypoints")',
@@ -79,7 +79,7 @@ def cocoeval_lines(info: DatasetInfo, *, max_visible: int | None, heading: str =
         "",
         "Write your detections as COCO keypoint results (u, v in pixels with the labels' corner origin; one "
         "object per detected crossing; `image_id` the image's integer id in `annotations/<split>.json`), or "
-        f"let `rebar detect DATASET --split val --coco-results {PREDICTIONS}` write them, set `DATASET` to "
+        f"let `rebar score DATASET --split val --coco-results {PREDICTIONS}` write them, set `DATASET` to "
         "this folder and `RESULTS` to that file, and run this (`annotations/test.json` for the test split). It "
         f"scores with this dataset's sigma, {info.oks_sigma}, and counts every detection of an image:",
         "",

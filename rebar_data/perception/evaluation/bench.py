@@ -18,7 +18,7 @@ BenchFrame = tuple[np.ndarray, np.ndarray | None]  # RGB (H, W, 3) uint8 and its
 
 
 def runtime_description(runtime: str) -> str:
-    """How ``runtime`` runs here, in words (for the bench, the model card and `rebar detect`)."""
+    """How ``runtime`` runs here, in words (for the bench, the model card and `rebar score`)."""
     from rebar_data.perception.inference import model_file
 
     if model_file.resolve_runtime(runtime) == "onnxruntime":

@@ -1,4 +1,4 @@
-"""Run a detector over a dataset's images and score it, for validation, `rebar detect` and the model card."""
+"""Run a detector over a dataset's images and score it, for validation, `rebar score` and the model card."""
 
 from __future__ import annotations
 
