@@ -140,6 +140,32 @@ def ship(
     from rebar_data.perception.evaluation.gate import GATE_NAME
 
     run_dir = Path(run_dir)
+    dst = _copy(run_dir, models_dir, evaluate_on)
+    detector = Detector.load(dst, runtime="onnxruntime")  # the card's figures: float32, as trained
+    held_out: dict[str, HeldOut] = {}
+    # each dataset's scoring is a step kept in the run folder: a ship run again after a kill reuses it
+    steps = Steps(run_dir / STEPS_FILE, log=(lambda m: print(m, file=sys.stderr)) if progress else None)
+    model_key = key_of([model_file.sha256_file(f) for f in (dst, *model_file.stage_files(dst)) if f.exists()])
+    rows = evaluation_rows(
+        detector,
+        run_dir,
+        evaluate_on=evaluate_on,
+        progress=progress,
+        held_out=held_out,
+        steps=steps,
+        model_key=model_key,
+    )
+    if gate:
+        rows |= _gate_rows(detector, dst, models_dir, held_out)
+    else:
+        (models_dir / GATE_NAME).unlink(missing_ok=True)
+    _card(run_dir, models_dir, model=dst, detector=detector, rows=rows, held_out=held_out)
+    return dst
+
+
+def _copy(run_dir: Path, models_dir: Path, evaluate_on: Sequence[str | Path]) -> Path:
+    """The step ``copy``: the run's model files into ``models_dir``, once the run, its size and every dataset
+    to score on are checked; returns the shipped first stage's file."""
     src = run_dir / "best.onnx"
     if not src.exists() or not (run_dir / "results.json").exists():
         raise ConfigError(
@@ -160,33 +186,29 @@ def ship(
             replace_file(b, lambda tmp, a=a: shutil.copyfile(a, tmp))
         else:
             b.unlink(missing_ok=True)  # a model without that stage: no stale file beside it
-    detector = Detector.load(dst, runtime="onnxruntime")  # the card's figures: float32, as trained
-    held_out: dict[str, HeldOut] = {}
-    # each dataset's scoring is a step kept in the run folder: a ship run again after a kill reuses it
-    steps = Steps(run_dir / STEPS_FILE, log=(lambda m: print(m, file=sys.stderr)) if progress else None)
-    model_key = key_of([model_file.sha256_file(f) for f in (dst, *model_file.stage_files(dst)) if f.exists()])
-    rows = evaluation_rows(
-        detector,
-        run_dir,
-        evaluate_on=evaluate_on,
-        progress=progress,
-        held_out=held_out,
-        steps=steps,
-        model_key=model_key,
-    )
-    if gate:
-        rows |= _gate_rows(detector, dst, models_dir, held_out)
-    else:
-        (models_dir / GATE_NAME).unlink(missing_ok=True)
+    return dst
+
+
+def _card(
+    run_dir: Path,
+    models_dir: Path,
+    *,
+    model: Path,
+    detector: Detector,
+    rows: dict[str, dict],
+    held_out: dict[str, HeldOut],
+) -> None:
+    """The step ``card``: the card's figures and ``MODEL_CARD.md`` for ``model`` in ``models_dir``, with the
+    latency of the runtime a caller's detector runs."""
     test = f"{json.loads((run_dir / 'results.json').read_text())['dataset'].get('name')} test"
     figures = write_figures(run_dir, models_dir, held_out, frame_from=test if test in held_out else None)
     load = os.getloadavg()[0]
     frames, latency_source = latency_frames()
-    fast = Detector.load(dst)  # what a caller's detector runs: the default runtime
+    fast = Detector.load(model)  # what a caller's detector runs: the default runtime
     write_card(
         run_dir,
         models_dir / CARD_NAME,
-        model=dst,
+        model=model,
         detector=detector,
         rows=rows,
         figures=figures,
@@ -195,14 +217,13 @@ def ship(
         latency_runtime=runtime_description(fast.backend),
         load_average=load,
     )
-    return dst
 
 
 def _gate_rows(
     detector: Detector, model: Path, models_dir: Path, held_out: dict[str, HeldOut]
 ) -> dict[str, dict]:
-    """Write the regression gate's reference for ``model`` (``gate.json``) and return its card rows; the gate
-    set's detections per mode go into ``held_out`` for its PR figure."""
+    """The step ``gate``: the regression gate's reference for ``model`` (``gate.json``) written, its card rows
+    returned; the gate set's detections per mode go into ``held_out`` for its PR figure."""
     from rebar_data.perception.evaluation import gate
     from rebar_data.perception.training.gate_reference import write_reference
 
