@@ -1,7 +1,14 @@
 """The detector: ``Detector.load(path).detect(rgb) -> (N, 3)`` u, v, score, best first (COCO's corner origin).
 
 A heatmap network at stride 4 gives the candidates, the second stage (:mod:`.refine`) moves and verifies them,
-the checks (:mod:`.checks`) score them again."""
+the checks (:mod:`.checks`) score them again.
+
+:meth:`Detector.load` is the one way in for every caller (the CLI, the servo, the gate, training). It reads an
+``.onnx`` model itself; a ``.pt`` checkpoint runs in PyTorch through training code, which the run time may not
+import, so :data:`READERS` names that reader as a string and imports it only when such a file is loaded. Why
+by name and not a registry that training fills in: a registry would be empty until some caller had imported
+training, so ``Detector.load("best.pt")`` would work or not by what ran before it; by name it works for every
+caller, and loading an ``.onnx`` file still imports neither torch nor training (``tests/test_imports.py``)."""
 
 from __future__ import annotations
 
@@ -35,10 +42,7 @@ MODELS_DIR = Path(__file__).parent.parent / "models"
 SHIPPED_MODEL = MODELS_DIR / "rebar_keypoint.onnx"
 RUN_FILES = ("best.onnx", "best.pt", "last.pt")
 # the readers of the model files the run time does not read itself, by suffix: "module:function", imported
-# when such a file is loaded. A .pt checkpoint runs in PyTorch through training code, which the run time may
-# not import: named, not imported, loading an .onnx file imports neither torch nor training, and every caller
-# of `Detector.load` reads a .pt file too (a registry that training filled in would hold nothing until some
-# caller had imported training first).
+# when such a file is loaded (why by name: the module's docstring)
 READERS = {".pt": "rebar_data.perception.training.checkpoint:read_checkpoint"}
 DUPLICATE_PX = 3.0  # two detections placed nearer than this are one crossing
 Run = Callable[[np.ndarray, np.ndarray], np.ndarray]  # the first stage: images and rays to its output
