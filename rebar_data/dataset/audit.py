@@ -388,7 +388,7 @@ def _read_maps(ds: Path, row) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def check_duplicates(ds: Path, S: pd.DataFrame) -> Check:
-    from rebar_data.dataset.writers.manifest import sha256_file
+    from rebar_data.digest import sha256_file
 
     digests = [sha256_file(ds / f) for f in S.file_name]
     dup = len(digests) - len(set(digests))

@@ -33,7 +33,7 @@ import rebar_data
 from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetInfo
-from rebar_data.dataset.plan import Plan, Sample, make_plan
+from rebar_data.dataset.plan import Plan, PlannedImage, make_plan
 from rebar_data.dataset.worker import FrameRecord, FrameWorker, init_process, run_in_process
 from rebar_data.dataset.writers.card import write_card
 from rebar_data.dataset.writers.coco import write_coco
@@ -58,7 +58,7 @@ COMMAND = "rebar dataset build"
 PLAN_FILE = "plan.json"
 RECORDS = "records"
 
-Task = tuple[str, SceneSample, list[Sample]]
+Task = tuple[str, SceneSample, list[PlannedImage]]
 """One shard of work: a trajectory id, its scene and its samples (the frames of the trajectory)."""
 
 

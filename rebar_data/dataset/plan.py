@@ -42,7 +42,7 @@ class Trajectory:
 
 
 @dataclass(frozen=True)
-class Sample:
+class PlannedImage:
     index: int
     image_id: str
     split: str
@@ -57,10 +57,10 @@ class Sample:
 class Plan:
     scenes: list[SceneSample]
     trajectories: list[Trajectory]
-    samples: list[Sample]
+    samples: list[PlannedImage]
     groups: dict[str, list[str]]  # split -> scene/trajectory ids (empty for the random rule)
 
-    def samples_of(self, trajectory_id: str) -> list[Sample]:
+    def samples_of(self, trajectory_id: str) -> list[PlannedImage]:
         return [s for s in self.samples if s.trajectory_id == trajectory_id]
 
 
@@ -126,7 +126,9 @@ def make_plan(cfg: PipelineConfig, rm: RebarMesh) -> Plan:
             for iid, (t, _) in zip(image_ids, frames, strict=True)
         }
     samples = [
-        Sample(i, iid, split_of[iid], t.trajectory_id, t.scene_id, f, t.world_from_camera[f], frame_seeds[i])
+        PlannedImage(
+            i, iid, split_of[iid], t.trajectory_id, t.scene_id, f, t.world_from_camera[f], frame_seeds[i]
+        )
         for i, (iid, (t, f)) in enumerate(zip(image_ids, frames, strict=True))
     ]
     return Plan(scenes, trajectories, samples, groups)

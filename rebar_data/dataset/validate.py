@@ -40,7 +40,8 @@ import yaml
 from rebar_data.config import ConfigError, parse_yaml
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
-from rebar_data.dataset.writers.manifest import listed_files, sha256_file
+from rebar_data.dataset.writers.manifest import listed_files
+from rebar_data.digest import sha256_file
 
 SCHEMA_DIR = Path(__file__).resolve().parents[2] / "schemas"
 MAX_PER_CHECK = 5  # failures reported per check before summarising the rest

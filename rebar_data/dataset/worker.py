@@ -18,7 +18,7 @@ import numpy as np
 
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import INSTANCE_OFFSET
-from rebar_data.dataset.plan import Sample, depth_sensor_seed
+from rebar_data.dataset.plan import PlannedImage, depth_sensor_seed
 from rebar_data.geometry.build import RebarMesh, build_rebar_mesh
 from rebar_data.labels.keypoints import CrossingParts, FrameLabels, LabelRule, label_frame
 from rebar_data.pipeline import PipelineConfig
@@ -53,12 +53,12 @@ class FrameWorker:
         # seconds per stage of a frame: render, depth_sensor, labels, png, write (for the bench)
         self.timer = StageTimer()
 
-    def run(self, scene: SceneSample, samples: list[Sample]) -> list[FrameRecord]:
+    def run(self, scene: SceneSample, samples: list[PlannedImage]) -> list[FrameRecord]:
         with self.timer("scene"):
             self.renderer.set_scene(scene)
         return [self._one(s) for s in samples]
 
-    def _one(self, s: Sample) -> FrameRecord:
+    def _one(self, s: PlannedImage) -> FrameRecord:
         import hashlib
 
         timer = self.timer
@@ -150,7 +150,7 @@ def stage_seconds_in_process() -> dict[str, dict[str, tuple[float, int]]]:
     return {"frame": _WORKER.timer.totals(), "render": _WORKER.renderer.timer.totals()}
 
 
-def run_in_process(task: tuple[str, SceneSample, list[Sample]]) -> tuple[str, list[FrameRecord]]:
+def run_in_process(task: tuple[str, SceneSample, list[PlannedImage]]) -> tuple[str, list[FrameRecord]]:
     trajectory_id, scene, samples = task
     assert _WORKER is not None, "init_process was not called in this worker"
     return trajectory_id, _WORKER.run(scene, samples)

@@ -29,7 +29,7 @@ from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.layout import DatasetFormatError, DatasetInfo
 from rebar_data.dataset.writers.card import CARD
-from rebar_data.dataset.writers.manifest import sha256_file
+from rebar_data.digest import sha256_file
 from rebar_data.outputs import OutputLock, copy_file, output_folder, remove_stale, replace_folder, space_for
 from rebar_data.publish.card import LICENSES, bundle_card, citation, license_url
 from rebar_data.publish.croissant import croissant_metadata

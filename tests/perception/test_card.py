@@ -187,9 +187,9 @@ def test_a_set_from_another_renderer_is_scored_from_rgb_against_both_truths(trai
     )
     from rebar_data.perception.evaluation.bench import DetectorLatency
     from rebar_data.perception.evaluation.false_detections import format_census
-    from rebar_data.perception.training.card import write_card
+    from rebar_data.perception.training.card import write_model_card
 
-    card = write_card(
+    card = write_model_card(
         trained_run.out_dir,
         tmp_path / "card.md",
         model=det.path,

@@ -12,7 +12,13 @@ from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import load_split, read_depth, read_image
 from rebar_data.perception.evaluation.evaluate import first_stage_only
 from rebar_data.perception.inference import model_file
-from rebar_data.perception.inference.checks import VETO_MARGIN, VETO_POWER, DepthCheck, as_depth_m, encode
+from rebar_data.perception.inference.checks import (
+    VETO_MARGIN,
+    VETO_POWER,
+    DepthCheck,
+    as_depth_m,
+    encode_depth,
+)
 from rebar_data.perception.inference.detector import Detector, shifted_score
 from rebar_data.perception.inference.refine import patches
 from rebar_data.perception.networks import eager
@@ -21,8 +27,8 @@ from rebar_data.perception.training.config import DepthCheckConfig
 from rebar_data.perception.training.depth_check import (
     PaddedDepth,
     build,
+    depth_batches,
     epoch_depth,
-    patch_batches,
     train_depth_check,
 )
 from tests.perception.conftest import TINY_TRAIN
@@ -33,12 +39,12 @@ def test_a_patch_is_depth_relative_to_its_centre_with_a_mask_of_measurements():
     p[0, :, :2] = 1.2  # a lower bar 0.2 m behind
     p[0, 0, 7] = 0.0  # no measurement
     p[1, 2:6, 2:6] = 0.0  # nothing measured at the second patch's centre
-    x, has_centre = encode(p, scale_m=0.05, clip=3.0)
+    x, has_centre = encode_depth(p, scale_m=0.05, clip=3.0)
     assert x.shape == (2, 2, 8, 8) and x.dtype == np.float32
     assert has_centre.tolist() == [True, False]
     assert x[0, 0, 4, 4] == 0.0 and x[0, 0, 4, 0] == pytest.approx(3.0)  # 4 units, clipped to 3
     assert x[0, 0, 0, 7] == 0.0 and x[0, 1, 0, 7] == 0.0 and x[0, 1, 4, 4] == 1.0
-    doubled, _ = encode(p, scale_m=0.05, clip=10.0, gain=np.array([2.0, 1.0]))
+    doubled, _ = encode_depth(p, scale_m=0.05, clip=10.0, gain=np.array([2.0, 1.0]))
     assert doubled[0, 0, 4, 0] == pytest.approx(8.0)
 
 
@@ -47,7 +53,7 @@ def test_the_reference_depth_is_the_median_of_the_centres_measurements():
     p = rng.uniform(0.5, 2.0, (300, 16, 16)).astype(np.float32)
     p[rng.uniform(size=p.shape) < 0.5] = 0.0  # about half the pixels, and some whole centres, unmeasured
     p[:10, 6:10, 6:10] = 0.0
-    x, has_centre = encode(p, scale_m=0.05, clip=100.0)
+    x, has_centre = encode_depth(p, scale_m=0.05, clip=100.0)
     centre = p[:, 6:10, 6:10].reshape(len(p), -1)
     assert has_centre.tolist() == (centre > 0).any(axis=1).tolist() and not has_centre[:10].any()
     with np.errstate(all="ignore"), warnings.catch_warnings():
@@ -140,13 +146,13 @@ def test_depth_batches_hold_every_crossing_and_negative_once_an_epoch(drawn_data
     def depths(epoch):
         return fixed
 
-    batches = list(patch_batches(depths, samples, negatives, cfg, seed=0, first=1))
+    batches = list(depth_batches(depths, samples, negatives, cfg, seed=0, first=1))
     per_epoch = -(-(sum(len(s.visible) for s in samples) + 3) // 16)
     assert len(batches) == 2 * per_epoch
     labels = torch.cat([y for _, y in batches[:per_epoch]])
     assert int((labels == 0).sum()) == 3 and int(labels.sum()) == sum(len(s.visible) for s in samples)
     assert batches[0][0].shape[1:] == (2, 16, 16)
-    resumed = list(patch_batches(depths, samples, negatives, cfg, seed=0, first=2))
+    resumed = list(depth_batches(depths, samples, negatives, cfg, seed=0, first=2))
     torch.testing.assert_close(resumed[0][0], batches[per_epoch][0])
 
 

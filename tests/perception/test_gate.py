@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from rebar_data.dataset.writers.manifest import sha256_file
+from rebar_data.digest import sha256_file
 from rebar_data.perception.evaluation import gate
 from rebar_data.perception.evaluation.data import Sample
 from rebar_data.perception.inference.detector import SHIPPED_MODEL, Detector

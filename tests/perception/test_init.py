@@ -11,7 +11,7 @@ import pytest
 import torch
 
 from rebar_data.config import ConfigError
-from rebar_data.perception.inference.model_file import sha256_file
+from rebar_data.digest import sha256_file
 from rebar_data.perception.training.init import parse_stages, read_model
 from rebar_data.perception.training.train import train
 from tests.perception.conftest import TINY_TRAIN

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 FRAME_HW = (480, 640)
-THREADS = 2
+BENCH_THREADS = 2
 BUDGET_MS = 15.0  # a 31 Hz servo loop leaves 32 ms a step; the detector may take under half
 RENDERED_FRAMES = 8
 BenchFrame = tuple[np.ndarray, np.ndarray | None]  # RGB (H, W, 3) uint8 and its depth (H, W) metres, 0 = none
@@ -126,17 +126,17 @@ def run(repeats: int = 100) -> list[str]:
     from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
 
     threads_before = torch.get_num_threads()
-    torch.set_num_threads(THREADS)
+    torch.set_num_threads(BENCH_THREADS)
     try:
         frames, described = latency_frames()
         load = " / ".join(f"{x:.2f}" for x in os.getloadavg())
         lines = [f"perception: load average {load} on {os.cpu_count()} cores"]
-        det = Detector.load(None, threads=THREADS)
+        det = Detector.load(None, threads=BENCH_THREADS)
         lat = detector_latency(det, frames, repeats=repeats)
         med = lat.median_ms
         lines.append(
             f"perception: shipped detector, {runtime_description('auto')}, {det.reading} reading, "
-            f"{THREADS} threads, 640x480, end to end over {described}: median {med:.1f} ms, "
+            f"{BENCH_THREADS} threads, 640x480, end to end over {described}: median {med:.1f} ms, "
             f"p90 {lat.p90_ms:.1f} ms "
             f"({lat.crossings:.0f} crossings a frame; budget {BUDGET_MS:g} ms: "
             f"{'met' if med <= BUDGET_MS else 'MISSED'})"

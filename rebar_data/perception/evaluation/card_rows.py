@@ -13,9 +13,9 @@ from pathlib import Path
 
 import numpy as np
 
+from rebar_data.digest import sha256_file
 from rebar_data.perception.evaluation import data, evaluate
 from rebar_data.perception.evaluation.false_detections import false_detection_census
-from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.detector import Detector
 from rebar_data.resume import Steps, key_of
 
@@ -112,7 +112,7 @@ def _held_out_rows(
 def _dataset_key(root: Path) -> str:
     """What a scoring step reads of a dataset: its path and its manifest (every file's SHA-256)."""
     manifest = root / "meta/manifest.parquet"
-    return key_of(str(root.resolve()), model_file.sha256_file(manifest) if manifest.exists() else None)
+    return key_of(str(root.resolve()), sha256_file(manifest) if manifest.exists() else None)
 
 
 def evaluation_rows(

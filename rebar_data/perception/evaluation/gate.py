@@ -117,7 +117,7 @@ def reference(
 ) -> dict:
     """What ``gate.json`` holds for ``detector`` on the built set at ``root``: per mode the figures, their
     bootstrap SEs, margins (``K_SE`` SEs), floors (figure - margin), every headline figure, their source."""
-    from rebar_data.dataset.writers.manifest import sha256_file
+    from rebar_data.digest import sha256_file
 
     samples, scenes = load_gate_set(root)
     sigma = stated_oks_sigma(root)

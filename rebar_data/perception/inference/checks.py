@@ -40,7 +40,7 @@ def as_depth_m(depth: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     return out
 
 
-def encode(
+def encode_depth(
     depth_patches: np.ndarray, *, scale_m: float, clip: float, gain: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """(N, 2, P, P) float32 network input for (N, P, P) depth patches in metres (0 = none): the depth relative
@@ -102,7 +102,9 @@ class DepthCheck:
         out = np.full(len(uv), np.inf)
         if not len(uv):
             return out, np.zeros(0)
-        x, has_centre = encode(patches(depth_m, uv, self.patch_px)[0], scale_m=self.scale_m, clip=self.clip)
+        x, has_centre = encode_depth(
+            patches(depth_m, uv, self.patch_px)[0], scale_m=self.scale_m, clip=self.clip
+        )
         if has_centre.any():
             out[has_centre] = self._run(np.ascontiguousarray(x[has_centre])).astype(np.float64).reshape(-1)
         return out, x[:, 1].mean(axis=(1, 2), dtype=np.float64)

@@ -43,7 +43,7 @@ SHIPPED_MODEL = MODELS_DIR / "rebar_keypoint.onnx"
 RUN_FILES = ("best.onnx", "best.pt", "last.pt")
 # the readers of the model files the run time does not read itself, by suffix: "module:function", imported
 # when such a file is loaded (why by name: the module's docstring)
-READERS = {".pt": "rebar_data.perception.training.checkpoint:read_checkpoint"}
+READERS = {".pt": "rebar_data.perception.training.checkpoint:read_detector_checkpoint"}
 DUPLICATE_PX = 3.0  # two detections placed nearer than this are one crossing
 Run = Callable[[np.ndarray, np.ndarray], np.ndarray]  # the first stage: images and rays to its output
 

@@ -6,7 +6,6 @@ in bfloat16 where the CPU has it, "auto" picks OpenVINO where that holds; int8 f
 
 from __future__ import annotations
 
-import hashlib
 import threading
 from collections.abc import Callable
 from functools import cache
@@ -16,6 +15,7 @@ from typing import Any, Literal, get_args
 
 import numpy as np
 
+from rebar_data.digest import sha256_file
 from rebar_data.errors import ConfigError
 from rebar_data.perception.inference.checks import VETO_MARGIN, VETO_POWER, DepthCheck
 from rebar_data.perception.inference.refine import CrossingPoint, Refiner
@@ -166,15 +166,6 @@ def _args(values: Any) -> list[SimpleNamespace]:
         ]
 
     return [SimpleNamespace(name=v.name, shape=shape(v)) for v in values]
-
-
-def sha256_file(path: Path) -> str:
-    """The hex SHA-256 of a file's bytes."""
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            h.update(block)
-    return h.hexdigest()
 
 
 def refiner_path(model: Path) -> Path:

@@ -28,7 +28,7 @@ from rebar_data.perception.training.epochs import (
 
 ADAPT_LAST = "adapt_last.pt"
 ADAPTED = "adapted.pt"
-FORMAT = "rebar-adapt"
+ADAPT_FORMAT = "rebar-adapt"
 # the adapt epochs' batches come from generators of their own (seed + this, epoch), not the first epochs'
 SEED_OFFSET = 7919
 
@@ -63,7 +63,7 @@ def adapt_first_stage(
     saved = None
     if path.exists():
         with suppress(ConfigError):  # unreadable: trained afresh
-            saved = files.read_checkpoint(path, fmt=FORMAT, what="adapt")
+            saved = files.read_checkpoint(path, fmt=ADAPT_FORMAT, what="adapt")
     if saved is not None and saved["want"] == want:
         state = restore(saved, net, avg, opt)
         if state["epoch"] >= a.epochs and (out / ADAPTED).exists():
@@ -99,7 +99,7 @@ def adapt_first_stage(
             log(f"adapt epoch {epoch}/{a.epochs}: loss {row['train_loss']:.4f}")
         state["history"].append({**row, "seconds": row["train_seconds"]})
         state["epoch"] = epoch
-        payload = {"format": FORMAT, "want": want, "state_dict": net.state_dict()}
+        payload = {"format": ADAPT_FORMAT, "want": want, "state_dict": net.state_dict()}
         files.write_checkpoint(path, {**payload, **checkpoint_state(net, avg, opt, state)})
     batches = None  # stops the loader process
     files.save_checkpoint(out / ADAPTED, avg.net, {**meta, "adapt": {**want, "epochs_run": state["epoch"]}})

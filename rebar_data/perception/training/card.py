@@ -215,7 +215,7 @@ def _template() -> jinja2.Template:
     return env.get_template("card.md.j2")
 
 
-def write_card(
+def write_model_card(
     run_dir: Path,
     path: Path,
     *,

@@ -1,7 +1,7 @@
 """A ``.pt`` checkpoint read into a :class:`~rebar_data.perception.inference.detector.Detector`: its first
 stage and the later stages' ``.pt`` files beside it, run in eager PyTorch.
 
-:meth:`Detector.load` reads a ``.pt`` file through :func:`read_checkpoint`, which it names in
+:meth:`Detector.load` reads a ``.pt`` file through :func:`read_detector_checkpoint`, which it names in
 :data:`~rebar_data.perception.inference.detector.READERS` and imports only then."""
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ from rebar_data.perception.networks.files import load_checkpoint
 from rebar_data.perception.training import crossing_point, depth_check, refine
 
 
-def read_checkpoint(path: Path, *, threads: int, runtime: str) -> Detector:
+def read_detector_checkpoint(path: Path, *, threads: int, runtime: str) -> Detector:
     """The detector in the checkpoint ``path`` with the later stages its meta names; PyTorch runs it
     whatever ``threads`` and ``runtime`` say (they choose among the ``.onnx`` runtimes)."""
     net, meta, _ = load_checkpoint(path)

@@ -176,7 +176,7 @@ def attach(
 ) -> Path:
     """Train the crossing-point stage (resumable in ``out``) and put it beside ``model`` as
     ``<stem>.crossing.onnx``, named in the model file's metadata with its SHA-256; returns that file."""
-    from rebar_data.dataset.writers.manifest import sha256_file
+    from rebar_data.digest import sha256_file
     from rebar_data.outputs import replace_file
     from rebar_data.perception.inference.model_file import crossing_point_path
     from rebar_data.perception.networks.files import check_model_file, update_onnx_meta

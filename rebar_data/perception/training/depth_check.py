@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from rebar_data.config import ConfigError
 from rebar_data.perception.evaluation.data import Sample, sample_depth
-from rebar_data.perception.inference.checks import MM_PER_M, encode
+from rebar_data.perception.inference.checks import MM_PER_M, encode_depth
 from rebar_data.perception.networks.stages import DepthNet
 from rebar_data.perception.training.config import DepthCheckConfig
 from rebar_data.perception.training.later_stages import StageFile, classed_rightly, count_classes, train_stage
@@ -84,7 +84,7 @@ def epoch_depth(s: Sample, index: int, epoch: int, cfg: DepthCheckConfig, *, see
     return sense_depth(sample_depth(s, "exact"), sensor, rng, fx=s.camera[0])
 
 
-def patch_batches(
+def depth_batches(
     depths: Callable[[int], list[PaddedDepth]],
     samples: list[Sample],
     negatives: list[np.ndarray],
@@ -114,7 +114,9 @@ def patch_batches(
             for t in range(1, 4):
                 cut[turns == t] = np.rot90(cut[turns == t], t, axes=(1, 2))
             cut[flips] = cut[flips][:, :, ::-1]
-            x, _ = encode(cut, scale_m=cfg.scale_m, clip=cfg.clip, gain=rng.uniform(*cfg.gain, len(rows)))
+            x, _ = encode_depth(
+                cut, scale_m=cfg.scale_m, clip=cfg.clip, gain=rng.uniform(*cfg.gain, len(rows))
+            )
             yield torch.from_numpy(x), torch.from_numpy(rows[:, 2].astype(np.float32))
 
 
@@ -149,7 +151,7 @@ def train_depth_check(
                 for i, s in enumerate(each)
             ]
 
-        batches = patch_batches(depths, samples, found, cfg, seed=seed, first=first)
+        batches = depth_batches(depths, samples, found, cfg, seed=seed, first=first)
         return batches, steps_per_epoch(samples, found, cfg), {}
 
     def loss(net, batch, tally):

@@ -23,7 +23,7 @@ from rebar_data.perception.networks.keypoint_net import KeypointNet
 from rebar_data.perception.training.augment import Source, mosaic_crop, photometric, single_crop
 from rebar_data.perception.training.config import TrainConfig
 from rebar_data.perception.training.loss import detection_loss
-from rebar_data.perception.training.targets import encode
+from rebar_data.perception.training.targets import encode_targets
 
 
 class WeightAverage:
@@ -114,7 +114,9 @@ def make_batch(
             crop = mosaic_crop(lambda: data.pick(rng), rng, size=size, cfg=aug)
         else:
             crop = single_crop(data.pick(rng), rng, size=size, cfg=aug)
-        targets = encode(crop.positives, crop.ignore, cells, cells, sigma_cells=cfg.heatmap_sigma_cells)
+        targets = encode_targets(
+            crop.positives, crop.ignore, cells, cells, sigma_cells=cfg.heatmap_sigma_cells
+        )
         rows.append((photometric(crop.image, rng, aug), crop.rays, *targets))
     images, *rest = (np.stack(a) for a in zip(*rows, strict=True))
     return (torch.from_numpy(images).permute(0, 3, 1, 2).float(), *(torch.from_numpy(a) for a in rest))

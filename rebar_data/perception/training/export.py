@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from rebar_data.dataset.writers.manifest import sha256_file
+from rebar_data.digest import sha256_file
 from rebar_data.outputs import replace_file
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.detector import Detector

@@ -18,6 +18,7 @@ from typing import Any
 from torch import nn
 
 from rebar_data.config import ConfigError
+from rebar_data.digest import sha256_file
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.networks.files import network_from_onnx, weights_from_onnx
 from rebar_data.perception.networks.keypoint_net import KeypointNet
@@ -102,7 +103,7 @@ def read_model(path: str | Path | None) -> InitModel:
     int8 = model_file.int8_passes_path(p)
     if "refine" in files and meta.get("refiner", {}).get("int8_sha256") and int8.exists():
         files["int8"] = int8
-    return InitModel(p, model_file.sha256_file(p), meta, first, stages, files, trained_with)
+    return InitModel(p, sha256_file(p), meta, first, stages, files, trained_with)
 
 
 def settings_from(model: InitModel, settings: dict[str, Any] | None, *, source: str) -> TrainConfig:

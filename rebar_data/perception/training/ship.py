@@ -32,6 +32,7 @@ from pathlib import Path
 from typing import Any
 
 from rebar_data.config import ConfigError
+from rebar_data.digest import sha256_file
 from rebar_data.outputs import replace_file
 from rebar_data.perception.evaluation import data
 from rebar_data.perception.evaluation.bench import detector_latency, latency_frames, runtime_description
@@ -42,7 +43,7 @@ from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.detector import MODELS_DIR, SHIPPED_MODEL, Detector
 from rebar_data.perception.networks.files import export_onnx, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import count_parameters
-from rebar_data.perception.training.card import CARD_NAME, write_card, write_figures
+from rebar_data.perception.training.card import CARD_NAME, write_figures, write_model_card
 from rebar_data.perception.training.export import Exported, export_model
 from rebar_data.perception.training.operating_point import place_operating_point
 from rebar_data.perception.training.run import TrainRun
@@ -145,7 +146,7 @@ def ship(
     held_out: dict[str, HeldOut] = {}
     # each dataset's scoring is a step kept in the run folder: a ship run again after a kill reuses it
     steps = Steps(run_dir / STEPS_FILE, log=(lambda m: print(m, file=sys.stderr)) if progress else None)
-    model_key = key_of([model_file.sha256_file(f) for f in (dst, *model_file.stage_files(dst)) if f.exists()])
+    model_key = key_of([sha256_file(f) for f in (dst, *model_file.stage_files(dst)) if f.exists()])
     rows = evaluation_rows(
         detector,
         run_dir,
@@ -205,7 +206,7 @@ def _card(
     load = os.getloadavg()[0]
     frames, latency_source = latency_frames()
     fast = Detector.load(model)  # what a caller's detector runs: the default runtime
-    write_card(
+    write_model_card(
         run_dir,
         models_dir / CARD_NAME,
         model=model,

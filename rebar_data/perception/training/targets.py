@@ -16,7 +16,7 @@ OFFSET_RADIUS = 1  # offsets are learned in the (2r+1)^2 cells around each cross
 IGNORE_RADIUS = 2  # cells around an ignored point left out of the heatmap loss
 
 
-def encode(
+def encode_targets(
     positives: np.ndarray, ignore: np.ndarray, out_h: int, out_w: int, *, sigma_cells: float
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Targets for one crop of ``out_h`` x ``out_w`` cells: heat (H, W) in [0, 1], exactly 1 at each
