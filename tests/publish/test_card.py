@@ -9,7 +9,7 @@ import shutil
 
 import pytest
 
-from tests.dataset.test_card import perfect_results
+from tests.dataset.writers.test_card import perfect_results
 from tests.fresh_env import named_packages, python_blocks, run_in_fresh_environment
 
 

@@ -8,7 +8,7 @@ the checks (:mod:`.checks`) score them again.
 import, so :data:`READERS` names that reader as a string and imports it only when such a file is loaded. Why
 by name and not a registry that training fills in: a registry would be empty until some caller had imported
 training, so ``Detector.load("best.pt")`` would work or not by what ran before it; by name it works for every
-caller, and loading an ``.onnx`` file still imports neither torch nor training (``tests/test_imports.py``)."""
+caller, and loading an ``.onnx`` file still imports neither torch nor training (``tests/integration/test_imports.py``)."""
 
 from __future__ import annotations
 

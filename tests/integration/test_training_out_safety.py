@@ -9,8 +9,7 @@ import yaml
 
 from rebar_data.cli import main
 from rebar_data.outputs import OWNER_FILE, OutputLock
-
-from .conftest import TINY_TRAIN, shipped_model_copy
+from tests.perception.conftest import TINY_TRAIN, shipped_model_copy
 
 
 @pytest.fixture

@@ -13,8 +13,7 @@ import pytest
 
 from rebar_data.cli import main
 from rebar_data.dataset import layout
-
-from .conftest import write_config
+from tests.dataset.conftest import write_config
 
 
 def _one_line(capsys) -> str:

@@ -29,8 +29,7 @@ from rebar_data.perception.training.refine_data import (
     patch_geometry,
     training_patch,
 )
-
-from .conftest import STILL, TINY_TRAIN, refined
+from tests.perception.conftest import STILL, TINY_TRAIN, refined
 
 
 def verified_score(score: np.ndarray, verify_logit: np.ndarray, *, power: float = 1.0) -> np.ndarray:

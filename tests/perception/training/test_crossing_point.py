@@ -19,8 +19,7 @@ from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, onnx_meta
 from rebar_data.perception.training.config import CrossingPointConfig
 from rebar_data.perception.training.crossing_point import PatchSet, attach, batches, build
-
-from .conftest import STILL, TINY_TRAIN
+from tests.perception.conftest import STILL, TINY_TRAIN
 
 
 def test_drawn_datasets_record_the_3d_crossing_points_apart_from_the_sight_points(drawn_dataset):

@@ -9,8 +9,7 @@ import yaml
 
 from rebar_data.cli import main
 from rebar_data.outputs import OWNER_FILE, OutputLock
-
-from .conftest import suite_dict
+from tests.servo.conftest import suite_dict
 
 
 @pytest.fixture

@@ -12,8 +12,7 @@ from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks.files import update_onnx_meta
 from rebar_data.perception.training.config import LineCheckConfig
 from rebar_data.perception.training.line_check import fit_line_check, line_check_meta
-
-from .conftest import shipped_model_copy
+from tests.perception.conftest import shipped_model_copy
 
 
 def _angle_apart(a: np.ndarray, b: float) -> np.ndarray:

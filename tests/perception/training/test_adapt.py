@@ -13,9 +13,8 @@ from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks.files import onnx_meta
 from rebar_data.perception.training.adapt import adapt_model
 from rebar_data.perception.training.config import resolve_config
+from tests.perception.conftest import TINY_TRAIN
 from tests.perception.synthetic import SyntheticSpec, write_synthetic_dataset
-
-from .conftest import TINY_TRAIN
 
 
 @pytest.fixture(scope="module")

@@ -13,9 +13,8 @@ import pytest
 from rebar_data.cli import main
 from rebar_data.outputs import OWNER_FILE
 from rebar_data.perception.evaluation.evaluate import load_splits
+from tests.perception.conftest import shipped_model_copy
 from tests.read_only import read_only_fixture  # noqa: F401  (the read_only fixture)
-
-from .conftest import shipped_model_copy
 
 
 @pytest.fixture

@@ -18,8 +18,7 @@ from rebar_data.perception.training.config import TrainConfig
 from rebar_data.perception.training.epochs import TrainingImages, make_batch
 from rebar_data.perception.training.loss import detection_loss
 from rebar_data.perception.training.train import train
-
-from .conftest import TINY_TRAIN
+from tests.perception.conftest import TINY_TRAIN
 
 
 def test_loss_falls_when_a_tiny_model_trains_a_few_steps(drawn_dataset):

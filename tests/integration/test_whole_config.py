@@ -14,7 +14,7 @@ import yaml
 from rebar_data.cli import main
 from tests.servo.conftest import suite_dict
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 
 
 def _pipeline(**changes) -> dict:

@@ -21,8 +21,7 @@ from rebar_data.perception.training.augment import (
     warp,
 )
 from rebar_data.perception.training.config import AugmentConfig
-
-from .conftest import COLOUR_OFF, STILL
+from tests.perception.conftest import COLOUR_OFF, STILL
 
 
 def _blob_image(points: np.ndarray, h: int = 120, w: int = 160, sigma: float = 2.0) -> np.ndarray:

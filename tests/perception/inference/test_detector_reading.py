@@ -13,8 +13,7 @@ from rebar_data.perception.evaluation.metrics import match
 from rebar_data.perception.inference import detector as infer
 from rebar_data.perception.inference.detector import READINGS, Detector
 from rebar_data.perception.inference.refine import Refiner
-
-from .conftest import refined
+from tests.perception.conftest import refined
 
 
 def _shipped(**kw) -> Detector:

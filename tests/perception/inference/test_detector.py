@@ -11,8 +11,7 @@ from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.networks import eager
 from rebar_data.perception.networks.files import export_onnx, load_checkpoint, save_checkpoint
 from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig
-
-from .conftest import TINY_MODEL
+from tests.perception.conftest import TINY_MODEL
 
 
 @pytest.fixture
@@ -196,7 +195,7 @@ def test_a_file_without_detector_metadata_is_refused(tmp_path):
 
 def test_every_reader_the_run_time_names_is_there():
     """The readers :data:`~.detector.READERS` names by string exist: a rename breaks this test, not a user's
-    call (tests/test_imports.py checks that loading an .onnx file imports none of them)."""
+    call (tests/integration/test_imports.py checks that loading an .onnx file imports none of them)."""
     import importlib
 
     for suffix, name in infer.READERS.items():

@@ -25,8 +25,7 @@ from rebar_data.dataset import layout
 from rebar_data.dataset.build import LocalRunner, build_dataset
 from rebar_data.dataset.validate import validate_dataset
 from rebar_data.outputs import OutputLock
-
-from .conftest import TINY, write_config
+from tests.dataset.conftest import TINY, write_config
 
 ROOT = Path(__file__).resolve().parents[2]
 REBAR = str(ROOT / ".venv" / "bin" / "rebar")

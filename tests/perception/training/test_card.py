@@ -250,7 +250,7 @@ def test_the_shipped_card_has_the_hubs_form_and_its_figures_ship_with_it():
     ]
     links = re.findall(r"\]\((card/[^)]+\.png)\)", card)
     assert "card/frame.png" in links and any(link.startswith("card/pr-") for link in links)
-    pyproject = tomllib.loads((Path(__file__).parents[2] / "pyproject.toml").read_text())
+    pyproject = tomllib.loads((Path(__file__).parents[3] / "pyproject.toml").read_text())
     globs = pyproject["tool"]["setuptools"]["package-data"]["rebar_data.perception"]
     for link in links:
         path = MODELS_DIR / link

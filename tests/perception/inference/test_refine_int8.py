@@ -14,8 +14,7 @@ from rebar_data.perception.inference.detector import Detector
 from rebar_data.perception.inference.model_file import int8_passes_path
 from rebar_data.perception.inference.refine import Refiner
 from rebar_data.perception.networks.files import onnx_meta
-
-from .conftest import refined, shipped_model_copy
+from tests.perception.conftest import refined, shipped_model_copy
 
 
 def _network(offset: float, logit: float, calls: list[str], name: str):
