@@ -35,34 +35,23 @@ THREADS = bounded(int, 1, 256)
 
 
 def _score_wrote_predictions(path: Path) -> bool:
-    """``path`` is a predictions file `rebar score` wrote: its mark (older files: `rebar detect`'s, which
-    scored datasets before), or (older still) its columns."""
+    """``path`` is a predictions file `rebar score` wrote: its mark in the Parquet metadata."""
     import pyarrow.parquet as pq
 
     try:
         schema = pq.read_schema(path)
     except Exception:  # not a Parquet file at all
         return False
-    meta = schema.metadata or {}
-    marks = {SCORE.encode(), DETECT.encode()}
-    return meta.get(WRITTEN_BY.encode()) in marks or schema.names == PREDICTION_COLUMNS
+    return (schema.metadata or {}).get(WRITTEN_BY.encode()) == SCORE.encode()
 
 
 def _score_wrote_metrics(path: Path) -> bool:
-    """``path`` is a metrics file `rebar score` wrote: its mark (older files: `rebar detect`'s), or (older
-    still) its keys."""
+    """``path`` is a metrics file `rebar score` wrote: its mark in the record."""
     try:
         record = json.loads(path.read_text())
     except (OSError, ValueError):
         return False
-    keys = {"split", "dataset", "truth", "point", "runtime"}
-    return isinstance(record, dict) and (record.get(WRITTEN_BY) in (SCORE, DETECT) or keys <= set(record))
-
-
-def _detect_wrote_overlays(folder: Path) -> bool:
-    """``folder`` has the layout of an earlier `rebar detect` on images (from before the mark)."""
-    names, kept = {p.name for p in folder.iterdir()}, {"cameras.json", "detections.parquet"}
-    return kept <= names and all(n in kept or n.endswith(".png") for n in names)
+    return isinstance(record, dict) and record.get(WRITTEN_BY) == SCORE
 
 
 def _adapt_folder(folder: Path) -> bool:
@@ -425,7 +414,7 @@ def _images_out(target: Path, args: argparse.Namespace) -> Path:
             f"--out {out}: for images, --out is a folder for the overlays and detections.parquet"
         )
     outputs.outside_inputs(out, [target], arg="--out")
-    outputs.output_folder(out, arg="--out", command=DETECT, owned=_detect_wrote_overlays, swapped=True)
+    outputs.output_folder(out, arg="--out", command=DETECT, swapped=True)
     if target.is_file() and out.resolve() == target.parent.resolve():
         raise ConfigError(
             f"--out {out}: is the folder of the input {target}, whose files would be overwritten; accepted: "

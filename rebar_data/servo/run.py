@@ -42,15 +42,10 @@ MAX_START_DRAWS = 50
 COMMAND = "rebar servo run"
 
 
-def is_servo_run(folder: Path) -> bool:
-    """``folder`` has an earlier run's layout (runs written before they carried a mark)."""
-    return (folder / "summary.json").is_file() and (folder / "episodes.parquet").is_file()
-
-
 def check_run_out(out: str | Path) -> Path:
     """``out`` as a run may write it: new, empty, or an earlier run's folder (its inputs are files, which
     a folder never overwrites)."""
-    return output_folder(out, arg="--out", command=COMMAND, owned=is_servo_run, swapped=True)
+    return output_folder(out, arg="--out", command=COMMAND, swapped=True)
 
 
 def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> ServoContext:

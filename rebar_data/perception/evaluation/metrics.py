@@ -280,12 +280,8 @@ def summary(
 
 
 def format_summary(m: dict[str, float]) -> str:
-    """One line with the headline figures (an older summary has no AP@0.5 ceiling)."""
-    ceiling = (
-        f"; recall at OKS 0.5 {m['oks_recall50']:.4f}, so AP@0.5 at most {m['oks_ap50_ceiling']:.4f}"
-        if "oks_ap50_ceiling" in m
-        else ""
-    )
+    """One line with the headline figures."""
+    ceiling = f"; recall at OKS 0.5 {m['oks_recall50']:.4f}, so AP@0.5 at most {m['oks_ap50_ceiling']:.4f}"
     return (
         f"{int(m['n_gt'])} visible crossings: OKS AP@0.5 {m['oks_ap50']:.4f}, AP@0.5:0.95 {m['oks_ap']:.4f} "
         f"(sigma {m['oks_sigma']:g}{ceiling}), PCK@1/2/5px {m['pck1']:.3f}/{m['pck2']:.3f}/{m['pck5']:.3f}, "

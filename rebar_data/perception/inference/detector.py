@@ -97,9 +97,8 @@ def resolve_model_path(path: str | Path | None) -> Path:
 
 
 def score_bias_of(meta: dict[str, Any]) -> float:
-    """The operating point's heatmap logit shift a model file's ``meta`` gives (an older file's own key for the
-    bias without depth first)."""
-    return float(meta.get("score_bias_without_depth", meta.get("score_bias", 0.0)))
+    """The operating point's heatmap logit shift a model file's ``meta`` gives (0 for a model without one)."""
+    return float(meta.get("score_bias", 0.0))
 
 
 class Detector:
@@ -115,7 +114,7 @@ class Detector:
         self.backend = backend
         self.path = path
         self.reading: str = "single"
-        # the heatmap logit shift that puts the operating point at 0.5 (older files' with-depth one unread)
+        # the heatmap logit shift that puts the operating point at 0.5
         self.score_bias = score_bias_of(meta)
         # how hard the verification counts in a score
         self.verify_power = float((meta.get("refiner") or {}).get("verify_power", 1.0))
@@ -158,7 +157,7 @@ class Detector:
         sess = model_file.onnx_session(p, threads, runtime)
         raw = sess.get_modelmeta().custom_metadata_map.get(model_file.META_KEY)
         run_batch = model_file.session_run(sess)  # images, and rays where the first stage reads them
-        meta = json.loads(raw) if raw else {}
+        meta = model_file.check_format(json.loads(raw) if raw else {}, p)
         det = cls(
             lambda image, rays: run_batch(image[None], rays[None])[0], meta=meta, backend=runtime, path=p
         )

@@ -17,7 +17,7 @@ import numpy as np
 
 from rebar_data.digest import sha256_file
 from rebar_data.errors import ConfigError
-from rebar_data.perception.inference.checks import VETO_MARGIN, VETO_POWER, DepthCheck
+from rebar_data.perception.inference.checks import DepthCheck
 from rebar_data.perception.inference.refine import CrossingPoint, Refiner
 
 Runtime = Literal["auto", "onnxruntime", "openvino"]
@@ -25,8 +25,24 @@ RUNTIMES: tuple[str, ...] = get_args(Runtime)
 SHAPES_KEPT = 4  # image shapes OpenVINO compiles the first stage for; one compile with them free serves more
 BATCH_STEP = 8  # a batch of patches is padded to a multiple of this (a new batch size costs OpenVINO a plan)
 FORMAT = "rebar-keypoint"
-FORMAT_VERSION = 1
+FORMAT_VERSION = 2
+# each older format version: the last rebar-data release that reads it
+READ_BY = {1: "0.1.0"}
 META_KEY = "rebar_keypoint"
+
+
+def check_format(meta: dict[str, Any], path: Path) -> dict[str, Any]:
+    """``meta`` once it is of this code's format version; a ConfigError naming the release that reads an older
+    one (format 2 holds one score bias, each check's settings in full, no retired training settings)."""
+    version = meta.get("format_version")
+    if version == FORMAT_VERSION:
+        return meta
+    if version in READ_BY:
+        raise ConfigError(
+            f"{path}: a model file of format {version}, which rebar-data {READ_BY[version]} reads; accepted: "
+            f"format {FORMAT_VERSION} (train it again, or read it with rebar-data {READ_BY[version]})"
+        )
+    raise ConfigError(f"{path}: format_version {version!r} is not one this code reads ({FORMAT_VERSION})")
 
 
 def onnx_session(path: Path, threads: int, runtime: str = "onnxruntime"):
@@ -216,16 +232,15 @@ def refiner_passes(entry: dict[str, Any]) -> dict[str, Any]:
     return {
         "iterations": int(entry["iterations"]),
         "views": int(entry["views"]),
-        "first_pass_views": int(entry.get("first_pass_views", entry["views"])),
+        "first_pass_views": int(entry["first_pass_views"]),
         "step": float(entry["step"]),
         "shrink_above_px": entry.get("shrink_above_px"),
     }
 
 
 def depth_check_settings(entry: dict[str, Any]) -> dict[str, float]:
-    """How the depth check reads a patch and vetoes a score, as its meta entry says (older files: the
-    veto's defaults)."""
-    veto = {"power": entry.get("veto_power", VETO_POWER), "margin": entry.get("veto_margin", VETO_MARGIN)}
+    """How the depth check reads a patch and vetoes a score, as its meta entry says."""
+    veto = {"power": entry["veto_power"], "margin": entry["veto_margin"]}
     return {k: float(v) for k, v in {"scale_m": entry["scale_m"], "clip": entry["clip"], **veto}.items()}
 
 

@@ -19,7 +19,7 @@ from torch import nn
 from rebar_data.config import ConfigError
 from rebar_data.outputs import replace_file
 from rebar_data.perception.inference.detector import STRIDE
-from rebar_data.perception.inference.model_file import FORMAT, FORMAT_VERSION, META_KEY
+from rebar_data.perception.inference.model_file import FORMAT, FORMAT_VERSION, META_KEY, check_format
 from rebar_data.perception.networks.keypoint_net import KeypointNet, ModelConfig, UInt8Input
 from rebar_data.perception.networks.stages import CrossingNet, DepthNet, PatchNet
 
@@ -74,12 +74,7 @@ def _head(net: KeypointNet) -> dict[str, Any]:
 
 def load_checkpoint(path: str | Path) -> tuple[KeypointNet, dict[str, Any], dict[str, Any]]:
     """Rebuild the network of a ``.pt`` file; returns (network in eval mode, meta, the whole payload)."""
-    payload = read_checkpoint(path, fmt=FORMAT, what="detector")
-    if payload.get("format_version", 0) > FORMAT_VERSION:
-        version = payload["format_version"]
-        raise ConfigError(
-            f"{path}: format_version {version} is newer than this code reads ({FORMAT_VERSION})"
-        )
+    payload = check_format(read_checkpoint(path, fmt=FORMAT, what="detector"), Path(path))
     net = KeypointNet(ModelConfig.model_validate(payload["model_config"]))
     net.load_state_dict(payload["state_dict"])
     return net.eval(), payload.get("meta", {}), payload
@@ -165,7 +160,7 @@ def onnx_meta(path: str | Path) -> dict[str, Any]:
 
     sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
     raw = sess.get_modelmeta().custom_metadata_map.get(META_KEY)
-    return json.loads(raw) if raw else {}
+    return check_format(json.loads(raw) if raw else {}, Path(path))
 
 
 def check_model_file(model: str | Path) -> Path:

@@ -28,20 +28,6 @@ Widths = tuple[PositiveInt, PositiveInt, PositiveInt, PositiveInt]
 DepthModel = Literal["exact", "structured_light", "active_stereo", "time_of_flight"]
 
 
-def _without_retired(values: Any, retired: dict[str, Any], section: str) -> Any:
-    """``values`` without retired settings that hold the one value the code now always uses (so a model
-    file's recorded settings still load); ValueError for any other value."""
-    if not isinstance(values, dict):
-        return values
-    for key, kept in retired.items():
-        if key in values and values[key] != kept:
-            raise ValueError(
-                f"{section}.{key} = {values[key]!r} is no longer supported; accepted: {kept!r} or "
-                "leaving it out"
-            )
-    return {k: v for k, v in values.items() if k not in retired}
-
-
 class AugmentConfig(Strict):
     """Training-time augmentation; geometric changes move the keypoints with the pixels."""
 
@@ -115,21 +101,6 @@ class RefineConfig(Strict):
     size_weight: Positive = 1.0  # weight of the size loss
     shrink_above_px: tuple[Positive, Positive] = (50.0, 90.0)  # crossings larger are read shrunk to 0.75, 0.5
 
-    @model_validator(mode="before")
-    @classmethod
-    def _retired(cls, values: Any) -> Any:
-        retired = {
-            "first_stage_starts": 0.0,
-            "lower_mat_negatives": 0,
-            "context_scale": 0,
-            "border": "mask",
-            "verify_power_with_depth": 0.5,
-        }
-        values = _without_retired(values, retired, "refine")
-        if isinstance(values, dict) and values.get("quantize") == "int8":
-            raise ValueError("refine.quantize = 'int8' is no longer supported; accepted: 'later' or 'none'")
-        return values
-
     @model_validator(mode="after")
     def _size_needs_verify(self) -> RefineConfig:
         if self.size and not self.verify:
@@ -168,12 +139,6 @@ class DepthCheckConfig(Strict):
     drawn_sensors: tuple[DepthModel, ...] = ("exact", "structured_light", "active_stereo", "time_of_flight")
     dataset_share: Fraction = 0.4  # share of the images an epoch that give their dataset's sensor depth
 
-    @model_validator(mode="before")
-    @classmethod
-    def _retired(cls, values: Any) -> Any:
-        retired = {"pool": 1, "quantize": "none", "calibration_patches": 2048, "power": 1.0}
-        return _without_retired(values, retired, "depth_check")
-
 
 class CrossingPointConfig(Strict):
     """The crossing-point stage (:mod:`rebar_data.perception.inference.refine`): where each
@@ -192,11 +157,6 @@ class CrossingPointConfig(Strict):
     jitter_px: NonNegative = 1.0  # Gaussian error of the training patches' centres
     max_per_image: PositiveInt = 20  # most crossings a training image gives
     threads: PositiveInt = 2  # CPU threads while it trains
-
-    @model_validator(mode="before")
-    @classmethod
-    def _retired(cls, values: Any) -> Any:
-        return _without_retired(values, {"pool": 1}, "crossing_point")
 
 
 class LineCheckConfig(Strict):
@@ -226,11 +186,6 @@ class AdaptConfig(Strict):
     lr: Positive = 1e-3  # peak learning rate
     warmup_epochs: NonNegative = 0.05  # linear warm-up
     supplement_repeats: PositiveInt = 10  # times each supplement image is listed
-
-    @model_validator(mode="before")
-    @classmethod
-    def _retired(cls, values: Any) -> Any:
-        return _without_retired(values, {"lower_mat_weight": 1.0}, "adapt")
 
 
 class InitConfig(Strict):

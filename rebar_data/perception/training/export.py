@@ -43,7 +43,7 @@ def export_model(run: TrainRun, first_path: Path, stages: dict[str, tuple[Any, l
     history) to ONNX in the run folder, and load them as the run time does, in float32."""
     cfg, out = run.cfg, run.out
     net, meta, _ = load_checkpoint(first_path)
-    stale = ("score_bias", "score_bias_without_depth", "results", *STAGE_META)  # the second: older files
+    stale = ("score_bias", "results", *STAGE_META)
     meta = {k: v for k, v in meta.items() if k not in stale}
     # the run as it finished (its later stages may have trained on other settings or data)
     meta.update(dataset=run.dataset, train_config=cfg.model_dump(mode="json"))
