@@ -37,7 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    from rebar_data.perception.commands import forward_dataset_detect
+
+    args = build_parser().parse_args(forward_dataset_detect(list(sys.argv[1:] if argv is None else argv)))
     try:
         result = args.func(args)
     except (ConfigError, DatasetFormatError) as e:

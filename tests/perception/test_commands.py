@@ -15,6 +15,15 @@ from rebar_data.perception.evaluation.false_detections import PLACES
 from .conftest import TINY_TRAIN
 
 
+def test_detect_on_a_dataset_is_score_with_a_note(trained_run, drawn_dataset, tmp_path, capsys):
+    """The dataset form scripts wrote before `rebar score` had its name is forwarded whole to it."""
+    args = ["--split", "test", "--model", str(trained_run.out_dir), "--quiet"]
+    assert main(["detect", str(drawn_dataset), "--out", str(tmp_path / "a.parquet"), *args]) == 0
+    assert f"`rebar detect {drawn_dataset}` is `rebar score {drawn_dataset}`" in capsys.readouterr().err
+    assert main(["score", str(drawn_dataset), "--out", str(tmp_path / "b.parquet"), *args]) == 0
+    assert pq.read_table(tmp_path / "a.parquet").equals(pq.read_table(tmp_path / "b.parquet"))
+
+
 def test_score_on_a_dataset_split_writes_one_row_per_prediction(trained_run, drawn_dataset, tmp_path, capsys):
     out = tmp_path / "pred.parquet"
     metrics = tmp_path / "m.json"
