@@ -138,9 +138,11 @@ def test_dataset_outputs_are_checked_before_any_work(drawn_dataset, model, tmp_p
     assert "--metrics" in (err := _one_line(capsys)) and "did not write" in err, err
     assert notes.read_text() == '{"mine": true}\n' and not out.exists()
 
-    # its own files are replaced, and say who wrote them; so are those `rebar detect` wrote (it scored before)
+    # its own files are replaced, and say who wrote them; a file another command marked is not its own
     pq.write_table(pa.table({"x": [1]}).replace_schema_metadata({b"written_by": b"rebar detect"}), out)
-    metrics.write_text('{"written_by": "rebar detect"}\n')
+    assert detect("--out", str(out), "--split", "val") == 2
+    assert "did not write" in _one_line(capsys)
+    out.unlink()
     for _ in range(2):
         assert detect("--out", str(out), "--metrics", str(metrics), "--split", "val") == 0
     assert pq.read_schema(out).metadata[b"written_by"] == b"rebar score"

@@ -43,10 +43,15 @@ def test_a_folder_the_run_did_not_write_is_refused_and_kept(suite, tmp_path, cap
 
 def test_an_earlier_run_is_replaced_whole_and_marked(suite, tmp_path, capsys):
     out = tmp_path / "run"
-    # an earlier run's layout, written before runs carried a mark
+    # an unmarked folder with a run's files is not this command's: refused, untouched
     out.mkdir()
     (out / "summary.json").write_text(json.dumps({"suite": "old"}))
     (out / "episodes.parquet").write_bytes(b"old")
+    assert main(["servo", "run", str(suite), "--out", str(out), "--quiet"]) == 2
+    assert (out / "episodes.parquet").read_bytes() == b"old"
+    capsys.readouterr()
+    # an earlier run (its mark) is replaced whole
+    (out / OWNER_FILE).write_text(json.dumps({"command": "rebar servo run", "created_at": "earlier"}))
     (out / "episode_9.rrd").write_bytes(b"old")
     assert main(["servo", "run", str(suite), "--out", str(out), "--quiet"]) == 0
     assert json.loads((out / "summary.json").read_text())["suite"] == "test"

@@ -15,7 +15,7 @@ from rebar_data.geometry.config import MeshConfig
 from rebar_data.perception.evaluation.data import load_split, read_distractors
 from rebar_data.perception.evaluation.evaluate import score
 from rebar_data.perception.evaluation.lower_mat import lower_mat_crossings, lower_mat_of, lower_mat_places
-from rebar_data.perception.training.config import AdaptConfig, TrainConfig, resolve_config
+from rebar_data.perception.training.config import TrainConfig, resolve_config
 from rebar_data.perception.training.epochs import TrainingImages, make_batch
 from rebar_data.perception.training.refine import with_lower_mat
 from rebar_data.scene.mat_surface import MatSurface
@@ -133,10 +133,9 @@ def test_a_dataset_without_a_lower_mat_has_no_lower_mat_crossings(drawn_dataset)
     assert [len(f) for f in lower_mat_of(samples)] == [0] * len(samples)
 
 
-def test_a_retired_lower_mat_weight_loads_at_one_and_is_refused_otherwise():
-    assert AdaptConfig(lower_mat_weight=1.0) == AdaptConfig()
-    with pytest.raises(ConfigError, match="adapt.lower_mat_weight = 3.0 is no longer supported"):
-        resolve_config({"adapt": {"lower_mat_weight": 3.0}}, {})
+def test_a_retired_setting_is_an_unknown_key():
+    with pytest.raises(ConfigError, match="lower_mat_weight"):
+        resolve_config({"adapt": {"lower_mat_weight": 1.0}}, {})
 
 
 def test_training_images_know_their_distractors_pixels_only_when_the_gain_is_on(lower_dataset):

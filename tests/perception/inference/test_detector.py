@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -110,15 +112,26 @@ def test_shipped_model_detects_the_crossings_of_a_freshly_rendered_frame(rendere
     assert px.pck[2.0] >= 0.9 and px.median_px < 1.0, (px.pck, px.median_px)
 
 
-def test_a_model_file_without_first_pass_views_reads_every_pass_in_its_views():
-    """Files written before ``first_pass_views`` was stored ran their first pass in ``views`` views, and
-    load so; one that stores it reads its first pass so."""
+def test_a_model_file_of_format_1_names_the_release_that_reads_it(tmp_path):
+    """Format 2 is the one this code reads; an older file is one line naming rebar-data 0.1.0."""
+    import onnx
+
+    if not infer.SHIPPED_MODEL.exists():
+        pytest.skip("no model shipped yet (make train ships one)")
+    model = onnx.load(str(infer.SHIPPED_MODEL))
+    entry = next(e for e in model.metadata_props if e.key == model_file.META_KEY)
+    entry.value = json.dumps({**json.loads(entry.value), "format_version": 1})
+    old = tmp_path / infer.SHIPPED_MODEL.name
+    onnx.save(model, str(old))
+    with pytest.raises(ConfigError, match=r"format 1, which rebar-data 0\.1\.0 reads; accepted: format 2"):
+        Detector.load(old)
+
+
+def test_a_model_file_reads_its_first_pass_in_its_stored_views():
     if not infer.SHIPPED_MODEL.exists():
         pytest.skip("no model shipped yet (make train ships one)")
     meta = Detector.load(threads=1).meta
-    entry = {k: v for k, v in meta["refiner"].items() if k != "first_pass_views"} | {"views": 4}
-    old = model_file.load_stages(infer.SHIPPED_MODEL, {**meta, "refiner": entry}, 1, "onnxruntime")[0]
-    assert old.views == old.first_pass_views == 4
+    entry = meta["refiner"] | {"views": 4}
     stored = model_file.load_stages(
         infer.SHIPPED_MODEL, {**meta, "refiner": {**entry, "first_pass_views": 1}}, 1, "onnxruntime"
     )[0]

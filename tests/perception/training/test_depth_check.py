@@ -13,8 +13,6 @@ from rebar_data.perception.evaluation.data import load_split, read_depth, read_i
 from rebar_data.perception.evaluation.evaluate import first_stage_only
 from rebar_data.perception.inference import model_file
 from rebar_data.perception.inference.checks import (
-    VETO_MARGIN,
-    VETO_POWER,
     DepthCheck,
     as_depth_m,
     encode_depth,
@@ -227,8 +225,7 @@ def test_a_trained_run_ships_its_depth_check_and_detect_uses_it_only_with_depth(
 
 
 def test_a_checkpoint_reads_its_depth_check_as_its_onnx_file_does(trained_run):
-    """A run's .pt checkpoint and .onnx file take the depth check's patch and veto from the same meta entry;
-    an older entry without the veto's settings takes the defaults."""
+    """A run's .pt checkpoint and .onnx file take the depth check's patch and veto from the same meta entry."""
     out = trained_run.out_dir
     from_files, from_checkpoint = Detector.load(out, threads=1), Detector.load(out / "best.pt")
 
@@ -239,8 +236,6 @@ def test_a_checkpoint_reads_its_depth_check_as_its_onnx_file_does(trained_run):
     entry = {"patch_px": 32, "scale_m": 0.05, "clip": 4.0, "veto_power": 0.8, "veto_margin": 1}
     want = {"scale_m": 0.05, "clip": 4.0, "power": 0.8, "margin": 1.0}
     assert model_file.depth_check_settings(entry) == want
-    older = model_file.depth_check_settings({"scale_m": 0.05, "clip": 4.0, "power": 1.0})
-    assert (older["power"], older["margin"]) == (VETO_POWER, VETO_MARGIN)
 
 
 def test_each_epoch_gives_an_image_its_own_sensor_depth_or_a_drawn_sensors(drawn_dataset):
