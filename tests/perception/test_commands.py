@@ -128,10 +128,13 @@ def test_user_errors_are_one_line_and_exit_2(drawn_dataset, tmp_path, capsys):
     assert main(["score", str(tmp_path / "nowhere"), "--out", str(tmp_path / "p.parquet")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "no such dataset folder" in err[0]
-    # each command names the other where it is given what the other reads
+    # detect given a dataset is score, said in a note; score given images names detect
     assert main(["detect", str(drawn_dataset), "--out", str(tmp_path / "o")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and f"`rebar score {drawn_dataset}` scores" in err[0], err
+    note, *err = capsys.readouterr().err.strip().splitlines()
+    assert note == f"note: `rebar detect {drawn_dataset}` is `rebar score {drawn_dataset}`; running that", (
+        note
+    )
+    assert len(err) == 1 and "such as pred.parquet" in err[0], err
     images = drawn_dataset / "images" / "test"
     assert main(["score", str(images), "--out", str(tmp_path / "p.parquet")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
