@@ -145,13 +145,38 @@ class TargetsConfig(Strict):
     min_score: Fraction = 0.3
 
 
+class AlignConfig(Strict):
+    """The tool square to the mat and its jaw across the crossing while it servos (:mod:`rebar_data.servo.alignment`):
+    the camera turns (``gain`` per second on the measured turn, ``theta u``) so that its optical axis, parallel
+    to the tool's, lies along the mat's inward normal measured from the depth image within ``radius_m`` of the
+    crossing, and its x axis (the tool's jaw) on the bisector of the two bars, or ``jaw_to_bar_deg`` from a bar.
+    Each frame's measurement enters a running estimate with weight ``smoothing``. A visit converges only with
+    the measured tilt and jaw turn below ``converge_tilt_deg`` and ``converge_jaw_deg``."""
+
+    enabled: bool = True
+    gain: Positive = 3.0
+    jaw_to_bar_deg: Annotated[float, Field(gt=0, lt=90)] | None = None
+    radius_m: Annotated[float, Field(ge=0.02, le=0.3)] = 0.07
+    smoothing: Annotated[float, Field(gt=0, le=1)] = 0.3
+    converge_tilt_deg: Positive = 0.5
+    converge_jaw_deg: Positive = 1.0
+
+
 class TcpConfig(Strict):
-    """After centring, move the tool centre point onto the crossing (``standoff_m`` short of it)."""
+    """The tie, after centring: the tool centre point moved over the crossing ``clearance_m`` out along the
+    tool's axis, then along that axis to ``standoff_m`` short of the crossing (the gun's tie stand-off), held
+    there ``dwell_s`` (the tie), and back out along the axis. Tool moves run at up to ``speed_m_s``; the
+    first leg ends within ``waypoint_tolerance_m``, the approach within ``tolerance_m``."""
 
     approach: bool = True
     standoff_m: NonNegative = 0.0
+    clearance_m: NonNegative = 0.05
+    dwell_s: NonNegative = 1.0
+    speed_m_s: Positive = 1.0
+    gain: Positive = 16.0
     max_iterations: Count = 120
     tolerance_m: Positive = 0.0005
+    waypoint_tolerance_m: Positive = 0.003
 
 
 class FaultsConfig(Strict):
@@ -200,6 +225,31 @@ class RandomEpisodes(Strict):
     roll_deg: NonNegative = 10.0
 
 
+class TourBase(Strict):
+    """One base pose of a tour: the robot's base (with its table: a mobile base, or a carriage on a rail)
+    moved by the offset between the element's surface points at (``axial_m``, ``arc_m``) and at the crown,
+    its orientation kept."""
+
+    axial_m: float = 0.0
+    arc_m: float = 0.0
+
+
+class TourConfig(Strict):
+    """A tour (:mod:`rebar_data.servo.tour`): from each base pose in turn, the camera looks at the element
+    ``standoff_m`` out from the surface point the base was moved by, and every crossing of the top mat it
+    finds within the arm's reach is tied once, nearest first along the shortest path over those seen
+    (a crossing found behind the front mat by more than ``front_band_m`` is on a lower mat and never a
+    target; one that fails ``max_attempts`` visits is left). ``max_ties`` ends the whole tour early."""
+
+    mode: Literal["ibvs", "pbvs"] = "ibvs"
+    bases: list[TourBase] = Field(default_factory=lambda: [TourBase()], min_length=1)
+    standoff_m: Positive = 0.6
+    max_ties: Count | None = None
+    max_attempts: Count = 2
+    front_band_m: Positive = 0.04
+    merge_radius_m: Positive = 0.03
+
+
 class SuiteConfig(Strict):
     name: str
     seed: Annotated[int, Field(ge=0)] = 0
@@ -232,15 +282,24 @@ class SuiteConfig(Strict):
     safety: SafetyConfig = SafetyConfig()
     tracker: TrackerSettings = TrackerSettings()
     targets: TargetsConfig = TargetsConfig()
+    align: AlignConfig = AlignConfig()
     tcp: TcpConfig = TcpConfig()
     recording: RecordingConfig = RecordingConfig()
     episodes: list[EpisodeSpec] = Field(default_factory=list)
     random: RandomEpisodes | None = None
+    tour: TourConfig | None = None
 
     @model_validator(mode="after")
     def _has_episodes(self) -> SuiteConfig:
-        if not self.episodes and self.random is None:
-            raise ValueError("no episodes: accepted: a list under 'episodes', a 'random' section, or both")
+        if not self.episodes and self.random is None and self.tour is None:
+            raise ValueError(
+                "no episodes: accepted: a list under 'episodes', a 'random' section, a 'tour', or several"
+            )
+        if self.ibvs.rotation and self.align.enabled:
+            raise ValueError(
+                "ibvs.rotation = true turns the camera to centre the point and align.enabled turns it square "
+                "to the mat; accepted: one of them (align: {enabled: false} with ibvs.rotation: true)"
+            )
         return self
 
 

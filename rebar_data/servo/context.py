@@ -10,6 +10,7 @@ import numpy as np
 
 from rebar_data.camera import Intrinsics
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.servo.alignment import CrossingTruth
 from rebar_data.servo.config import SuiteConfig
 from rebar_data.servo.detectors import ServoDetector
 from rebar_data.servo.frames import FrameSource
@@ -33,6 +34,7 @@ class ServoContext:
     make_detector: Callable[[np.random.Generator], ServoDetector]
     depth_offset_m: float
     detector_name: str
+    truth: CrossingTruth  # the crossings' exact bar tangents and normals, for the rows only
     new_sensor: Callable[[np.random.Generator], None] | None = None
 
     def close(self) -> None:

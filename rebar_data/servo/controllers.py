@@ -16,7 +16,7 @@ import numpy as np
 from rebar_data.camera import Intrinsics
 from rebar_data.servo import ur5
 from rebar_data.servo.config import IbvsConfig, MotionConfig, PbvsConfig
-from rebar_data.servo.ibvs import AdaptiveGain, ibvs_twist
+from rebar_data.servo.ibvs import AdaptiveGain, ibvs_twist, ibvs_twist_aligned
 from rebar_data.servo.motion import (
     damped_pinv_solve,
     keep_inside_limits,
@@ -53,13 +53,18 @@ class _Base:
         """Joint rates to the camera's twist in the camera frame."""
         raise NotImplementedError
 
-    def joint_rates(self, twist: np.ndarray) -> np.ndarray:
-        """Joint velocities for a camera twist: orientation hold added, saturated, damped, limited."""
+    def joint_rates(
+        self, twist: np.ndarray, *, hold: bool | None = None, speed_m_s: float | None = None
+    ) -> np.ndarray:
+        """Joint velocities for a camera twist: orientation hold added (``hold``: the controller's own rule
+        unless given), saturated (at ``speed_m_s``, the suite's camera speed unless given), damped, limited."""
         m = self.motion
         t = np.array(twist, float)
-        if self.hold_orientation and self.reference is not None:
+        hold = self.hold_orientation if hold is None else hold
+        if hold and self.reference is not None:
             t[3:] = orientation_hold(self.camera_pose(), self.reference, m.orientation_gain)
-        t = saturate_twist(t, speed_m_s=m.camera_speed_m_s, rate_rad_s=m.camera_rate_rad_s)
+        speed = m.camera_speed_m_s if speed_m_s is None else speed_m_s
+        t = saturate_twist(t, speed_m_s=speed, rate_rad_s=m.camera_rate_rad_s)
         q = self.world.q
         qdot = damped_pinv_solve(self.jacobian(q), t, damping=m.damping)
         lim = self.world.limits
@@ -86,15 +91,21 @@ class IbvsController(_Base):
     def jacobian(self, q: np.ndarray) -> np.ndarray:
         return ur5.jacobian_in_frame(q, self.world.layout.flange_from_camera)
 
-    def twist(self, uv: np.ndarray, Z: float) -> tuple[np.ndarray, float, float]:
-        """Twist, image error (px) and lateral error (m) for the tracked point at depth Z."""
+    def twist(
+        self, uv: np.ndarray, Z: float, omega: np.ndarray | None = None
+    ) -> tuple[np.ndarray, float, float]:
+        """Twist, image error (px) and lateral error (m) for the tracked point at depth Z; with ``omega`` (the
+        alignment's rotation, camera frame) the camera turns so while the point keeps to its path."""
         cam = self.camera
         xy = cam.normalized(uv)[0]
         xy_star = cam.normalized(self.desired_px)[0]
         depth = self.cfg.desired_depth_m if self.cfg.depth_feature else None
-        twist, e = ibvs_twist(
-            xy, xy_star, Z, gain=self.gain, desired_depth_m=depth, rotation=self.cfg.rotation
-        )
+        if omega is not None:
+            twist, e = ibvs_twist_aligned(xy, xy_star, Z, omega, gain=self.gain, desired_depth_m=depth)
+        else:
+            twist, e = ibvs_twist(
+                xy, xy_star, Z, gain=self.gain, desired_depth_m=depth, rotation=self.cfg.rotation
+            )
         self.last_gain = self.gain(float(np.max(np.abs(e))))
         error_px = float(np.linalg.norm(np.asarray(uv) - self.desired_px))
         return twist, error_px, float(np.linalg.norm(e[:2]) * Z)
@@ -139,9 +150,11 @@ class PbvsController(_Base):
         self._calls += 1
         return self._J
 
-    def twist(self, uv: np.ndarray, Z: float) -> tuple[np.ndarray, float, float]:
+    def twist(
+        self, uv: np.ndarray, Z: float, omega: np.ndarray | None = None
+    ) -> tuple[np.ndarray, float, float]:
         p = self.camera.back_project(np.atleast_2d(uv), np.array([Z]))[0]
-        twist, e = pbvs_twist(p, self.desired_m, gain=self.gain)
+        twist, e = pbvs_twist(p, self.desired_m, gain=self.gain, omega=omega)
         self.last_gain = self.gain(float(np.max(np.abs(e))))
         error_px = float(np.linalg.norm(np.asarray(uv) - self.desired_px))
         return twist, error_px, float(np.linalg.norm(e))

@@ -72,3 +72,29 @@ def ibvs_twist(
     twist = np.zeros(6)
     twist[axes] = -gain(float(np.max(np.abs(e)))) * (np.linalg.pinv(L[:, axes]) @ e)
     return twist, e
+
+
+def ibvs_twist_aligned(
+    xy: np.ndarray,
+    xy_desired: np.ndarray,
+    Z: float,
+    omega: np.ndarray,
+    *,
+    gain: AdaptiveGain,
+    desired_depth_m: float | None,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Camera twist (6,) and feature error with the rotation ``omega`` (camera frame) given: the translation
+    keeps the point feature (and log-depth) decaying as ``-lambda e`` while the camera turns, ``v = L_v+
+    (-lambda e - L_w omega)`` (2 1/2 D visual servoing: rotation from the measured pose of the mat, translation
+    from the image)."""
+    x, y = float(xy[0]), float(xy[1])
+    L = point_interaction_matrix(x, y, Z)
+    e = np.asarray(xy, float) - np.asarray(xy_desired, float)
+    if desired_depth_m is not None:
+        L = np.vstack([L, log_depth_interaction_row(x, y, Z)])
+        e = np.append(e, np.log(Z / desired_depth_m))
+    lam = gain(float(np.max(np.abs(e))))
+    twist = np.zeros(6)
+    twist[:3] = np.linalg.pinv(L[:, :3]) @ (-lam * e - L[:, 3:] @ omega)
+    twist[3:] = omega
+    return twist, e

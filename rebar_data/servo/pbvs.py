@@ -39,10 +39,16 @@ def calibrate_jacobian(
 
 
 def pbvs_twist(
-    point_camera: np.ndarray, desired_m: np.ndarray, *, gain: AdaptiveGain
+    point_camera: np.ndarray, desired_m: np.ndarray, *, gain: AdaptiveGain, omega: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Camera twist (6,; no rotation) and the 3D error ``p - p*`` for a target at ``point_camera``."""
-    e = np.asarray(point_camera, float) - np.asarray(desired_m, float)
+    """Camera twist (6,) and the 3D error ``p - p*`` for a target at ``point_camera``: no rotation, or the
+    rotation ``omega`` (camera frame) with the translation that keeps ``e`` decaying as ``-lambda e`` while the
+    camera turns (a still point moves as ``dp/dt = -v - omega x p``, so ``v = lambda e - omega x p``)."""
+    p = np.asarray(point_camera, float)
+    e = p - np.asarray(desired_m, float)
     twist = np.zeros(6)
     twist[:3] = gain(float(np.max(np.abs(e)))) * e
+    if omega is not None:
+        twist[:3] -= np.cross(omega, p)
+        twist[3:] = omega
     return twist, e

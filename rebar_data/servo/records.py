@@ -18,7 +18,7 @@ class StepRow:
     episode: int
     visit: int
     mode: str
-    phase: str  # servo | approach | retract
+    phase: str  # servo | approach | tie | retract
     iteration: int
     time_s: float
     feature_u: float
@@ -67,6 +67,16 @@ class VisitRow:
     tcp_error_m: float
     tcp_lateral_error_m: float
     tcp_iterations: int
+    # the tool's true alignment with the crossing (degrees): at the servo's end, and at the tie
+    final_tilt_error_deg: float
+    final_jaw_error_deg: float
+    tied: bool
+    tie_time_s: float  # simulated time when the tie was made (the dwell's start)
+    tie_tilt_error_deg: float
+    tie_jaw_error_deg: float
+    # the tie point's distance to the nearest crossing of the top mat: a tie on the lower mat, or between
+    # crossings, lies far from every one
+    tie_crossing_distance_m: float
     lost_frames: int
     reseeds: int
     max_joint_speed_ratio: float

@@ -26,6 +26,7 @@ from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_st
 from rebar_data.pipeline import load_pipeline
 from rebar_data.render.raycast import Raycaster
 from rebar_data.scene.sample import nominal_depth_sensor
+from rebar_data.servo.alignment import CrossingTruth
 from rebar_data.servo.camera import kinect_intrinsics
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.context import ServoContext
@@ -35,9 +36,11 @@ from rebar_data.servo.faults import faulty
 from rebar_data.servo.frames import RaycastFrames, RendererFrames
 from rebar_data.servo.recorder import Recorder
 from rebar_data.servo.records import EpisodeResult
+from rebar_data.servo.tour import CrossingMap, TourRunner, tour_summary
 from rebar_data.servo.world import ServoWorld, build_world_mesh, check_reachable
 
 RANDOM_EPISODE_OFFSET = 1000
+TOUR_EPISODE_OFFSET = 2000
 MAX_START_DRAWS = 50
 COMMAND = "rebar servo run"
 
@@ -104,6 +107,7 @@ def build_context(suite: SuiteConfig, suite_path: str | Path | None = None) -> S
         make_detector=make_detector,
         depth_offset_m=float(bar_diameter_m),
         detector_name=suite.detector,
+        truth=CrossingTruth.of(rm),
         new_sensor=new_sensor,
     )
 
@@ -145,6 +149,33 @@ def plan_episodes(
                     "narrower axial_m / arc_m / standoff_m ranges"
                 )
             plan.append((index, spec.model_copy(update={"start": start}), start, q))
+    return plan
+
+
+def plan_tour(suite: SuiteConfig, ctx: ServoContext) -> list[tuple[int, np.ndarray, StartPose, np.ndarray]]:
+    """Each tour base as (episode index, base offset, start pose, start joints); one the arm cannot reach
+    from its base is a ConfigError naming it."""
+    tour = suite.tour
+    if tour is None:
+        return []
+    world = ctx.world
+    crown, _ = world.surface_point(0.0, 0.0)
+    plan = []
+    try:
+        for i, b in enumerate(tour.bases):
+            offset = world.surface_point(b.axial_m, b.arc_m)[0] - crown
+            world.move_base(offset)
+            start = StartPose(look_at_m=(b.axial_m, b.arc_m), standoff_m=tour.standoff_m)
+            q, ok = world.solve_start(world.camera_pose_for(start))
+            if not ok:
+                raise ConfigError(
+                    f"tour.bases[{i}]: the arm on that base cannot look at ({b.axial_m}, {b.arc_m}) from "
+                    f"{tour.standoff_m} m; accepted: a base whose look-at point is on the element and a standoff_m "
+                    "of 0.5-0.7 m"
+                )
+            plan.append((TOUR_EPISODE_OFFSET + i, offset, start, q))
+    finally:
+        world.move_base(np.zeros(3))
     return plan
 
 
@@ -198,8 +229,28 @@ def _write_run(suite, ctx, plan, out: Path, t0: float, recorder_factory, progres
                 return recorder_for(suite, ctx, tmpdir, k, index, spec)
 
         results: list[EpisodeResult] = []
-        bar = _progress(len(plan), progress)
+        tour_plan = plan_tour(suite, ctx)
+        bar = _progress(len(plan) + len(tour_plan), progress)
         snap_modes: set[str] = set()
+        crossing_map = None
+        if suite.tour is not None:
+            crossing_map = CrossingMap(suite.tour.merge_radius_m)
+            ties_left = suite.tour.max_ties
+            for j, (index, offset, start, q) in enumerate(tour_plan):
+                rec = recorder_factory(len(plan) + j, index, EpisodeSpec(mode=suite.tour.mode)) or Recorder()
+                seq = np.random.SeedSequence([suite.seed, index, 7])
+                ctx.world.move_base(offset)
+                runner = TourRunner(ctx, suite.tour, index, seq, rec, crossing_map=crossing_map, ties_left=ties_left)
+                try:
+                    runner.run_base(start, q)
+                finally:
+                    rec.close()
+                    ctx.world.move_base(np.zeros(3))
+                ties_left = runner.ties_left
+                results.append(runner.result)
+                bar(len(plan) + j, results[-1])
+                if ties_left is not None and ties_left <= 0:
+                    break
         for k, (index, spec, start, q) in enumerate(plan):
             rec = recorder_factory(k, index, spec) or Recorder()
             seq = np.random.SeedSequence([suite.seed, index, 7])
@@ -210,7 +261,9 @@ def _write_run(suite, ctx, plan, out: Path, t0: float, recorder_factory, progres
             finally:
                 rec.close()
             bar(k, results[-1])
-        summary = write_outputs(suite, ctx, results, tmpdir, wall_s=time.perf_counter() - t0)
+        summary = write_outputs(
+            suite, ctx, results, tmpdir, wall_s=time.perf_counter() - t0, crossing_map=crossing_map
+        )
         mark_output(tmpdir, COMMAND)
         replace_folder(tmpdir, out)
     return summary
@@ -232,7 +285,13 @@ def _progress(total: int, enabled: bool):
 
 
 def write_outputs(
-    suite: SuiteConfig, ctx: ServoContext, results: list[EpisodeResult], out: Path, *, wall_s: float
+    suite: SuiteConfig,
+    ctx: ServoContext,
+    results: list[EpisodeResult],
+    out: Path,
+    *,
+    wall_s: float,
+    crossing_map: CrossingMap | None = None,
 ) -> dict:
     from rebar_data.servo.report import summarize, write_report
 
@@ -241,6 +300,8 @@ def write_outputs(
     pq.write_table(pa.Table.from_pylist(visits), out / "episodes.parquet")
     pq.write_table(pa.Table.from_pylist(steps) if steps else pa.table({}), out / "steps.parquet")
     summary = summarize(visits)
+    if crossing_map is not None:
+        summary["tour"] = tour_summary(visits, crossing_map, len(ctx.rm.crossings))
     summary.update(
         {
             "suite": suite.name,

@@ -22,7 +22,7 @@ crossings without the arm changing configuration.
 from __future__ import annotations
 
 import tempfile
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import cached_property
 from pathlib import Path
 
@@ -91,6 +91,7 @@ class ServoWorld:
         for link in (-1, 0):  # the base and the shoulder sit on the table: mounted, not in contact
             c.setCollisionFilterPair(self.robot, self.table, link, -1, enableCollision=0)
         self.mesh_body = self._load_mesh()
+        self._loaded_at = {b: c.getBasePositionAndOrientation(b) for b in (self.robot, self.table)}
         self.physics_steps = 0
         self.control_steps = 0
 
@@ -147,6 +148,16 @@ class ServoWorld:
         """Start the simulated clock again at 0 (each episode runs on its own clock)."""
         self.physics_steps = 0
         self.control_steps = 0
+
+    def move_base(self, offset_m: np.ndarray) -> None:
+        """Put the robot's base, with its table (a mobile base or a carriage on a rail), ``offset_m`` from
+        where the world config places it (tours only; the arm keeps its joints)."""
+        offset = np.asarray(offset_m, float)
+        c = self.client
+        # pybullet places a body by its base's inertial frame: move each from where it was loaded
+        for body, (at, turn) in self._loaded_at.items():
+            c.resetBasePositionAndOrientation(body, (np.array(at) + offset).tolist(), turn)
+        self.layout = replace(self.layout, world_from_base=translation(np.array(self.cfg.robot_base_m) + offset))
 
     def reset_joints(self, q: np.ndarray) -> None:
         """Teleport the arm to ``q`` at rest and hold it there (episode set-up only)."""
@@ -272,11 +283,14 @@ class ServoWorld:
         R = R0 @ tilt.as_matrix()
         return make_transform(R, p - R[:, 2] * start.standoff_m)
 
-    def solve_start(self, world_from_camera: np.ndarray) -> tuple[np.ndarray, bool]:
-        """Joint angles that put the camera at ``world_from_camera`` (IK from the home configuration)."""
+    def solve_start(
+        self, world_from_camera: np.ndarray, seed: np.ndarray | None = None
+    ) -> tuple[np.ndarray, bool]:
+        """Joint angles that put the camera at ``world_from_camera`` (IK from the home configuration, or from
+        ``seed``), at least 0.3 rad inside every joint limit."""
         base_from_camera = rigid_inverse(self.layout.world_from_base) @ world_from_camera
         best: tuple[np.ndarray, bool] | None = None
-        for seed in self.home_seeds():
+        for seed in [seed] if seed is not None else self.home_seeds():
             q, ok = ur5.inverse_kinematics(
                 base_from_camera, seed, flange_from_point=self.layout.flange_from_camera, limits=self.limits
             )

@@ -1,0 +1,263 @@
+"""A tour: every crossing of the top mat within the arm's reach tied once, from each base pose in turn.
+
+From each base pose (:class:`~rebar_data.servo.config.TourBase`, one episode each) the camera first looks at
+the element and every crossing it detects goes into the tour's map of crossings (world points, by the
+controller's own camera pose estimate and the depth image; one map for the whole tour, so a crossing tied
+from one base is never tied again from the next). Then, until no open crossing is left in reach:
+
+- the open crossings the arm can reach (its servo pose and its tie pose both solved by the UR5's inverse
+  kinematics within the joint limits) are ordered along the shortest open path from where the camera looks
+  (nearest neighbour, then 2-opt), and the first is the next target;
+- the target is picked up in the present frame, where the map projects it (the nearest detection there,
+  else the projection), and tracked from there: no fresh acquisition;
+- the visit servos onto it, squares the tool and ties (:func:`rebar_data.servo.control.visit`);
+- the frame the camera sees back at its view pose adds the crossings newly in view.
+
+A detection lying more than ``front_band_m`` behind the front mat around it (the depth image's nearest
+surface there) is on a lower mat: it enters the map as such and is never a target.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from rebar_data.camera import rigid_inverse
+from rebar_data.servo import control
+from rebar_data.servo.config import EpisodeSpec, StartPose, TourConfig
+from rebar_data.servo.episode import EpisodeRunner
+from rebar_data.servo.sensing import Target
+from rebar_data.servo.targets import persistent_clusters
+from rebar_data.servo.tracker import TargetTracker
+from rebar_data.servo.transforms import apply, make_transform
+
+OPEN, TIED, FAILED, LOWER = "open", "tied", "failed", "lower_mat"
+FRONT_WINDOW_M = 0.05
+ELBOW_MIN_RAD = 0.35  # the front mat around a detection: the nearest surface within this radius
+
+
+@dataclass
+class MapEntry:
+    point: np.ndarray  # world, by the controller's pose estimate (a running mean over sightings)
+    sightings: int
+    state: str = OPEN
+    attempts: int = 0
+
+
+class CrossingMap:
+    """The crossings a tour has seen, in the world frame; detections within ``merge_radius_m`` of an entry
+    are the same crossing."""
+
+    def __init__(self, merge_radius_m: float):
+        self.merge_radius_m = merge_radius_m
+        self.entries: list[MapEntry] = []
+
+    def add(self, point: np.ndarray, *, lower: bool) -> MapEntry:
+        for e in self.entries:
+            if np.linalg.norm(e.point - point) < self.merge_radius_m:
+                if e.state == OPEN or e.state == LOWER:
+                    e.point = (e.point * e.sightings + point) / (e.sightings + 1)
+                    e.sightings += 1
+                return e
+        e = MapEntry(point=np.array(point, float), sightings=1, state=LOWER if lower else OPEN)
+        self.entries.append(e)
+        return e
+
+    def count(self, state: str) -> int:
+        return sum(e.state == state for e in self.entries)
+
+
+def open_path(start: np.ndarray, points: np.ndarray) -> np.ndarray:
+    """The order of ``points`` along a short open path from ``start``: nearest neighbour, then 2-opt."""
+    n = len(points)
+    if n <= 1:
+        return np.arange(n)
+    left = list(range(n))
+    order: list[int] = []
+    here = start
+    while left:
+        j = min(left, key=lambda i: float(np.linalg.norm(points[i] - here)))
+        order.append(j)
+        left.remove(j)
+        here = points[j]
+    path = np.vstack([start[None], points[order]])
+    idx = list(range(n + 1))
+
+    def d(a: int, b: int) -> float:
+        return float(np.linalg.norm(path[a] - path[b]))
+
+    improved = True
+    while improved:
+        improved = False
+        for i in range(1, n):
+            for k in range(i + 1, n + 1):
+                a, b = idx[i - 1], idx[i]
+                c = idx[k]
+                after = idx[k + 1] if k < n else None
+                old = d(a, b) + (d(c, after) if after is not None else 0.0)
+                new = d(a, c) + (d(b, after) if after is not None else 0.0)
+                if new < old - 1e-9:
+                    idx[i : k + 1] = idx[i : k + 1][::-1]
+                    improved = True
+    return np.array([order[i - 1] for i in idx[1:]])
+
+
+class TourRunner(EpisodeRunner):
+    """One base pose of a tour: an episode whose visits are every open crossing in reach, shared map."""
+
+    def __init__(self, ctx, tour: TourConfig, index: int, seed_seq, recorder=None, *, snapshots=False,
+                 crossing_map: CrossingMap, ties_left: int | None):
+        spec = EpisodeSpec(mode=tour.mode, targets=1)
+        super().__init__(ctx, spec, index, seed_seq, recorder, snapshots=snapshots)
+        self.tour, self.map, self.ties_left = tour, crossing_map, ties_left
+        self._reach: dict[int, bool] = {}
+
+    def run_base(self, start: StartPose, q_start: np.ndarray) -> None:
+        """Survey from the start pose, then visit every open crossing in reach (fills ``self.result``)."""
+        world = self.ctx.world
+        world.reset_clock()
+        world.reset_joints(q_start)
+        if self.ctx.new_sensor is not None:
+            self.ctx.new_sensor(self.rng_frames)
+        from rebar_data.servo.rows import EpisodeRows
+
+        self.rows = EpisodeRows(self.ctx, self.controller, episode=self.index, start_standoff_m=start.standoff_m)
+        self.rec.event(self.step_index, f"tour base {self.index}: look at {start.look_at_m}")
+        last = self.survey(frames=self.ctx.suite.targets.acquire_frames)
+        k = 0
+        while self.ties_left is None or self.ties_left > 0:
+            entry = self.next_entry()
+            if entry is None:
+                break
+            target = self.pick_up(entry, last)
+            if target is None:
+                entry.attempts += 1
+                entry.state = FAILED if entry.attempts >= self.tour.max_attempts else entry.state
+                continue
+            self.pending = [target]
+            control.visit(self, k, target)
+            row = self.result.visits[-1]
+            if row.tied:
+                entry.state = TIED
+                if self.ties_left is not None:
+                    self.ties_left -= 1
+            else:
+                entry.attempts += 1
+                if entry.attempts >= self.tour.max_attempts:
+                    entry.state = FAILED
+            self.rec.event(
+                self.step_index,
+                f"ties {sum(v.tied for v in self.result.visits)} from this base, {self.map.count(TIED)} in all",
+            )
+            k += 1
+            last = self.survey(frames=1)
+
+    # --- the map ---------------------------------------------------------------------------------
+    def survey(self, frames: int):
+        """Detections over a few frames of the still arm into the map; the last sensed frame."""
+        dets, s = [], None
+        for _ in range(3 * frames):
+            s = self.sensing.observe()
+            self.rec.frame(self.step_index, s.frame, s.detections)
+            self.rec.state(self.step_index, self.ctx.world)
+            if len(s.detections):
+                dets.append(s.detections)
+            if len(dets) >= frames:
+                break
+            self.hold()
+        clusters = persistent_clusters(dets, self.ctx.suite.targets.cluster_radius_px)
+        pose = self.controller.camera_pose()
+        for uv in clusters.center:
+            z = self.sensing.crossing_depth(s.frame, uv)
+            if not np.isfinite(z):
+                continue
+            p_cam = self.ctx.camera.back_project(uv[None], np.array([z]))[0]
+            self.map.add(apply(pose, p_cam), lower=self._behind_front(s.frame.depth_m, uv, z))
+        return s
+
+    def _behind_front(self, depth_m: np.ndarray, uv: np.ndarray, z: float) -> bool:
+        """Whether a crossing at pixel ``uv`` and depth ``z`` lies behind the front mat around it."""
+        cam = self.ctx.camera
+        r = int(np.ceil(FRONT_WINDOW_M * cam.fx / z))
+        h, w = depth_m.shape
+        u, v = int(round(float(uv[0]))), int(round(float(uv[1])))
+        patch = depth_m[max(v - r, 0) : min(v + r + 1, h), max(u - r, 0) : min(u + r + 1, w)]
+        vals = patch[patch > 0]
+        if vals.size < 20:
+            return False
+        front = float(np.percentile(vals, 5)) + self.ctx.depth_offset_m
+        return z - front > self.tour.front_band_m
+
+    # --- the next target ---------------------------------------------------------------------------
+    def next_entry(self) -> MapEntry | None:
+        pose = self.controller.camera_pose()
+        here = pose[:3, 3] + pose[:3, 2] * self.ctx.suite.ibvs.desired_depth_m
+        cands = [(i, e) for i, e in enumerate(self.map.entries) if e.state == OPEN and self._reachable(i, e)]
+        if not cands:
+            return None
+        order = open_path(here, np.array([e.point for _, e in cands]))
+        return cands[int(order[0])][1]
+
+    def _reachable(self, i: int, e: MapEntry) -> bool:
+        """Whether the arm reaches the entry's servo pose and tie pose (solved once per entry and base)."""
+        if i in self._reach:
+            return self._reach[i]
+        world = self.ctx.world
+        R = self.controller.camera_pose()[:3, :3]  # the present orientation: the mat's within a few degrees
+        view = make_transform(R, e.point - R[:, 2] * self.ctx.suite.ibvs.desired_depth_m)
+        camera_from_tcp = world.layout.camera_from_tcp
+        tie = make_transform(R, e.point - R @ camera_from_tcp[:3, 3])
+        ok = True
+        for T in (view, tie):
+            q, solved = world.solve_start(T, seed=world.q)
+            # the elbow bent: a stretched arm is at its reach, where the damped control stalls short of it
+            ok = ok and solved and abs(float(q[2])) >= ELBOW_MIN_RAD
+        self._reach[i] = ok
+        return ok
+
+    def pick_up(self, entry: MapEntry, sensed) -> Target | None:
+        """The entry as a tracked target in the present frame (None where it projects outside it)."""
+        cam = self.ctx.camera
+        pose = self.controller.camera_pose()
+        p = apply(rigid_inverse(pose), entry.point)
+        if p[2] <= 0:
+            return None
+        uv = cam.project(p)[0]
+        margin = 10.0
+        if not (margin <= uv[0] <= cam.width - margin and margin <= uv[1] <= cam.height - margin):
+            return None
+        det = sensed.detections
+        sigma = self.ctx.suite.tracker.detection_sigma_px
+        if len(det):
+            d = np.linalg.norm(det[:, :2] - uv, axis=1)
+            j = int(np.argmin(d))
+            if d[j] <= self.ctx.suite.targets.cluster_radius_px:
+                uv = det[j, :2]
+        tracker = TargetTracker(self.ctx.suite.tracker)
+        tracker.seed(sensed.frame.rgb, uv, sigma)
+        t = Target(uv=uv, crossing_id=self.sensing.true_crossing(uv, self.ctx.world.world_from_camera()),
+                   tracker=tracker, pose=pose)
+        z = self.sensing.crossing_depth(sensed.frame, uv)
+        t.depth_m = z if np.isfinite(z) else float(p[2])
+        return t
+
+
+def tour_summary(visits: list[dict], crossing_map: CrossingMap, crossings_total: int) -> dict:
+    """A tour's figures: ties, what the map held, the simulated time a tie, and the element covered."""
+    ties = [v for v in visits if v["tied"]]
+    tied_ids = {v["target_id"] for v in ties if v["target_id"] >= 0}
+    sim_s = float(sum(v["sim_s"] for v in visits))
+    return {
+        "ties": len(ties),
+        "visits": len(visits),
+        "crossings_tied": len(tied_ids),
+        "crossings_in_element": crossings_total,
+        "covered_fraction": len(tied_ids) / crossings_total if crossings_total else 0.0,
+        "map": {state: crossing_map.count(state) for state in (OPEN, TIED, FAILED, LOWER)},
+        "tied_fraction": len(ties) / (len(ties) + crossing_map.count(FAILED)) if ties else 0.0,
+        "ties_off_crossings": sum(1 for v in ties if not v["tie_crossing_distance_m"] <= 0.005),
+        "sim_s": sim_s,
+        "sim_s_per_tie": sim_s / len(ties) if ties else float("nan"),
+        "ties_per_hour": 3600.0 * len(ties) / sim_s if sim_s > 0 else 0.0,
+    }
