@@ -135,7 +135,7 @@ def _bar_directions(
         ang = np.radians((p + 0.5) * BIN_DEG)
         u = np.array([np.cos(ang), np.sin(ang)])
         off = np.abs(a * u[1] - b * u[0])  # distance from the line through the crossing, in the plane
-        on = (off < 0.75 * bar_width_m + 0.003) & (r > max(0.012, bar_width_m))
+        on = (off < 0.75 * bar_width_m + 0.003) & (r > max(0.025, 2.0 * bar_width_m))
         if on.sum() < 30:
             return None
         q = pts[on] - pts[on].mean(axis=0)
@@ -244,7 +244,7 @@ class AlignmentEstimate:
             uv,
             crossing_depth_m - self.depth_offset_m,
             self.camera,
-            radius_m=self.radius_m,
+            radius_m=max(self.radius_m, 5.0 * self.depth_offset_m),  # heavy bars: a wider look
             plane_tolerance_m=max(0.02, 2.0 * self.depth_offset_m),
             bar_width_m=self.depth_offset_m,
         )

@@ -269,8 +269,8 @@ def tool_move(ep: Episode, k: int, target: Target, last: Last, row: VisitRow) ->
     tie = p_cam - cfg.standoff_m * axis
     over = tie - cfg.clearance_m * axis
     move = {"max_iterations": cfg.max_iterations, "speed_m_s": cfg.speed_m_s, "gain": cfg.gain}
-    it1, _, ratio = _move_camera_to(ep, k, camera_goal(over), phase="approach", tol=cfg.waypoint_tolerance_m, **move)
-    it2, reached, r2 = _move_camera_to(ep, k, camera_goal(tie), phase="approach", tol=cfg.tolerance_m, **move)
+    it1, _, ratio = move_camera_to(ep, k, camera_goal(over), phase="approach", tol=cfg.waypoint_tolerance_m, **move)
+    it2, reached, r2 = move_camera_to(ep, k, camera_goal(tie), phase="approach", tol=cfg.tolerance_m, **move)
     row.tcp_reached = bool(reached)
     row.tcp_iterations = it1 + it2
     crossing = ctx.rm.crossings.point[target.crossing_id] if target.crossing_id >= 0 else np.full(3, np.nan)
@@ -285,8 +285,8 @@ def tool_move(ep: Episode, k: int, target: Target, last: Last, row: VisitRow) ->
         f"visit {k}: {'tied' if reached else 'not tied'}, tool {row.tcp_error_m * 1000:.2f} mm, "
         f"tilt {row.tie_tilt_error_deg:.2f} deg, jaw {row.tie_jaw_error_deg:.2f} deg",
     )
-    _, _, r3 = _move_camera_to(ep, k, camera_goal(over), phase="retract", tol=cfg.waypoint_tolerance_m, **move)
-    _, _, r4 = _move_camera_to(ep, k, T_before, phase="retract", tol=cfg.waypoint_tolerance_m, **move)
+    _, _, r3 = move_camera_to(ep, k, camera_goal(over), phase="retract", tol=cfg.waypoint_tolerance_m, **move)
+    _, _, r4 = move_camera_to(ep, k, T_before, phase="retract", tol=cfg.waypoint_tolerance_m, **move)
     return max(ratio, r2, r3, r4)
 
 
@@ -323,7 +323,7 @@ def _dwell(ep: Episode, k: int, goal: np.ndarray, row: VisitRow, crossing: np.nd
         _tool_errors(ep, row, crossing)
 
 
-def _move_camera_to(
+def move_camera_to(
     ep: Episode,
     k: int,
     goal: np.ndarray,
@@ -339,16 +339,19 @@ def _move_camera_to(
     (iterations, reached, the largest joint speed ratio)."""
     world = ep.ctx.world
     ep.controller.reference = goal
-    ratio = 0.0
+    ratio, first = 0.0, None
     for it in range(max_iterations):
         twist, err_m = _tool_twist(ep, goal, speed_m_s=speed_m_s, gain=gain)
         if err_m < tol:
             world.command(np.zeros(6))
             return it, True, ratio
+        first = err_m if first is None else first
+        if err_m > 1.5 * first + DIVERGENCE_FLOOR_M:
+            break  # the arm is not getting there (a singularity on the way): stop, not tied
         _tool_step(ep, k, phase, it, twist, err_m, speed_m_s)
         ratio = max(ratio, float(np.max(np.abs(world.qdot) / world.limits.speed)))
     world.command(np.zeros(6))
-    return max_iterations, False, ratio
+    return it + 1, False, ratio
 
 
 def _tool_twist(ep: Episode, goal: np.ndarray, *, speed_m_s: float, gain: float) -> tuple[np.ndarray, float]:

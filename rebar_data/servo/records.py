@@ -18,7 +18,7 @@ class StepRow:
     episode: int
     visit: int
     mode: str
-    phase: str  # servo | approach | tie | retract
+    phase: str  # servo | approach | tie | retract | transfer (a tour's move to view its next target)
     iteration: int
     time_s: float
     feature_u: float

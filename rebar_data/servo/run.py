@@ -301,7 +301,7 @@ def write_outputs(
     pq.write_table(pa.Table.from_pylist(steps) if steps else pa.table({}), out / "steps.parquet")
     summary = summarize(visits)
     if crossing_map is not None:
-        summary["tour"] = tour_summary(visits, crossing_map, len(ctx.rm.crossings))
+        summary["tour"] = tour_summary(visits, steps, crossing_map, len(ctx.rm.crossings))
     summary.update(
         {
             "suite": suite.name,

@@ -6,7 +6,8 @@ controller's own camera pose estimate and the depth image; one map for the whole
 from one base is never tied again from the next). Then, until no open crossing is left in reach:
 
 - the open crossings the arm can reach (its servo pose and its tie pose both solved by the UR5's inverse
-  kinematics within the joint limits) are ordered along the shortest open path from where the camera looks
+  kinematics within the joint limits, the elbow neither stretched nor folded, every link 20 mm clear of the
+  mesh and the table) are ordered along the shortest open path from where the camera looks
   (nearest neighbour, then 2-opt), and the first is the next target;
 - the target is picked up in the present frame, where the map projects it (the nearest detection there,
   else the projection), and tracked from there: no fresh acquisition;
@@ -33,8 +34,11 @@ from rebar_data.servo.tracker import TargetTracker
 from rebar_data.servo.transforms import apply, make_transform
 
 OPEN, TIED, FAILED, LOWER = "open", "tied", "failed", "lower_mat"
-FRONT_WINDOW_M = 0.05
-ELBOW_MIN_RAD = 0.35  # the front mat around a detection: the nearest surface within this radius
+FRONT_WINDOW_M = 0.05  # the front mat around a detection: the nearest surface within this radius
+# the elbow's working range for a target's servo and tie poses (|q|, rad): stretched, the arm is at its reach,
+# where the damped control stalls short of it; folded, the forearm turns over the upper arm
+ELBOW_MIN_RAD = 0.35
+ELBOW_MAX_RAD = np.pi - 0.6
 
 
 @dataclass
@@ -131,6 +135,9 @@ class TourRunner(EpisodeRunner):
             if entry is None:
                 break
             target = self.pick_up(entry, last)
+            if target is None:  # out of view: look at where the map has it, then pick it up
+                last = self.look_at(entry, k)
+                target = self.pick_up(entry, last)
             if target is None:
                 entry.attempts += 1
                 entry.state = FAILED if entry.attempts >= self.tour.max_attempts else entry.state
@@ -211,10 +218,21 @@ class TourRunner(EpisodeRunner):
         ok = True
         for T in (view, tie):
             q, solved = world.solve_start(T, seed=world.q)
-            # the elbow bent: a stretched arm is at its reach, where the damped control stalls short of it
-            ok = ok and solved and abs(float(q[2])) >= ELBOW_MIN_RAD
+            ok = ok and solved and ELBOW_MIN_RAD <= abs(float(q[2])) <= ELBOW_MAX_RAD and world.clear_at(q)
         self._reach[i] = ok
         return ok
+
+    def look_at(self, entry: MapEntry, k: int):
+        """Move the camera (on its pose estimate, orientation held) to view the entry along its optical axis
+        from the servo's standoff; survey there. The move's rows are phase ``transfer`` of visit ``k``."""
+        pose = self.controller.camera_pose()
+        view = make_transform(pose[:3, :3], entry.point - pose[:3, 2] * self.ctx.suite.ibvs.desired_depth_m)
+        cfg = self.ctx.suite.tcp
+        control.move_camera_to(
+            self, k, view, phase="transfer", max_iterations=cfg.max_iterations, tol=0.005,
+            speed_m_s=cfg.speed_m_s, gain=cfg.gain,
+        )
+        return self.survey(frames=1)
 
     def pick_up(self, entry: MapEntry, sensed) -> Target | None:
         """The entry as a tracked target in the present frame (None where it projects outside it)."""
@@ -243,11 +261,15 @@ class TourRunner(EpisodeRunner):
         return t
 
 
-def tour_summary(visits: list[dict], crossing_map: CrossingMap, crossings_total: int) -> dict:
-    """A tour's figures: ties, what the map held, the simulated time a tie, and the element covered."""
+def tour_summary(visits: list[dict], steps: list[dict], crossing_map: CrossingMap, crossings_total: int) -> dict:
+    """A tour's figures: ties, what the map held, the simulated time a tie (each base's whole clock: the
+    survey, the moves between targets and every visit), and the element covered."""
     ties = [v for v in visits if v["tied"]]
     tied_ids = {v["target_id"] for v in ties if v["target_id"] >= 0}
-    sim_s = float(sum(v["sim_s"] for v in visits))
+    clock: dict[int, float] = {}
+    for st in steps:
+        clock[st["episode"]] = max(clock.get(st["episode"], 0.0), st["time_s"])
+    sim_s = float(sum(clock.values()))
     return {
         "ties": len(ties),
         "visits": len(visits),

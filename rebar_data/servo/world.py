@@ -217,6 +217,21 @@ class ServoWorld:
             self.client.stepSimulation()
         self.physics_steps = target
 
+    def clear_at(self, q: np.ndarray, margin_m: float = 0.02) -> bool:
+        """Whether the arm at joints ``q`` keeps ``margin_m`` from the mesh and the table (its base and
+        shoulder, mounted on the table, apart); the arm's state is put back exactly as it was."""
+        c = self.client
+        saved = c.getJointStates(self.robot, range(6))
+        for j in range(6):
+            c.resetJointState(self.robot, j, float(q[j]), 0.0)
+        try:
+            if c.getClosestPoints(self.robot, self.mesh_body, margin_m):
+                return False
+            return not any(p[3] > 0 for p in c.getClosestPoints(self.robot, self.table, margin_m))
+        finally:
+            for j, st in enumerate(saved):
+                c.resetJointState(self.robot, j, st[0], st[1])
+
     def measure_camera_after(self, q: np.ndarray) -> np.ndarray:
         """Where the camera would be at joints ``q``, measured on the simulated arm (no kinematic model).
 
