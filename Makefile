@@ -11,7 +11,7 @@ export EGL_PLATFORM ?= surfaceless
 DATA ?= data
 WORKERS ?= $(shell nproc)
 
-.PHONY: setup system-deps dataset smoke mesh train built eval test check format bench clean
+.PHONY: setup system-deps dataset smoke mesh train built eval tour test check format bench clean
 
 setup: system-deps $(STAMP)
 
@@ -103,6 +103,14 @@ eval: setup
 	$(REBAR) servo check $(EVAL_OUT)/paper-lower-mat
 	$(REBAR) servo run eval/random.yaml --out $(EVAL_OUT)/random
 	$(REBAR) servo check $(EVAL_OUT)/random
+
+# Tours (docs/servo.md, "Tours"): every crossing in reach tied once, on the paper's segment (with and without its
+# lower mat) and on two decks seen from above; each run then held to eval/thresholds.yaml.
+TOURS := tour-paper tour-paper-lower-mat tour-deck tour-deck-16mm
+tour: setup
+	@for t in $(TOURS); do \
+	  $(REBAR) servo run eval/$$t.yaml --out $(EVAL_OUT)/$$t && $(REBAR) servo check $(EVAL_OUT)/$$t || exit 1; \
+	done
 
 # pytest exits 5 when it collects no tests: a broken suite, reported as a failure.
 test: setup

@@ -128,7 +128,7 @@ def _bar_directions(
     dist = np.abs(((np.arange(nbins) - p1) * BIN_DEG + 90.0) % 180.0 - 90.0)
     masked = np.where(dist >= min_angle_deg, smooth, -1.0)
     p2 = int(np.argmax(masked))
-    if masked[p2] < 0.2 * smooth[p1]:
+    if masked[p2] < 0.1 * smooth[p1]:
         return None
     dirs = []
     for p in (p1, p2):
@@ -232,6 +232,7 @@ class AlignmentEstimate:
         self.camera, self.depth_offset_m = camera, depth_offset_m
         self.radius_m, self.smoothing, self.jaw_to_bar_deg = radius_m, smoothing, jaw_to_bar_deg
         self.world_desired: np.ndarray | None = None  # (3, 3): x*, y*, z* as columns, world frame
+        self.with_bars = False  # whether the estimate holds a frame with both bars resolved
         self.measured = 0
 
     def update(self, depth_m: np.ndarray, uv: np.ndarray, crossing_depth_m: float,
@@ -248,18 +249,14 @@ class AlignmentEstimate:
             plane_tolerance_m=max(0.02, 2.0 * self.depth_offset_m),
             bar_width_m=self.depth_offset_m,
         )
-        if local is not None:
+        if local is not None and (local.bars is not None or self.world_desired is None):
+            # a plane through the bars' visible surfaces alone is biased by their two depths: it only starts
+            # an estimate, which frames with both bars resolved then carry
             R_cam = desired_rotation(local.normal, local.bars, self.jaw_to_bar_deg)
-            if local.bars is None and self.world_desired is not None:
-                # no bars resolved: the axis from this frame, the jaw kept from before
-                x_prev = R_now.T @ self.world_desired[:, 0]
-                z = R_cam[:, 2]
-                x = x_prev - (x_prev @ z) * z
-                x /= np.linalg.norm(x)
-                R_cam = np.column_stack([x, np.cross(z, x), z])
             R_world = R_now @ R_cam
-            if self.world_desired is None:
+            if self.world_desired is None or not self.with_bars:
                 self.world_desired = R_world
+                self.with_bars = local.bars is not None
             else:
                 a = self.smoothing
                 z = (1 - a) * self.world_desired[:, 2] + a * R_world[:, 2]

@@ -100,7 +100,7 @@ class MotionConfig(Strict):
     """Limits on the commanded motion (the UR5's own joint speed and position limits always hold)."""
 
     camera_speed_m_s: Positive = 0.3
-    camera_rate_rad_s: Positive = 0.8
+    camera_rate_rad_s: Positive = 1.5
     joint_margin_rad: NonNegative = 0.05
     damping: NonNegative = 0.02
     orientation_gain: NonNegative = 2.0
@@ -154,12 +154,12 @@ class AlignConfig(Strict):
     the measured tilt and jaw turn below ``converge_tilt_deg`` and ``converge_jaw_deg``."""
 
     enabled: bool = True
-    gain: Positive = 3.0
+    gain: Positive = 5.0
     jaw_to_bar_deg: Annotated[float, Field(gt=0, lt=90)] | None = None
     radius_m: Annotated[float, Field(ge=0.02, le=0.3)] = 0.07
     smoothing: Annotated[float, Field(gt=0, le=1)] = 0.3
     converge_tilt_deg: Positive = 0.5
-    converge_jaw_deg: Positive = 1.0
+    converge_jaw_deg: Positive = 2.0
 
 
 class TcpConfig(Strict):

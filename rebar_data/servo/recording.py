@@ -37,12 +37,19 @@ ERROR_SERIES = {
     "error_mm": ((70, 110, 220), "error (mm)"),
     "true_lateral_error_mm": ((150, 90, 200), "true lateral error (mm)"),
     "tool_move_error_mm": ((200, 150, 40), "tool move error (mm)"),
+    "ties": ((30, 30, 30), "ties made"),
     "gain": ((120, 120, 120), "gain (1/s)"),
 }
 DEPTH_METER = 1000.0  # depth PNG units per metre (uint16 millimetres)
 # Colour scale of the depth view: from the Kinect's near limit to past the floor seen from the start poses
 # (the scene spans about 0.53-1.32 m); beyond it the colours saturate.
 DEPTH_RANGE_M = (KINECT_RANGE_M[0], 1.5)
+# Pixels where the sensor reads no depth are drawn as their own layer over the depth view ("no reading", dark
+# grey), as a depth camera's viewer shows them. Beside each bar they are the projector's shadow: the strip of
+# ground the bar hides from the projector, f b (1/z_bar - 1/z_ground) wide (about 38 px for bars 0.6 m away and
+# ground at 1.25 m: Kinect v1's 75 mm baseline), so a mat in front of flat ground shows a band of no reading
+# beside every bar that runs across the baseline. docs/servo.md, "The depth view".
+NO_READING_COLOR = (70, 70, 70)
 BATCH_MAX_BYTES = 256 * 1024 * 1024  # pending bytes that flush the batcher before the end of an episode
 TRACK_COLORS = {
     "detected": (40, 220, 90),
@@ -59,7 +66,9 @@ def blueprint() -> rrb.Blueprint:
         contents=["$origin", "$origin/detections", "$origin/track", "$origin/desired", "$origin/prediction"],
         name="camera",
     )
-    depth = rrb.Spatial2DView(origin="world/camera/image", contents=["$origin/depth"], name="depth")
+    depth = rrb.Spatial2DView(
+        origin="world/camera/image", contents=["$origin/depth", "$origin/no_reading"], name="depth"
+    )
     errors = rrb.TimeSeriesView(
         origin="metrics", contents=["$origin/error_px", "$origin/true_error_px"], name="image error (px)"
     )
@@ -68,19 +77,22 @@ def blueprint() -> rrb.Blueprint:
         contents=["$origin/error_mm", "$origin/true_lateral_error_mm", "$origin/tool_move_error_mm"],
         name="error (mm)",
     )
+    ties = rrb.TimeSeriesView(origin="metrics", contents=["$origin/ties"], name="ties made")
     joints = rrb.TimeSeriesView(origin="joints", name="joints (rad, rad/s)")
     return rrb.Blueprint(
         rrb.Horizontal(
             rrb.Vertical(
                 rrb.Spatial3DView(
-                    origin="world", name="work cell", contents=["$origin/**", "- $origin/camera/image/depth"]
+                    origin="world",
+                    name="work cell",
+                    contents=["$origin/**", "- $origin/camera/image/depth", "- $origin/camera/image/no_reading"],
                 ),
                 rrb.TextLogView(origin="events", name="events"),
                 row_shares=[4, 1],
             ),
             rrb.Vertical(
                 rrb.Horizontal(camera, depth),
-                rrb.Horizontal(errors, metric),
+                rrb.Horizontal(errors, metric, ties),
                 joints,
                 row_shares=[3, 2, 2],
             ),
@@ -108,6 +120,7 @@ class RerunRecorder(Recorder):
         )
         self.rec.save(str(path), default_blueprint=blueprint())
         self._trajectory: list[np.ndarray] = []
+        self._ties: list[np.ndarray] = []
         self._visit = -1
         self._static()
         self.event(0, title)  # temporal: a static TextLog on "events" would hide every later event
@@ -161,6 +174,11 @@ class RerunRecorder(Recorder):
         self._log_cylinders(
             "world/robot/tool", [((0, 0, tool_len / 2), (0, 0, 0), 0.02, tool_len)], (230, 130, 30)
         )
+        rec.log(
+            "world/camera/image/no_reading",
+            rr.AnnotationContext([rr.AnnotationInfo(id=1, label="no reading", color=NO_READING_COLOR)]),
+            static=True,
+        )
         cam = ctx.camera
         rec.log(
             "world/camera/image",
@@ -212,6 +230,8 @@ class RerunRecorder(Recorder):
         if ok:
             rec.log("world/camera/image", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
         if self.depth:
+            valid = frame.depth_m > 0
+            rec.log("world/camera/image/no_reading", rr.SegmentationImage((~valid).astype(np.uint8), opacity=1.0))
             mm = np.clip(np.round(frame.depth_m * DEPTH_METER), 0, 65535).astype(np.uint16)
             ok, png = cv2.imencode(".png", mm)
             if ok:
@@ -297,6 +317,32 @@ class RerunRecorder(Recorder):
             "world/target", rr.Points3D([point_world], radii=0.008, colors=(255, 0, 200), labels=[label])
         )
 
+    def tie(self, step: int, point_world: np.ndarray, axis_world: np.ndarray, row) -> None:
+        """A tie as it is made: every tie so far, the running count, and the tool's axis (orange) against the
+        mat's true inward normal (green) at the crossing."""
+        self._time(step)
+        self._ties.append(np.asarray(point_world, float))
+        n = len(self._ties)
+        self.rec.log(
+            "world/ties",
+            rr.Points3D(np.array(self._ties), radii=0.006, colors=(40, 200, 255), labels=[str(i + 1) for i in range(n)]),
+        )
+        arrows = [np.asarray(axis_world, float) * -0.12]
+        colors = [(230, 130, 30)]
+        if row.target_id >= 0:
+            arrows.append(self.ctx.truth.normal[row.target_id] * 0.12)
+            colors.append((60, 200, 90))
+        self.rec.log(
+            "world/ties/axis",
+            rr.Arrows3D(origins=[point_world] * len(arrows), vectors=arrows, colors=colors, radii=0.002),
+        )
+        self.rec.log("metrics/ties", rr.Scalars(float(n)))
+        self.event(
+            step,
+            f"tie {n}: crossing {row.target_id}, tool {row.tcp_lateral_error_m * 1000:.2f} mm off, axis "
+            f"{row.tie_tilt_error_deg:.2f} deg from the normal, jaw {row.tie_jaw_error_deg:.2f} deg from the bisector",
+        )
+
     def scalars(self, step: int, values: dict[str, float]) -> None:
         self._time(step)
         for name, value in values.items():
@@ -307,7 +353,8 @@ class RerunRecorder(Recorder):
         """End the error curves of a visit, so the next visit's curves do not join them."""
         self._time(step)
         for name in ERROR_SERIES:
-            self.rec.log(f"metrics/{name}", rr.Clear(recursive=False))
+            if name != "ties":  # the running count runs on across visits
+                self.rec.log(f"metrics/{name}", rr.Clear(recursive=False))
 
     def event(self, step: int, text: str) -> None:
         self._time(step)

@@ -68,8 +68,8 @@ def test_a_target_never_seen_again_ends_the_visit_as_lost(servo_ctx):
 def test_a_diverging_controller_is_stopped(servo_ctx, monkeypatch):
     real = IbvsController.twist
 
-    def wrong_sign(self, uv, Z):
-        twist, err_px, err_m = real(self, uv, Z)
+    def wrong_sign(self, uv, Z, omega=None):
+        twist, err_px, err_m = real(self, uv, Z, omega)
         return -twist, err_px, err_m
 
     monkeypatch.setattr(IbvsController, "twist", wrong_sign)

@@ -70,7 +70,7 @@ def test_short_run_writes_every_output_and_readable_recordings(tmp_path, root, m
     E = pq.read_table(out / "episodes.parquet")
     assert set(EPISODE_COLUMNS) <= set(E.column_names)
     S = pq.read_table(out / "steps.parquet").to_pandas()
-    assert {"servo", "approach", "retract"} == set(S["phase"])
+    assert {"servo", "approach", "tie", "retract"} == set(S["phase"])
     V = E.to_pandas()
     assert V["tcp_reached"].all() and (V["tcp_error_m"] < 0.002).all()  # the tool on the crossing
     assert (V["max_joint_position_ratio"] <= 1.0).all() and (V["max_joint_speed_ratio"] <= 1.0 + 1e-6).all()
@@ -176,6 +176,18 @@ def test_ifc_wall_suite_converges_on_the_front_mat_of_a_model_read_from_ifc(tmp_
     assert rm.layout.surface.normal(visited)[:, 0].max() < -0.999
 
 
+TIE_COLUMNS = {
+    "target_id": 5,
+    "final_tilt_error_deg": 0.3,
+    "final_jaw_error_deg": 0.2,
+    "tied": True,
+    "tcp_lateral_error_m": 0.0005,
+    "tie_tilt_error_deg": 0.3,
+    "tie_jaw_error_deg": 0.2,
+    "tie_crossing_distance_m": 0.0006,
+}
+
+
 def test_check_fails_on_a_regression(tmp_path, root, monkeypatch, capsys):
     monkeypatch.chdir(root)
     run = tmp_path / "run"
@@ -192,6 +204,7 @@ def test_check_fails_on_a_regression(tmp_path, root, monkeypatch, capsys):
             "tcp_reached": False,
             "tcp_error_m": float("nan"),
             "max_joint_position_ratio": 0.5,
+            **TIE_COLUMNS,
         },
         {
             "mode": "pbvs",
@@ -204,6 +217,7 @@ def test_check_fails_on_a_regression(tmp_path, root, monkeypatch, capsys):
             "tcp_reached": False,
             "tcp_error_m": float("nan"),
             "max_joint_position_ratio": 0.5,
+            **TIE_COLUMNS,
         },
     ]
     import pyarrow as pa
