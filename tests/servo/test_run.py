@@ -144,7 +144,8 @@ def _check_recording(chunks, *, n_steps: int) -> None:
     for c in chunks:
         per_entity[c.entity_path] = per_entity.get(c.entity_path, 0) + 1
     worst = max(per_entity, key=per_entity.get)
-    assert per_entity[worst] <= 2 + n_steps // 100, (worst, per_entity[worst], n_steps)
+    # (a curve: its static style, its values, and the clears that end each visit's curve)
+    assert per_entity[worst] <= 3 + n_steps // 100, (worst, per_entity[worst], n_steps)
 
 
 def test_ci_suite_meets_the_goals_and_its_check(tmp_path, root, monkeypatch):
