@@ -115,7 +115,9 @@ def _bar_directions(
     d = pts - centre
     a, b = d @ e1, d @ e2
     r = np.hypot(a, b)
-    far = r > max(0.012, bar_width_m)  # the crossing's own knot of bar and wire says nothing of the directions
+    far = r > max(
+        0.012, bar_width_m
+    )  # the crossing's own knot of bar and wire says nothing of the directions
     if far.sum() < 50:
         return None
     theta = np.degrees(np.arctan2(b[far], a[far])) % 180.0
@@ -201,11 +203,13 @@ class CrossingTruth:
             t = np.asarray(curve.tangent(curve.project(p)), float)
             return t / np.linalg.norm(t)
 
-        ta = np.array([tangent(i, p) for i, p in zip(pieces_a, c.point_a)]).reshape(-1, 3)
-        tb = np.array([tangent(i, p) for i, p in zip(pieces_b, c.point_b)]).reshape(-1, 3)
+        ta = np.array([tangent(i, p) for i, p in zip(pieces_a, c.point_a, strict=True)]).reshape(-1, 3)
+        tb = np.array([tangent(i, p) for i, p in zip(pieces_b, c.point_b, strict=True)]).reshape(-1, 3)
         return CrossingTruth(ta, tb, np.asarray(c.normal, float).reshape(-1, 3))
 
-    def errors(self, crossing_id: int, world_from_tool: np.ndarray, jaw_to_bar_deg: float | None) -> tuple[float, float]:
+    def errors(
+        self, crossing_id: int, world_from_tool: np.ndarray, jaw_to_bar_deg: float | None
+    ) -> tuple[float, float]:
         """True (tilt, jaw) errors in degrees of a tool pose at crossing ``crossing_id`` (NaN without one)."""
         if crossing_id < 0:
             return float("nan"), float("nan")
@@ -227,16 +231,24 @@ class AlignmentEstimate:
     controller's own pose estimate) so that the camera's motion does not blur it: each frame's measurement
     (:func:`measure_local_frame`, :func:`desired_rotation`) enters with weight ``smoothing``."""
 
-    def __init__(self, camera: Intrinsics, *, depth_offset_m: float, radius_m: float, smoothing: float,
-                 jaw_to_bar_deg: float | None):
+    def __init__(
+        self,
+        camera: Intrinsics,
+        *,
+        depth_offset_m: float,
+        radius_m: float,
+        smoothing: float,
+        jaw_to_bar_deg: float | None,
+    ):
         self.camera, self.depth_offset_m = camera, depth_offset_m
         self.radius_m, self.smoothing, self.jaw_to_bar_deg = radius_m, smoothing, jaw_to_bar_deg
         self.world_desired: np.ndarray | None = None  # (3, 3): x*, y*, z* as columns, world frame
         self.with_bars = False  # whether the estimate holds a frame with both bars resolved
         self.measured = 0
 
-    def update(self, depth_m: np.ndarray, uv: np.ndarray, crossing_depth_m: float,
-               world_from_camera: np.ndarray) -> np.ndarray | None:
+    def update(
+        self, depth_m: np.ndarray, uv: np.ndarray, crossing_depth_m: float, world_from_camera: np.ndarray
+    ) -> np.ndarray | None:
         """Take this frame's measurement in; the desired orientation in the camera's present frame (None
         until a first measurement)."""
         R_now = world_from_camera[:3, :3]

@@ -28,10 +28,24 @@ NOT_IN_EVERY_RUN = {
     "max_jaw_error_deg",
 }
 NEEDED_COLUMNS = {
-    "mode", "converged", "iterations", "final_error_px", "final_true_error_px", "final_true_lateral_error_m",
-    "final_true_error_m", "tcp_reached", "tcp_error_m", "max_joint_position_ratio", "target_id",
-    "final_tilt_error_deg", "final_jaw_error_deg", "tied", "tcp_lateral_error_m", "tie_tilt_error_deg",
-    "tie_jaw_error_deg", "tie_crossing_distance_m",
+    "mode",
+    "converged",
+    "iterations",
+    "final_error_px",
+    "final_true_error_px",
+    "final_true_lateral_error_m",
+    "final_true_error_m",
+    "tcp_reached",
+    "tcp_error_m",
+    "max_joint_position_ratio",
+    "target_id",
+    "final_tilt_error_deg",
+    "final_jaw_error_deg",
+    "tied",
+    "tcp_lateral_error_m",
+    "tie_tilt_error_deg",
+    "tie_jaw_error_deg",
+    "tie_crossing_distance_m",
 }
 DEFAULT_THRESHOLDS = Path(__file__).resolve().parents[2] / "eval" / "thresholds.yaml"
 
@@ -53,6 +67,7 @@ class ModeBars(Strict):
     max_tie_lateral_error_m: NonNegative | None = None
     max_tie_crossing_distance_m: NonNegative | None = None
     max_sim_s_per_tie: NonNegative | None = None
+    min_covered_fraction: float | None = None  # a tour's crossings tied over the element's crossings
 
 
 class SuiteBars(Strict):
@@ -162,6 +177,7 @@ def check_run(run_dir: str | Path, thresholds: Thresholds) -> tuple[list[str], l
         m = _measures(g)
         tour = summary.get("tour")
         m["sim_s_per_tie"] = float(tour["sim_s_per_tie"]) if tour and tour.get("ties") else float("nan")
+        m["covered_fraction"] = float(tour["covered_fraction"]) if tour else 0.0
         info.append(
             f"{suite} {mode}: {int(m['visits'])} visits, {m['converged_fraction']:.0%} converged, median "
             f"{m['median_iterations']:.0f} iterations, worst final {m['final_error_px']:.2f} px, worst true "
@@ -184,8 +200,14 @@ def check_run(run_dir: str | Path, thresholds: Thresholds) -> tuple[list[str], l
             ("max_jaw_error_deg", m["jaw_error_deg"], b.max_jaw_error_deg, "<="),
             ("min_tied_fraction", m["tied_fraction"], b.min_tied_fraction, ">="),
             ("max_tie_lateral_error_m", m["tie_lateral_error_m"], b.max_tie_lateral_error_m, "<="),
-            ("max_tie_crossing_distance_m", m["tie_crossing_distance_m"], b.max_tie_crossing_distance_m, "<="),
+            (
+                "max_tie_crossing_distance_m",
+                m["tie_crossing_distance_m"],
+                b.max_tie_crossing_distance_m,
+                "<=",
+            ),
             ("max_sim_s_per_tie", m["sim_s_per_tie"], b.max_sim_s_per_tie, "<="),
+            ("min_covered_fraction", m["covered_fraction"], b.min_covered_fraction, ">="),
         ]
         for name, value, bar, op in checks:
             if bar is None:

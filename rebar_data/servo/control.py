@@ -269,7 +269,9 @@ def tool_move(ep: Episode, k: int, target: Target, last: Last, row: VisitRow) ->
     tie = p_cam - cfg.standoff_m * axis
     over = tie - cfg.clearance_m * axis
     move = {"max_iterations": cfg.max_iterations, "speed_m_s": cfg.speed_m_s, "gain": cfg.gain}
-    it1, _, ratio = move_camera_to(ep, k, camera_goal(over), phase="approach", tol=cfg.waypoint_tolerance_m, **move)
+    it1, _, ratio = move_camera_to(
+        ep, k, camera_goal(over), phase="approach", tol=cfg.waypoint_tolerance_m, **move
+    )
     it2, reached, r2 = move_camera_to(ep, k, camera_goal(tie), phase="approach", tol=cfg.tolerance_m, **move)
     row.tcp_reached = bool(reached)
     row.tcp_iterations = it1 + it2
@@ -369,7 +371,9 @@ def _tool_twist(ep: Episode, goal: np.ndarray, *, speed_m_s: float, gain: float)
     return np.concatenate([v_tcp - np.cross(omega, r), omega]), float(np.linalg.norm(e))  # v + omega x r at r
 
 
-def _tool_step(ep: Episode, k: int, phase: str, it: int, twist: np.ndarray, err_m: float, speed_m_s: float) -> None:
+def _tool_step(
+    ep: Episode, k: int, phase: str, it: int, twist: np.ndarray, err_m: float, speed_m_s: float
+) -> None:
     """One control period of a tool move: the command, its row, the physics."""
     world = ep.ctx.world
     qdot = world.command(ep.controller.joint_rates(twist, hold=False, speed_m_s=2.0 * speed_m_s))

@@ -70,7 +70,8 @@ class EpisodeRunner:
         self.ctx.world.step()
         self.step_index += 1
 
-    def run(self, start: StartPose, q_start: np.ndarray) -> EpisodeResult:
+    def begin(self, start: StartPose, q_start: np.ndarray) -> None:
+        """The episode's start: its own clock, the arm at ``q_start``, a new camera sensor, its row builder."""
         world = self.ctx.world
         world.reset_clock()
         world.reset_joints(q_start)
@@ -79,6 +80,9 @@ class EpisodeRunner:
         self.rows: EpisodeRows = EpisodeRows(
             self.ctx, self.controller, episode=self.index, start_standoff_m=start.standoff_m
         )
+
+    def run(self, start: StartPose, q_start: np.ndarray) -> EpisodeResult:
+        self.begin(start, q_start)
         self.rec.event(self.step_index, f"episode {self.index}: {self.spec.mode}, start {start.look_at_m}")
         self.acquire()
         if not self.targets:

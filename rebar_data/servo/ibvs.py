@@ -47,6 +47,19 @@ TRANSLATION = np.array([True, True, True, False, False, False])
 ALL_AXES = np.ones(6, bool)
 
 
+def _features(
+    xy: np.ndarray, xy_desired: np.ndarray, Z: float, desired_depth_m: float | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """The interaction matrix (2 or 3 x 6) and error of the point feature, with log-depth when asked."""
+    x, y = float(xy[0]), float(xy[1])
+    L = point_interaction_matrix(x, y, Z)
+    e = np.asarray(xy, float) - np.asarray(xy_desired, float)
+    if desired_depth_m is not None:
+        L = np.vstack([L, log_depth_interaction_row(x, y, Z)])
+        e = np.append(e, np.log(Z / desired_depth_m))
+    return L, e
+
+
 def ibvs_twist(
     xy: np.ndarray,
     xy_desired: np.ndarray,
@@ -62,12 +75,7 @@ def ibvs_twist(
     translation is used (the tool keeps its orientation, as a tying tool must), so ``L`` is taken on
     the translation columns; otherwise on all six (the least-norm twist).
     """
-    x, y = float(xy[0]), float(xy[1])
-    L = point_interaction_matrix(x, y, Z)
-    e = np.asarray(xy, float) - np.asarray(xy_desired, float)
-    if desired_depth_m is not None:
-        L = np.vstack([L, log_depth_interaction_row(x, y, Z)])
-        e = np.append(e, np.log(Z / desired_depth_m))
+    L, e = _features(xy, xy_desired, Z, desired_depth_m)
     axes = ALL_AXES if rotation else TRANSLATION
     twist = np.zeros(6)
     twist[axes] = -gain(float(np.max(np.abs(e)))) * (np.linalg.pinv(L[:, axes]) @ e)
@@ -87,12 +95,7 @@ def ibvs_twist_aligned(
     keeps the point feature (and log-depth) decaying as ``-lambda e`` while the camera turns, ``v = L_v+
     (-lambda e - L_w omega)`` (2 1/2 D visual servoing: rotation from the measured pose of the mat, translation
     from the image)."""
-    x, y = float(xy[0]), float(xy[1])
-    L = point_interaction_matrix(x, y, Z)
-    e = np.asarray(xy, float) - np.asarray(xy_desired, float)
-    if desired_depth_m is not None:
-        L = np.vstack([L, log_depth_interaction_row(x, y, Z)])
-        e = np.append(e, np.log(Z / desired_depth_m))
+    L, e = _features(xy, xy_desired, Z, desired_depth_m)
     lam = gain(float(np.max(np.abs(e))))
     twist = np.zeros(6)
     twist[:3] = np.linalg.pinv(L[:, :3]) @ (-lam * e - L[:, 3:] @ omega)

@@ -85,7 +85,11 @@ def blueprint() -> rrb.Blueprint:
                 rrb.Spatial3DView(
                     origin="world",
                     name="work cell",
-                    contents=["$origin/**", "- $origin/camera/image/depth", "- $origin/camera/image/no_reading"],
+                    contents=[
+                        "$origin/**",
+                        "- $origin/camera/image/depth",
+                        "- $origin/camera/image/no_reading",
+                    ],
                 ),
                 rrb.TextLogView(origin="events", name="events"),
                 row_shares=[4, 1],
@@ -231,7 +235,9 @@ class RerunRecorder(Recorder):
             rec.log("world/camera/image", rr.EncodedImage(contents=jpg.tobytes(), media_type="image/jpeg"))
         if self.depth:
             valid = frame.depth_m > 0
-            rec.log("world/camera/image/no_reading", rr.SegmentationImage((~valid).astype(np.uint8), opacity=1.0))
+            rec.log(
+                "world/camera/image/no_reading", rr.SegmentationImage((~valid).astype(np.uint8), opacity=1.0)
+            )
             mm = np.clip(np.round(frame.depth_m * DEPTH_METER), 0, 65535).astype(np.uint16)
             ok, png = cv2.imencode(".png", mm)
             if ok:
@@ -325,7 +331,12 @@ class RerunRecorder(Recorder):
         n = len(self._ties)
         self.rec.log(
             "world/ties",
-            rr.Points3D(np.array(self._ties), radii=0.006, colors=(40, 200, 255), labels=[str(i + 1) for i in range(n)]),
+            rr.Points3D(
+                np.array(self._ties),
+                radii=0.006,
+                colors=(40, 200, 255),
+                labels=[str(i + 1) for i in range(n)],
+            ),
         )
         arrows = [np.asarray(axis_world, float) * -0.12]
         colors = [(230, 130, 30)]

@@ -240,7 +240,9 @@ def _write_run(suite, ctx, plan, out: Path, t0: float, recorder_factory, progres
                 rec = recorder_factory(len(plan) + j, index, EpisodeSpec(mode=suite.tour.mode)) or Recorder()
                 seq = np.random.SeedSequence([suite.seed, index, 7])
                 ctx.world.move_base(offset)
-                runner = TourRunner(ctx, suite.tour, index, seq, rec, crossing_map=crossing_map, ties_left=ties_left)
+                runner = TourRunner(
+                    ctx, suite.tour, index, seq, rec, crossing_map=crossing_map, ties_left=ties_left
+                )
                 try:
                     runner.run_base(start, q)
                 finally:

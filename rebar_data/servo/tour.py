@@ -110,8 +110,18 @@ def open_path(start: np.ndarray, points: np.ndarray) -> np.ndarray:
 class TourRunner(EpisodeRunner):
     """One base pose of a tour: an episode whose visits are every open crossing in reach, shared map."""
 
-    def __init__(self, ctx, tour: TourConfig, index: int, seed_seq, recorder=None, *, snapshots=False,
-                 crossing_map: CrossingMap, ties_left: int | None):
+    def __init__(
+        self,
+        ctx,
+        tour: TourConfig,
+        index: int,
+        seed_seq,
+        recorder=None,
+        *,
+        snapshots=False,
+        crossing_map: CrossingMap,
+        ties_left: int | None,
+    ):
         spec = EpisodeSpec(mode=tour.mode, targets=1)
         super().__init__(ctx, spec, index, seed_seq, recorder, snapshots=snapshots)
         self.tour, self.map, self.ties_left = tour, crossing_map, ties_left
@@ -119,14 +129,7 @@ class TourRunner(EpisodeRunner):
 
     def run_base(self, start: StartPose, q_start: np.ndarray) -> None:
         """Survey from the start pose, then visit every open crossing in reach (fills ``self.result``)."""
-        world = self.ctx.world
-        world.reset_clock()
-        world.reset_joints(q_start)
-        if self.ctx.new_sensor is not None:
-            self.ctx.new_sensor(self.rng_frames)
-        from rebar_data.servo.rows import EpisodeRows
-
-        self.rows = EpisodeRows(self.ctx, self.controller, episode=self.index, start_standoff_m=start.standoff_m)
+        self.begin(start, q_start)
         self.rec.event(self.step_index, f"tour base {self.index}: look at {start.look_at_m}")
         last = self.survey(frames=self.ctx.suite.targets.acquire_frames)
         k = 0
@@ -229,8 +232,14 @@ class TourRunner(EpisodeRunner):
         view = make_transform(pose[:3, :3], entry.point - pose[:3, 2] * self.ctx.suite.ibvs.desired_depth_m)
         cfg = self.ctx.suite.tcp
         control.move_camera_to(
-            self, k, view, phase="transfer", max_iterations=cfg.max_iterations, tol=0.005,
-            speed_m_s=cfg.speed_m_s, gain=cfg.gain,
+            self,
+            k,
+            view,
+            phase="transfer",
+            max_iterations=cfg.max_iterations,
+            tol=0.005,
+            speed_m_s=cfg.speed_m_s,
+            gain=cfg.gain,
         )
         return self.survey(frames=1)
 
@@ -254,14 +263,20 @@ class TourRunner(EpisodeRunner):
                 uv = det[j, :2]
         tracker = TargetTracker(self.ctx.suite.tracker)
         tracker.seed(sensed.frame.rgb, uv, sigma)
-        t = Target(uv=uv, crossing_id=self.sensing.true_crossing(uv, self.ctx.world.world_from_camera()),
-                   tracker=tracker, pose=pose)
+        t = Target(
+            uv=uv,
+            crossing_id=self.sensing.true_crossing(uv, self.ctx.world.world_from_camera()),
+            tracker=tracker,
+            pose=pose,
+        )
         z = self.sensing.crossing_depth(sensed.frame, uv)
         t.depth_m = z if np.isfinite(z) else float(p[2])
         return t
 
 
-def tour_summary(visits: list[dict], steps: list[dict], crossing_map: CrossingMap, crossings_total: int) -> dict:
+def tour_summary(
+    visits: list[dict], steps: list[dict], crossing_map: CrossingMap, crossings_total: int
+) -> dict:
     """A tour's figures: ties, what the map held, the simulated time a tie (each base's whole clock: the
     survey, the moves between targets and every visit), and the element covered."""
     ties = [v for v in visits if v["tied"]]

@@ -157,7 +157,9 @@ class ServoWorld:
         # pybullet places a body by its base's inertial frame: move each from where it was loaded
         for body, (at, turn) in self._loaded_at.items():
             c.resetBasePositionAndOrientation(body, (np.array(at) + offset).tolist(), turn)
-        self.layout = replace(self.layout, world_from_base=translation(np.array(self.cfg.robot_base_m) + offset))
+        self.layout = replace(
+            self.layout, world_from_base=translation(np.array(self.cfg.robot_base_m) + offset)
+        )
 
     def reset_joints(self, q: np.ndarray) -> None:
         """Teleport the arm to ``q`` at rest and hold it there (episode set-up only)."""
@@ -305,9 +307,9 @@ class ServoWorld:
         ``seed``), at least 0.3 rad inside every joint limit."""
         base_from_camera = rigid_inverse(self.layout.world_from_base) @ world_from_camera
         best: tuple[np.ndarray, bool] | None = None
-        for seed in [seed] if seed is not None else self.home_seeds():
+        for q0 in [seed] if seed is not None else self.home_seeds():
             q, ok = ur5.inverse_kinematics(
-                base_from_camera, seed, flange_from_point=self.layout.flange_from_camera, limits=self.limits
+                base_from_camera, q0, flange_from_point=self.layout.flange_from_camera, limits=self.limits
             )
             if ok and np.all(np.abs(q) < self.limits.upper - 0.3):
                 return q, True

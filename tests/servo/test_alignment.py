@@ -86,9 +86,9 @@ def test_a_tilted_rolled_start_ends_square_to_the_mat_and_tied(servo_ctx):
     start = StartPose(look_at_m=(0.03, -0.02), standoff_m=0.6, tilt_deg=(12.0, -9.0), roll_deg=25.0)
     q, ok = ctx.world.solve_start(ctx.world.camera_pose_for(start))
     assert ok
-    r = EpisodeRunner(ctx, EpisodeSpec(mode="ibvs", start=start, targets=1), 0, np.random.SeedSequence(2)).run(
-        start, q
-    )
+    r = EpisodeRunner(
+        ctx, EpisodeSpec(mode="ibvs", start=start, targets=1), 0, np.random.SeedSequence(2)
+    ).run(start, q)
     v = r.visits[0]
     assert v.converged and v.tied
     assert v.tie_tilt_error_deg < 2.0 and v.tie_jaw_error_deg < 5.0 and v.tcp_lateral_error_m < 0.002

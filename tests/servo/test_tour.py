@@ -89,7 +89,9 @@ def test_a_short_tour_ties_each_crossing_once_square_and_on_time(tmp_path, root,
     capsys.readouterr()
     assert main(["servo", "check", str(out), "--thresholds", str(thresholds)]) == 0, capsys.readouterr().out
     thresholds.write_text(
-        yaml.safe_dump({"suites": {"tour-test": {"ibvs": {"max_sim_s_per_tie": 1.0, "max_tilt_error_deg": 0.01}}}})
+        yaml.safe_dump(
+            {"suites": {"tour-test": {"ibvs": {"max_sim_s_per_tie": 1.0, "max_tilt_error_deg": 0.01}}}}
+        )
     )
     assert main(["servo", "check", str(out), "--thresholds", str(thresholds)]) == 1
     text = capsys.readouterr().out
