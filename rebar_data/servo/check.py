@@ -1,8 +1,9 @@
 """``rebar servo check DIR``: hold a run's visits to the regression bars of ``eval/thresholds.yaml``.
 
 Bars are per mode; ``default`` applies to every suite and ``suites.<name>`` overrides single bars for
-one suite. Convergence counts over all visits; the error and iteration bars over the converged ones
-(a visit that did not converge is already a failure of the convergence bar). Errors are read from the
+one suite. Convergence counts over the visits to true crossings (a visit to no crossing must end untied);
+the error and iteration bars over the converged ones (a visit that did not converge is already a failure of
+the convergence bar). Errors are read from the
 simulator's ground truth where the bar says ``true``.
 """
 
@@ -103,6 +104,9 @@ def load_thresholds(path: str | Path | None = None) -> Thresholds:
 
 def _measures(rows: list[dict]) -> dict[str, float]:
     conv = [r for r in rows if r["converged"]]
+    # convergence counts over the visits to true crossings (and those that found no target): a visit to what
+    # is no crossing that ends untied is the loop refusing it (a tie there fails max_tie_crossing_distance_m)
+    judged = [r for r in rows if r["target_id"] >= 0 or r["reason"] == "no_target"]
 
     def worst(key: str) -> float:
         a = np.array([r[key] for r in conv], float)
@@ -120,15 +124,13 @@ def _measures(rows: list[dict]) -> dict[str, float]:
     # the tool's alignment where it tied, else where its servo ended
     tilt = [r["tie_tilt_error_deg"] if r["tied"] else r["final_tilt_error_deg"] for r in conv]
     jaw = [r["tie_jaw_error_deg"] if r["tied"] else r["final_jaw_error_deg"] for r in conv]
-    # crossings tied over crossings tried (a crossing tried twice counts once); a target on no true crossing
-    # is a crossing tried and not tied
+    # true crossings tied over true crossings tried (a crossing tried twice counts once)
     tried = {r["target_id"] for r in rows if r["target_id"] >= 0}
     tied_ids = {r["target_id"] for r in tied if r["target_id"] >= 0}
-    untrue = sum(1 for r in rows if r["target_id"] < 0)
-    attempts = len(tried) + untrue
+    attempts = len(tried)
     return {
         "visits": float(len(rows)),
-        "converged_fraction": len(conv) / len(rows) if rows else 0.0,
+        "converged_fraction": sum(r["converged"] for r in judged) / len(judged) if judged else 0.0,
         "median_iterations": float(np.median([r["iterations"] for r in conv])) if conv else float("nan"),
         "final_error_px": worst("final_error_px"),
         "true_error_px": worst("final_true_error_px"),

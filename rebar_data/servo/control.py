@@ -170,6 +170,10 @@ def visit(ep: Episode, k: int, target: Target) -> None:
             reason = "collision"
             break
     world.command(np.zeros(6))
+    if reason == "converged" and aligner is not None and not aligner.with_bars:
+        # a crossing is two bars on the front mat: a target where no frame resolved them (a top bar over a
+        # lower one, a spurious detection) is not tied
+        reason = "no_crossing"
 
     row = ep.rows.visit(
         visit=k,
@@ -187,7 +191,7 @@ def visit(ep: Episode, k: int, target: Target) -> None:
     row.reseeds = target.tracker.reseeds - reseeds0
     ep.rec.event(ep.step_index, f"visit {k}: {reason} after {iterations} iterations")
     ep.rec.scalars_gap(ep.step_index)
-    if reason == "converged" and cfg.tcp.approach and last is not None:
+    if row.converged and cfg.tcp.approach and last is not None:
         speed_ratio = max(speed_ratio, tool_move(ep, k, target, last, row))
     row.max_joint_speed_ratio = speed_ratio
     row.max_joint_position_ratio = _position_ratio(ep, k)

@@ -53,7 +53,7 @@ class VisitRow:
     mode: str
     detector: str
     converged: bool
-    reason: str  # converged | diverged | lost | timeout | collision | no_target
+    reason: str  # converged | diverged | lost | timeout | collision | no_target | no_crossing
     iterations: int
     initial_error_px: float
     final_error_px: float

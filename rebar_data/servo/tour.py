@@ -15,7 +15,9 @@ from one base is never tied again from the next). Then, until no open crossing i
 - the frame the camera sees back at its view pose adds the crossings newly in view.
 
 A detection lying more than ``front_band_m`` behind the front mat around it (the depth image's nearest
-surface there) is on a lower mat: it enters the map as such and is never a target.
+surface there) is on a lower mat: it enters the map as such and is never a target. A target where the servo
+never resolved two bars on the front mat (a top bar passing over a lower one, a spurious detection) ends its
+visit as ``no_crossing``, untied, and is never a target again.
 """
 
 from __future__ import annotations
@@ -33,7 +35,7 @@ from rebar_data.servo.targets import persistent_clusters
 from rebar_data.servo.tracker import TargetTracker
 from rebar_data.servo.transforms import apply, make_transform
 
-OPEN, TIED, FAILED, LOWER = "open", "tied", "failed", "lower_mat"
+OPEN, TIED, FAILED, LOWER, NOT_CROSSING = "open", "tied", "failed", "lower_mat", "not_a_crossing"
 FRONT_WINDOW_M = 0.05  # the front mat around a detection: the nearest surface within this radius
 # the elbow's working range for a target's servo and tie poses (|q|, rad): stretched, the arm is at its reach,
 # where the damped control stalls short of it; folded, the forearm turns over the upper arm
@@ -148,7 +150,9 @@ class TourRunner(EpisodeRunner):
             self.pending = [target]
             control.visit(self, k, target)
             row = self.result.visits[-1]
-            if row.tied:
+            if row.reason == "no_crossing":  # no two bars on the front mat there: never a target again
+                entry.state = NOT_CROSSING
+            elif row.tied:
                 entry.state = TIED
                 if self.ties_left is not None:
                     self.ties_left -= 1
@@ -291,7 +295,7 @@ def tour_summary(
         "crossings_tied": len(tied_ids),
         "crossings_in_element": crossings_total,
         "covered_fraction": len(tied_ids) / crossings_total if crossings_total else 0.0,
-        "map": {state: crossing_map.count(state) for state in (OPEN, TIED, FAILED, LOWER)},
+        "map": {state: crossing_map.count(state) for state in (OPEN, TIED, FAILED, LOWER, NOT_CROSSING)},
         "tied_fraction": len(ties) / (len(ties) + crossing_map.count(FAILED)) if ties else 0.0,
         "ties_off_crossings": sum(1 for v in ties if not v["tie_crossing_distance_m"] <= 0.005),
         "sim_s": sim_s,
