@@ -9,8 +9,8 @@ from one base is never tied again from the next). Then, until no open crossing i
   kinematics within the joint limits, the elbow neither stretched nor folded, every link 20 mm clear of the
   mesh and the table) are ordered along the shortest open path from where the camera looks
   (nearest neighbour, then 2-opt), and the first is the next target;
-- the target is picked up in the present frame, where the map projects it (the nearest detection there,
-  else the projection), and tracked from there: no fresh acquisition;
+- the target is picked up in the present frame on the detection nearest where the map projects it (none
+  within the cluster radius: not picked up), and tracked from there: no fresh acquisition;
 - the visit servos onto it, squares the tool and ties (:func:`rebar_data.servo.control.visit`);
 - the frame the camera sees back at its view pose adds the crossings newly in view.
 
@@ -248,7 +248,8 @@ class TourRunner(EpisodeRunner):
         return self.survey(frames=1)
 
     def pick_up(self, entry: MapEntry, sensed) -> Target | None:
-        """The entry as a tracked target in the present frame (None where it projects outside it)."""
+        """The entry as a tracked target in the present frame, on the detection nearest where the map projects
+        it (None where it projects outside the frame or no detection lies within the cluster radius)."""
         cam = self.ctx.camera
         pose = self.controller.camera_pose()
         p = apply(rigid_inverse(pose), entry.point)
@@ -260,11 +261,13 @@ class TourRunner(EpisodeRunner):
             return None
         det = sensed.detections
         sigma = self.ctx.suite.tracker.detection_sigma_px
-        if len(det):
-            d = np.linalg.norm(det[:, :2] - uv, axis=1)
-            j = int(np.argmin(d))
-            if d[j] <= self.ctx.suite.targets.cluster_radius_px:
-                uv = det[j, :2]
+        if not len(det):
+            return None
+        d = np.linalg.norm(det[:, :2] - uv, axis=1)
+        j = int(np.argmin(d))
+        if d[j] > self.ctx.suite.targets.cluster_radius_px:
+            return None  # not seen where the map has it: a target is picked up on a detection, never on a guess
+        uv = det[j, :2]
         tracker = TargetTracker(self.ctx.suite.tracker)
         tracker.seed(sensed.frame.rgb, uv, sigma)
         t = Target(
