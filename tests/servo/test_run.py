@@ -178,6 +178,7 @@ def test_ifc_wall_suite_converges_on_the_front_mat_of_a_model_read_from_ifc(tmp_
 
 
 TIE_COLUMNS = {
+    "reason": "converged",
     "target_id": 5,
     "final_tilt_error_deg": 0.3,
     "final_jaw_error_deg": 0.2,
