@@ -266,7 +266,9 @@ class TourRunner(EpisodeRunner):
         d = np.linalg.norm(det[:, :2] - uv, axis=1)
         j = int(np.argmin(d))
         if d[j] > self.ctx.suite.targets.cluster_radius_px:
-            return None  # not seen where the map has it: a target is picked up on a detection, never on a guess
+            return (
+                None  # not seen where the map has it: a target is picked up on a detection, never on a guess
+            )
         uv = det[j, :2]
         tracker = TargetTracker(self.ctx.suite.tracker)
         tracker.seed(sensed.frame.rgb, uv, sigma)
