@@ -1,11 +1,12 @@
 """The tool square to the mat and its jaw across the crossing: measured from the camera, scored by the truth.
 
 What the camera gives (:func:`measure_local_frame`): the pixels of the depth image around the tracked
-crossing that lie on the front mat (within ``band_m`` of the crossing's depth, then of the fitted plane)
-are back-projected; a least-squares plane through them is the mat's local plane, its normal pointing to the
-camera. The bars' directions come from the same pixels: seen from the crossing, the points of the two bars
-lie along two lines of the plane, so the histogram of their directions (weighted by distance, over
-0-180 degrees) has two peaks. The second peak must stand at least ``min_bar_angle_deg`` from the first.
+crossing that lie on the front mat (within ``band_m`` of the crossing's depth, then of a least-squares plane
+through them) are back-projected. Seen from the crossing, the points of the two bars lie along two lines of
+that plane, so the histogram of their directions (weighted by distance, over 0-180 degrees) has two peaks,
+the second at least ``min_bar_angle_deg`` from the first; a 3D line fitted to each bar's points gives its
+direction, and the cross product of the two is the mat's normal, towards the camera (the plane only seeds
+this: through the bars' visible surfaces it is biased, the two bars lying a diameter apart in depth).
 
 What the tool should do (:func:`desired_rotation`): its axis (the camera's optical axis, parallel to the
 tool's) along the inward normal, its jaw (the tool's x axis, the camera's x) on the bisector of the two bars
@@ -23,9 +24,11 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import convolve1d
 
 from rebar_data.camera import Intrinsics
 from rebar_data.geometry.build import RebarMesh
+from rebar_data.servo.config import AlignConfig
 from rebar_data.servo.transforms import rotvec
 
 BIN_DEG = 1.0
@@ -33,13 +36,11 @@ BIN_DEG = 1.0
 
 @dataclass(frozen=True)
 class LocalFrame:
-    """The mat around one crossing in the camera frame: its unit normal (towards the camera), the two bars'
-    unit directions in its plane (None where the second bar was not resolved), and how many depth pixels
-    the plane was fitted on."""
+    """The mat around one crossing in the camera frame: its unit normal (towards the camera) and the two bars'
+    unit directions in its plane (None where the second bar was not resolved)."""
 
     normal: np.ndarray
     bars: np.ndarray | None
-    inliers: int
 
 
 def _plane(points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -77,7 +78,7 @@ def measure_local_frame(
     if len(uu) < min_points:
         return None
     z = patch[vv, uu]
-    pts = camera.back_project(np.column_stack([uu + u0 + 0.5, vv + v0 + 0.5]) - 0.5, z)
+    pts = camera.back_project(np.column_stack([uu + u0, vv + v0]).astype(float), z)
     centre = camera.back_project(np.atleast_2d(uv), np.array([crossing_depth_m]))[0]
     near = np.linalg.norm(pts - centre, axis=1) < radius_m
     pts = pts[near]
@@ -92,14 +93,14 @@ def measure_local_frame(
         c, n = _plane(pts)
     bars = _bar_directions(pts, centre, n, min_bar_angle_deg, bar_width_m)
     if bars is None:
-        return LocalFrame(n, None, int(len(pts)))
+        return LocalFrame(n, None)
     # The bars' own directions fix the plane without the bias a plane through their visible surfaces has
     # (the two bars lie one bar diameter apart in depth, and only their camera-facing halves are seen).
     m = np.cross(bars[0], bars[1])
     m /= np.linalg.norm(m)
     m = m if m @ n > 0 else -m
     bars = bars - np.outer(bars @ m, m)
-    return LocalFrame(m, bars / np.linalg.norm(bars, axis=1, keepdims=True), int(len(pts)))
+    return LocalFrame(m, bars / np.linalg.norm(bars, axis=1, keepdims=True))
 
 
 def _bar_directions(
@@ -115,17 +116,15 @@ def _bar_directions(
     d = pts - centre
     a, b = d @ e1, d @ e2
     r = np.hypot(a, b)
-    far = r > max(
-        0.012, bar_width_m
-    )  # the crossing's own knot of bar and wire says nothing of the directions
+    # the crossing's own knot of bar and wire says nothing of the directions
+    far = r > max(0.012, bar_width_m)
     if far.sum() < 50:
         return None
     theta = np.degrees(np.arctan2(b[far], a[far])) % 180.0
     nbins = int(round(180.0 / BIN_DEG))
     hist = np.bincount((theta / BIN_DEG).astype(int) % nbins, weights=r[far], minlength=nbins)
-    k = np.arange(-6, 7)
-    kernel = np.exp(-0.5 * (k / 2.0) ** 2)
-    smooth = np.array([np.sum(kernel * np.roll(hist, -i)[k % nbins]) for i in range(nbins)])
+    kernel = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)
+    smooth = convolve1d(hist, kernel, mode="wrap")  # angles wrap at 180 degrees
     p1 = int(np.argmax(smooth))
     dist = np.abs(((np.arange(nbins) - p1) * BIN_DEG + 90.0) % 180.0 - 90.0)
     masked = np.where(dist >= min_angle_deg, smooth, -1.0)
@@ -231,20 +230,11 @@ class AlignmentEstimate:
     controller's own pose estimate) so that the camera's motion does not blur it: each frame's measurement
     (:func:`measure_local_frame`, :func:`desired_rotation`) enters with weight ``smoothing``."""
 
-    def __init__(
-        self,
-        camera: Intrinsics,
-        *,
-        depth_offset_m: float,
-        radius_m: float,
-        smoothing: float,
-        jaw_to_bar_deg: float | None,
-    ):
+    def __init__(self, camera: Intrinsics, cfg: AlignConfig, *, depth_offset_m: float):
         self.camera, self.depth_offset_m = camera, depth_offset_m
-        self.radius_m, self.smoothing, self.jaw_to_bar_deg = radius_m, smoothing, jaw_to_bar_deg
+        self.radius_m, self.smoothing, self.jaw_to_bar_deg = cfg.radius_m, cfg.smoothing, cfg.jaw_to_bar_deg
         self.world_desired: np.ndarray | None = None  # (3, 3): x*, y*, z* as columns, world frame
         self.with_bars = False  # whether the estimate holds a frame with both bars resolved
-        self.measured = 0
 
     def update(
         self, depth_m: np.ndarray, uv: np.ndarray, crossing_depth_m: float, world_from_camera: np.ndarray
@@ -280,7 +270,6 @@ class AlignmentEstimate:
                 x = x - (x @ z) * z
                 x /= np.linalg.norm(x)
                 self.world_desired = np.column_stack([x, np.cross(z, x), z])
-            self.measured += 1
         if self.world_desired is None:
             return None
         return R_now.T @ self.world_desired

@@ -108,11 +108,6 @@ def _measures(rows: list[dict]) -> dict[str, float]:
     # is no crossing that ends untied is the loop refusing it (a tie there fails max_tie_crossing_distance_m)
     judged = [r for r in rows if r["target_id"] >= 0 or r["reason"] == "no_target"]
 
-    def worst(key: str) -> float:
-        a = np.array([r[key] for r in conv], float)
-        a = a[np.isfinite(a)] if len(a) else a
-        return float(a.max()) if len(a) else float("nan")
-
     tcp = np.array([r["tcp_error_m"] for r in conv if r.get("tcp_reached")], float)
     tied = [r for r in rows if r["tied"]]
 
@@ -120,6 +115,9 @@ def _measures(rows: list[dict]) -> dict[str, float]:
         a = np.array(list(values), float)
         a = a[np.isfinite(a)]
         return float(a.max()) if len(a) else float("nan")
+
+    def worst(key: str) -> float:
+        return worst_of(r[key] for r in conv)
 
     # the tool's alignment where it tied, else where its servo ended
     tilt = [r["tie_tilt_error_deg"] if r["tied"] else r["final_tilt_error_deg"] for r in conv]

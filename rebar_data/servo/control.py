@@ -71,17 +71,7 @@ def visit(ep: Episode, k: int, target: Target) -> None:
     reason, iterations, settle = "timeout", 0, 0
     initial_px = initial_m = float("nan")
     al = cfg.align
-    aligner = (
-        AlignmentEstimate(
-            ctx.camera,
-            depth_offset_m=ctx.depth_offset_m,
-            radius_m=al.radius_m,
-            smoothing=al.smoothing,
-            jaw_to_bar_deg=al.jaw_to_bar_deg,
-        )
-        if al.enabled
-        else None
-    )
+    aligner = AlignmentEstimate(ctx.camera, al, depth_offset_m=ctx.depth_offset_m) if al.enabled else None
     last: Last | None = None
     speed_ratio = 0.0
     for it in range(cfg.safety.max_iterations + 1):

@@ -27,7 +27,7 @@ from rebar_data.servo.drawing import annotate
 from rebar_data.servo.recorder import Recorder
 from rebar_data.servo.records import EpisodeResult
 from rebar_data.servo.rows import EpisodeRows
-from rebar_data.servo.sensing import Sensing, Target
+from rebar_data.servo.sensing import Sensed, Sensing, Target
 from rebar_data.servo.targets import persistent_clusters, select_targets
 from rebar_data.servo.tracker import TargetTracker
 
@@ -103,21 +103,27 @@ class EpisodeRunner:
             self.pending.remove(target)
         return self.result
 
-    def acquire(self) -> None:
-        """Detect over a few frames of the still arm, cluster, choose and order the targets, start tracking."""
-        cfg = self.ctx.suite.targets
-        cam = self.ctx.camera
+    def still_frames(self, n: int) -> tuple[list[np.ndarray], Sensed | None]:
+        """Frames of the still arm until ``n`` have detections (dropped frames do not count; at most 3n
+        frames): their detections, and the last frame sensed."""
         frames: list[np.ndarray] = []
         s = None
-        for _ in range(3 * cfg.acquire_frames):  # frames with detections; dropped frames do not count
+        for _ in range(3 * n):
             s = self.sensing.observe()
             self.rec.frame(self.step_index, s.frame, s.detections)
             self.rec.state(self.step_index, self.ctx.world)
             if len(s.detections):
                 frames.append(s.detections)
-            if len(frames) >= cfg.acquire_frames:
+            if len(frames) >= n:
                 break
             self.hold()
+        return frames, s
+
+    def acquire(self) -> None:
+        """Detect over a few frames of the still arm, cluster, choose and order the targets, start tracking."""
+        cfg = self.ctx.suite.targets
+        cam = self.ctx.camera
+        frames, s = self.still_frames(cfg.acquire_frames)
         clusters = persistent_clusters(frames, cfg.cluster_radius_px)
         idx = select_targets(
             clusters.center,

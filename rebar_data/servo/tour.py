@@ -50,6 +50,12 @@ class MapEntry:
     state: str = OPEN
     attempts: int = 0
 
+    def failed(self, max_attempts: int) -> None:
+        """One attempt that did not tie; after ``max_attempts`` the crossing is left."""
+        self.attempts += 1
+        if self.attempts >= max_attempts:
+            self.state = FAILED
+
 
 class CrossingMap:
     """The crossings a tour has seen, in the world frame; detections within ``merge_radius_m`` of an entry
@@ -62,7 +68,7 @@ class CrossingMap:
     def add(self, point: np.ndarray, *, lower: bool) -> MapEntry:
         for e in self.entries:
             if np.linalg.norm(e.point - point) < self.merge_radius_m:
-                if e.state == OPEN or e.state == LOWER:
+                if e.state in (OPEN, LOWER):
                     e.point = (e.point * e.sightings + point) / (e.sightings + 1)
                     e.sightings += 1
                 return e
@@ -88,10 +94,11 @@ def open_path(start: np.ndarray, points: np.ndarray) -> np.ndarray:
         left.remove(j)
         here = points[j]
     path = np.vstack([start[None], points[order]])
+    D = np.linalg.norm(path[:, None, :] - path[None, :, :], axis=2)  # every pair's distance, once
     idx = list(range(n + 1))
 
     def d(a: int, b: int) -> float:
-        return float(np.linalg.norm(path[a] - path[b]))
+        return float(D[a, b])
 
     improved = True
     while improved:
@@ -134,18 +141,17 @@ class TourRunner(EpisodeRunner):
         self.begin(start, q_start)
         self.rec.event(self.step_index, f"tour base {self.index}: look at {start.look_at_m}")
         last = self.survey(frames=self.ctx.suite.targets.acquire_frames)
-        k = 0
         while self.ties_left is None or self.ties_left > 0:
             entry = self.next_entry()
             if entry is None:
                 break
+            k = len(self.result.visits)
             target = self.pick_up(entry, last)
             if target is None:  # out of view: look at where the map has it, then pick it up
                 last = self.look_at(entry, k)
                 target = self.pick_up(entry, last)
             if target is None:
-                entry.attempts += 1
-                entry.state = FAILED if entry.attempts >= self.tour.max_attempts else entry.state
+                entry.failed(self.tour.max_attempts)
                 continue
             self.pending = [target]
             control.visit(self, k, target)
@@ -157,29 +163,17 @@ class TourRunner(EpisodeRunner):
                 if self.ties_left is not None:
                     self.ties_left -= 1
             else:
-                entry.attempts += 1
-                if entry.attempts >= self.tour.max_attempts:
-                    entry.state = FAILED
+                entry.failed(self.tour.max_attempts)
             self.rec.event(
                 self.step_index,
                 f"ties {sum(v.tied for v in self.result.visits)} from this base, {self.map.count(TIED)} in all",
             )
-            k += 1
             last = self.survey(frames=1)
 
     # --- the map ---------------------------------------------------------------------------------
     def survey(self, frames: int):
         """Detections over a few frames of the still arm into the map; the last sensed frame."""
-        dets, s = [], None
-        for _ in range(3 * frames):
-            s = self.sensing.observe()
-            self.rec.frame(self.step_index, s.frame, s.detections)
-            self.rec.state(self.step_index, self.ctx.world)
-            if len(s.detections):
-                dets.append(s.detections)
-            if len(dets) >= frames:
-                break
-            self.hold()
+        dets, s = self.still_frames(frames)
         clusters = persistent_clusters(dets, self.ctx.suite.targets.cluster_radius_px)
         pose = self.controller.camera_pose()
         for uv in clusters.center:
