@@ -25,8 +25,20 @@ def kinect_intrinsics(fov_x_deg: float = KINECT_FOV_X_DEG) -> Intrinsics:
     return Intrinsics(KINECT_WIDTH, KINECT_HEIGHT, f, f, KINECT_WIDTH / 2, KINECT_HEIGHT / 2)
 
 
-def depth_at(depth_m: np.ndarray, uv: np.ndarray, *, window_px: int = 5, percentile: float = 50.0) -> float:
+def depth_at(
+    depth_m: np.ndarray,
+    uv: np.ndarray,
+    *,
+    window_px: int = 5,
+    percentile: float = 50.0,
+    front_band_m: float | None = None,
+) -> float:
     """A robust depth reading around a pixel: a percentile of the valid depths in a square window.
+
+    With ``front_band_m``, only the window's front surface counts: the depths within that band of its
+    nearest tenth. A window on a bar whose sensor left holes (a structured-light shadow, a dropout) may hold
+    more readings of what lies behind it (the lower mat, the ground) than of the bar; the median of all of
+    them is then a depth behind the bar.
 
     Returns NaN when no pixel of the window has a measurement (or the pixel is outside the image).
     """
@@ -43,4 +55,6 @@ def depth_at(depth_m: np.ndarray, uv: np.ndarray, *, window_px: int = 5, percent
     vals = patch[patch > 0]
     if vals.size == 0:
         return float("nan")
+    if front_band_m is not None:
+        vals = vals[vals <= np.percentile(vals, 10.0) + front_band_m]
     return float(np.percentile(vals, percentile))

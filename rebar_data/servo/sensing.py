@@ -22,6 +22,8 @@ from rebar_data.servo.transforms import apply
 # error that a depth error of DEPTH_SIGMA_M makes of the camera's lateral motion.
 MOTION_SIGMA_PX = 0.02
 DEPTH_SIGMA_M = 0.002
+# The depth sensor's noise allowed on the front surface of a depth window (m).
+FRONT_NOISE_M = 0.005
 
 
 @dataclass(kw_only=True)
@@ -94,9 +96,17 @@ class Sensing:
 
     def crossing_depth(self, frame: CameraFrame, uv: np.ndarray) -> float:
         """Depth of the crossing under a pixel: the surface reading plus the offset to the crossing point
-        (the crossing lies a bar diameter behind the front bar's surface)."""
-        z = depth_at(frame.depth_m, uv, window_px=self.ctx.suite.camera.depth_window_px)
-        return z + self.ctx.depth_offset_m
+        (the crossing lies a bar diameter behind the front bar's surface). Only the window's front surface is
+        read (the front bar and the one under it, within a diameter and the sensor's noise), never the
+        lower mat or the ground seen through the bar's holes."""
+        offset = self.ctx.depth_offset_m
+        z = depth_at(
+            frame.depth_m,
+            uv,
+            window_px=self.ctx.suite.camera.depth_window_px,
+            front_band_m=offset + FRONT_NOISE_M,
+        )
+        return z + offset
 
     def motion_prediction(self, t: Target, pose_now: np.ndarray) -> tuple[np.ndarray, float] | None:
         """Where the arm's motion since the target's last update moved it (a still point at its pixel and

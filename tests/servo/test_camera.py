@@ -49,3 +49,12 @@ def test_depth_at_uses_only_valid_pixels():
     d[4:7, 4:7] = 0.6
     assert depth_at(d, np.array([5.5, 5.5])) == pytest.approx(0.6)
     assert np.isnan(depth_at(d, np.array([0.5, 0.5]), window_px=3))
+
+
+def test_depth_at_reads_the_front_surface_through_holes():
+    # a bar at 0.60 m over 6 of the window's 25 pixels, the ground at 1.25 m through its holes
+    d = np.full((11, 11), 1.25)
+    d[3:8, 5] = 0.60
+    d[5, 4] = 0.605
+    assert depth_at(d, np.array([5.5, 5.5])) == pytest.approx(1.25)
+    assert depth_at(d, np.array([5.5, 5.5]), front_band_m=0.017) == pytest.approx(0.60)
