@@ -250,37 +250,6 @@ class TourConfig(Strict):
     merge_radius_m: Positive = 0.03
 
 
-class MapView(Strict):
-    """One camera start orientation of a servo map: tilted about the camera's x and y axes from the surface
-    normal and rolled about its optical axis, as :class:`StartPose` has them."""
-
-    tilt_deg: tuple[float, float] = (0.0, 0.0)
-    roll_deg: float = 0.0
-
-
-class MapConfig(Strict):
-    """A servo map's sweep (``rebar servo map SUITE``, :mod:`rebar_data.servo.sweep`): one episode from each
-    start of a grid over the element's surface (``axial_steps`` x ``arc_steps`` look-at points over the
-    ``axial_m`` x ``arc_m`` rectangle, ``standoff_m`` out along the normal), for every mode, every camera
-    view and every placement of the element in the work cell (``turns_deg``: the element turned about its
-    normal at the crown, 0 as the world puts it). Each episode visits the ``targets`` crossings nearest the
-    image centre."""
-
-    modes: list[Literal["ibvs", "pbvs"]] = Field(default_factory=lambda: ["ibvs", "pbvs"], min_length=1)
-    axial_m: Range = (-0.3, 0.3)
-    arc_m: Range = (-0.6, 0.6)
-    axial_steps: Count = 5
-    arc_steps: Count = 7
-    standoff_m: Positive = 0.6
-    views: list[MapView] = Field(default_factory=lambda: [MapView()], min_length=1)
-    turns_deg: list[float] = Field(default_factory=lambda: [0.0], min_length=1)
-    targets: Count = 1
-
-    @property
-    def cells(self) -> int:
-        return len(self.modes) * self.axial_steps * self.arc_steps * len(self.views) * len(self.turns_deg)
-
-
 class SuiteConfig(Strict):
     name: str
     seed: Annotated[int, Field(ge=0)] = 0
@@ -319,14 +288,12 @@ class SuiteConfig(Strict):
     episodes: list[EpisodeSpec] = Field(default_factory=list)
     random: RandomEpisodes | None = None
     tour: TourConfig | None = None
-    map: MapConfig | None = None
 
     @model_validator(mode="after")
     def _has_episodes(self) -> SuiteConfig:
-        if not self.episodes and self.random is None and self.tour is None and self.map is None:
+        if not self.episodes and self.random is None and self.tour is None:
             raise ValueError(
-                "no episodes: accepted: a list under 'episodes', a 'random' section, a 'tour', a 'map' (for "
-                "rebar servo map), or several"
+                "no episodes: accepted: a list under 'episodes', a 'random' section, a 'tour', or several"
             )
         if self.ibvs.rotation and self.align.enabled:
             raise ValueError(
