@@ -324,6 +324,11 @@ def _wait_for_records(records: Path, more_than: int, proc: subprocess.Popen, tim
     raise AssertionError(f"no record beyond {more_than} was saved (exit {proc.poll()})")
 
 
+def _default_sigint() -> None:
+    """In a child before it runs: Ctrl-C's default action, whatever this process inherited."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _children(pid: int) -> list[int]:
     """The processes whose parent is ``pid`` (from /proc)."""
     kids = []
@@ -353,10 +358,12 @@ def test_ctrl_c_and_kill_9_leave_a_build_that_resumes(tmp_path):
     n = _wait_for_records(staging / "records", 0, first)
     first.kill()
     first.communicate(timeout=60)
-    # Ctrl-C in a terminal: SIGINT to the whole process group
+    # Ctrl-C in a terminal: SIGINT to the whole process group. The build starts with Ctrl-C's default action,
+    # as from a terminal: a shell without job control starts its background jobs (`cmd &`, `nohup`) with
+    # SIGINT ignored, and a test run started that way would pass that on and see no interrupt at all
     second = subprocess.Popen(
         [*cmd, "--resume"], env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
-        start_new_session=True,
+        start_new_session=True, preexec_fn=_default_sigint,
     )  # fmt: skip
     n = _wait_for_records(staging / "records", n, second)
     for worker in _children(second.pid):  # a Ctrl-C that reaches the workers alone changes nothing
