@@ -11,7 +11,7 @@ export EGL_PLATFORM ?= surfaceless
 DATA ?= data
 WORKERS ?= $(shell nproc)
 
-.PHONY: setup system-deps dataset smoke mesh train built eval tour element test check format bench clean
+.PHONY: map setup system-deps dataset smoke mesh train built eval tour element test check format bench clean
 
 setup: system-deps $(STAMP)
 
@@ -111,6 +111,13 @@ tour: setup
 	@for t in $(TOURS); do \
 	  $(REBAR) servo run eval/$$t.yaml --out $(EVAL_OUT)/$$t && $(REBAR) servo check $(EVAL_OUT)/$$t || exit 1; \
 	done
+
+# The servo map of the paper's segment (eval/map-paper.yaml, docs/servo.md "Where servoing holds"): 200 episodes,
+# IBVS and PBVS over the segment, two camera views and two turns of the segment, on $(MAP_WORKERS) local workers
+# (about 20 minutes on 2 cores); run again after a stop, it resumes. `--backend ray` runs it on a Ray cluster.
+MAP_WORKERS ?= 2
+map: setup
+	$(REBAR) servo map eval/map-paper.yaml --out $(EVAL_OUT)/map-paper --workers $(MAP_WORKERS)
 
 # The whole paper segment tied from 16 base poses (eval/element-paper.yaml): the loop's reach and coverage, on the
 # exact detector and ray-cast frames; about 40 minutes on 2 cores.

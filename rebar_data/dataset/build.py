@@ -17,13 +17,10 @@ import multiprocessing as mp
 import os
 import pickle
 import shutil
-import signal
 import subprocess
 import sys
-import threading
 import time
 from collections.abc import Iterator
-from contextlib import contextmanager
 from pathlib import Path
 from typing import Protocol
 
@@ -53,6 +50,7 @@ from rebar_data.pipeline import PipelineConfig, load_pipeline
 from rebar_data.render.engines import check_engine, engine_record
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample
+from rebar_data.workers import sigint_ignored
 
 COMMAND = "rebar dataset build"
 PLAN_FILE = "plan.json"
@@ -261,19 +259,6 @@ def _processes(workers: int, tasks: list) -> int:
     return 1 if workers <= 1 or len(tasks) <= 1 else min(workers, len(tasks))
 
 
-@contextmanager
-def _sigint_ignored() -> Iterator[None]:
-    """Ctrl-C ignored for the block (in the main thread), so that processes started in it inherit that."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGINT, previous)
-
-
 def _run_tasks(
     cfg: PipelineConfig, rm: RebarMesh, staging: Path, tasks: list, workers: int
 ) -> Iterator[tuple[str, list[FrameRecord]]]:
@@ -285,12 +270,11 @@ def _run_tasks(
         finally:
             worker.close()
         return
-    # spawn, not fork: a process forked after EGL and Filament were initialised in the parent can hang.
-    # Each worker rebuilds the mesh from the config (deterministic, under a second). Workers ignore Ctrl-C
-    # from their start (inherited) and in their initializer: the terminal sends it to every process of the
-    # group, and this process alone answers it, ending the workers (terminate) when it stops the build.
+    # Spawned workers (rebar_data.workers), each rebuilding the mesh from the config (deterministic, under a
+    # second); they ignore Ctrl-C from their start and in their initializer, and this process ends them
+    # (terminate) when it stops the build.
     ctx = mp.get_context("spawn")
-    with _sigint_ignored():
+    with sigint_ignored():
         pool = ctx.Pool(_processes(workers, tasks), initializer=init_process, initargs=(cfg, staging, None))
     try:
         yield from pool.imap_unordered(run_in_process, tasks)

@@ -14,37 +14,22 @@ shard neither duplicates nor loses samples.
 
 from __future__ import annotations
 
-import logging
 import os
-import socket
 from collections.abc import Iterator
 from pathlib import Path
 
-from rebar_data.config import ConfigError
 from rebar_data.dataset import layout
 from rebar_data.dataset.build import Task, build_dataset, check_paths, check_workers, plural
 from rebar_data.dataset.worker import FrameRecord, FrameWorker
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.pipeline import PipelineConfig, load_pipeline
-
-RAY_INSTALL_HINT = "pip install -e '.[ray]' (or pip install 'ray>=2.30,<3')"
-SHARDS_IN_FLIGHT_PER_ACTOR = 2  # one running, one queued, so an actor never waits for the driver
-
-
-class BackendError(RuntimeError):
-    """A shard failed on the cluster after Ray's retries; finished shards are kept for ``--resume``."""
-
-
-def import_ray():
-    """Ray, or one clear ConfigError saying how to install it."""
-    try:
-        import ray
-    except ImportError:
-        raise ConfigError(
-            f"--backend ray needs the ray package, which is not installed; accepted: {RAY_INSTALL_HINT}, "
-            "or --backend local"
-        ) from None
-    return ray
+from rebar_data.ray_cluster import (  # noqa: F401  (BackendError and import_ray: this backend's own errors)
+    BackendError,
+    check_address,
+    connect,
+    dispatch,
+    import_ray,
+)
 
 
 class RenderActor:
@@ -90,31 +75,7 @@ class RayRunner:
 
     def check_address(self) -> None:
         """One clear ConfigError when the cluster to join does not answer (checked before any work)."""
-        address = self.address or os.environ.get("RAY_ADDRESS", "")
-        if address and not _answers(address):
-            raise ConfigError(
-                f"--address {address}: no Ray cluster answers there; accepted: the HOST:PORT that "
-                "`ray start --head` printed, or auto on a node of a running cluster"
-            )
-
-    def _connect(self, ray) -> bool:
-        """Join or start a cluster; True when this call started it (and so must shut it down)."""
-        if ray.is_initialized():
-            return False
-        kwargs: dict = {"log_to_driver": False, "logging_level": logging.ERROR}
-        if self.address is None and not os.environ.get("RAY_ADDRESS"):
-            kwargs.update(num_cpus=self.actors or os.cpu_count() or 1, include_dashboard=False)
-        else:
-            kwargs["address"] = self.address
-            self.check_address()
-        try:
-            ray.init(**kwargs)
-        except ConnectionError as e:
-            raise ConfigError(
-                f"--address {self.address or os.environ.get('RAY_ADDRESS')}: no Ray cluster answers there "
-                f"({e}); accepted: the address `ray start --head` printed, or auto"
-            ) from None
-        return True
+        check_address(self.address)
 
     def __call__(
         self, cfg: PipelineConfig, rm: RebarMesh, staging: Path, tasks: list[Task]
@@ -122,7 +83,7 @@ class RayRunner:
         if not tasks:
             return
         ray = import_ray()
-        started = self._connect(ray)
+        started = connect(ray, self.address, self.actors)
         pool = []
         try:
             n = self.actors or int(ray.cluster_resources().get("CPU", 1))
@@ -132,55 +93,20 @@ class RayRunner:
                 num_cpus=1, max_restarts=self.max_restarts, max_task_retries=self.max_task_retries
             )(RenderActor)
             pool = [actor_cls.remote(cfg, str(staging), self.worker_cls) for _ in range(n)]
-            yield from _dispatch(ray, pool, tasks)
+            yield from dispatch(
+                ray,
+                pool,
+                tasks,
+                submit=lambda actor, task: actor.run.remote(task),
+                name=lambda t: f"shard {t[0]}",
+                again="the shards that finished are kept, run the same build again with --resume to continue",
+            )
             _check_shared_filesystem(staging, tasks)
         finally:
             for actor in pool:
                 ray.kill(actor)
             if started:
                 ray.shutdown()
-
-
-def _answers(address: str, timeout_s: float = 5.0) -> bool:
-    """Whether a HOST:PORT address accepts a connection (Ray itself waits minutes for a missing head).
-    Other forms (auto, ray://...) are left to Ray."""
-    host, sep, port = address.rpartition(":")
-    if not sep or "/" in address or not port.isdigit():
-        return True
-    try:
-        with socket.create_connection((host, int(port)), timeout=timeout_s):
-            return True
-    except OSError:
-        return False
-
-
-def _dispatch(ray, pool: list, tasks: list[Task]) -> Iterator[tuple[str, list[FrameRecord]]]:
-    """Hand shards to actors as they free up (a few queued per actor) and yield results as they finish."""
-    pending = list(reversed(tasks))
-    in_flight: dict = {}
-
-    def submit(actor) -> None:
-        task = pending.pop()
-        in_flight[actor.run.remote(task)] = (actor, task[0])
-
-    for _ in range(SHARDS_IN_FLIGHT_PER_ACTOR):
-        for actor in pool:
-            if pending:
-                submit(actor)
-    while in_flight:
-        ready, _ = ray.wait(list(in_flight), num_returns=1)
-        actor, trajectory_id = in_flight.pop(ready[0])
-        try:
-            result = ray.get(ready[0])
-        except (ray.exceptions.RayActorError, ray.exceptions.RayTaskError) as e:
-            first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-            raise BackendError(
-                f"shard {trajectory_id} failed on the Ray cluster after its retries: {first}; the shards that "
-                "finished are kept, run the same build again with --resume to continue"
-            ) from e
-        if pending:
-            submit(actor)
-        yield result
 
 
 def _check_shared_filesystem(staging: Path, tasks: list[Task]) -> None:

@@ -1,4 +1,4 @@
-"""`rebar servo run SUITE --out DIR` and `rebar servo check DIR`."""
+"""`rebar servo run SUITE --out DIR`, `rebar servo check DIR` and `rebar servo map SUITE --out DIR`."""
 
 from __future__ import annotations
 
@@ -20,6 +20,38 @@ def run_servo(args: argparse.Namespace) -> int:
         print(
             f"{summary['suite']} {mode}: {m['converged']}/{m['visits']} converged, median "
             f"{'-' if it is None else f'{it:.0f}'} iterations, worst true lateral error "
+            f"{'-' if lat is None else f'{lat * 1000:.2f}'} mm",
+            file=sys.stderr,
+        )
+    print(args.out)
+    return 0
+
+
+def run_map_command(args: argparse.Namespace) -> int:
+    from rebar_data.ray_cluster import BackendError
+    from rebar_data.servo.servo_map import MapInterrupted, run_map
+
+    try:
+        summary = run_map(
+            args.suite,
+            args.out,
+            workers=args.workers,
+            backend=args.backend,
+            address=args.address,
+            progress=not args.quiet,
+        )
+    except MapInterrupted as e:  # Ctrl-C: what is kept, and the shell's status for SIGINT
+        print(e, file=sys.stderr)
+        return 130
+    except BackendError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 1
+    for mode, m in summary["modes"].items():
+        share = m["converged_share_of_reachable"]
+        lat = m["max_lateral_error_m"]
+        print(
+            f"{summary['suite']} {mode}: {m['reachable']}/{m['cells']} cells reachable, {m['converged']} converged "
+            f"({'-' if share is None else f'{100 * share:.0f}%'}), worst true lateral error "
             f"{'-' if lat is None else f'{lat * 1000:.2f}'} mm",
             file=sys.stderr,
         )
@@ -61,3 +93,28 @@ def register(sub: argparse._SubParsersAction) -> None:
     c.add_argument("run", help="a folder written by `rebar servo run`")
     c.add_argument("--thresholds", default=None, help="bars file (default eval/thresholds.yaml)")
     c.set_defaults(func=run_check)
+    m = ss.add_parser(
+        "map",
+        help="sweep start poses over the element and its turns (the suite's map section): map.parquet, map.csv, "
+        "map.md, map.png; resumes where it stopped",
+    )
+    m.add_argument("suite", help="suite YAML with a map section, such as eval/map-paper.yaml")
+    m.add_argument(
+        "--out", required=True, help="output folder: new, empty, or an earlier map's, which is replaced whole"
+    )
+    m.add_argument(
+        "--workers",
+        type=EPISODES,
+        default=1,
+        help="local worker processes (one renderer each), or Ray actors",
+    )
+    m.add_argument(
+        "--backend", choices=("local", "ray"), default="local", help="local processes or a Ray cluster"
+    )
+    m.add_argument(
+        "--address",
+        default=None,
+        help="the Ray cluster to join (HOST:PORT or auto; default: a private local one)",
+    )
+    m.add_argument("--quiet", action="store_true", help="no progress bar")
+    m.set_defaults(func=run_map_command)

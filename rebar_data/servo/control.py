@@ -11,6 +11,7 @@ the arm holds still).
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from typing import Protocol
 
@@ -113,6 +114,12 @@ def visit(ep: Episode, k: int, target: Target) -> None:
                 tu, tilt, jaw = rotation_error(R_desired)
                 omega = al.gain * tu
                 aligned = tilt < al.converge_tilt_deg and jaw < al.converge_jaw_deg
+            was_on_lines = aligner.on_lines
+            point = aligner.servo_point(state.point, ctl.camera_pose())
+            if aligner.on_lines:
+                if not was_on_lines:
+                    ep.rec.event(ep.step_index, f"visit {k}: servoing on the bars' lines' meeting point")
+                state = dataclasses.replace(state, point=point)
         twist, err_px, err_m = ctl.twist(state.point, Z, omega)
         if not np.isfinite(initial_px):
             initial_px, initial_m = err_px, err_m
@@ -177,6 +184,7 @@ def visit(ep: Episode, k: int, target: Target) -> None:
     row.final_tilt_error_deg, row.final_jaw_error_deg = ctx.truth.errors(
         target.crossing_id, world.world_from_tcp(), al.jaw_to_bar_deg
     )
+    row.feature = "bar_lines" if aligner is not None and aligner.on_lines else "detection"
     row.lost_frames = target.tracker.lost_total - lost0
     row.reseeds = target.tracker.reseeds - reseeds0
     ep.rec.event(ep.step_index, f"visit {k}: {reason} after {iterations} iterations")

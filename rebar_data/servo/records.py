@@ -85,6 +85,9 @@ class VisitRow:
     sim_s: float
     start_standoff_m: float
     faults: str = field(default="none")
+    # what the visit servoed on at its end: the tracked detection, or the bars' lines' meeting point
+    # (``bar_lines``: where the two disagreed, :class:`rebar_data.servo.alignment.AlignmentEstimate`)
+    feature: str = field(default="detection")
 
     def to_dict(self) -> dict:
         return {k: (float(v) if isinstance(v, np.floating) else v) for k, v in asdict(self).items()}

@@ -196,6 +196,11 @@ def run_suite(
         raise ConfigError(f"--episodes {limit_episodes}: runs nothing; accepted: an integer >= 1")
     out = check_run_out(out)
     suite = load_suite(suite_path)
+    if not suite.episodes and suite.random is None and suite.tour is None:
+        raise ConfigError(
+            f"{suite_path}: has only a map section, which `{COMMAND}` does not run; accepted: rebar servo map "
+            f"{suite_path} --out DIR, or a suite with episodes, random or tour"
+        )
     # the pipeline the world's mesh comes from is checked whole before anything is written
     load_pipeline(resolve_path(suite.world.mesh_config, suite_path))
     t0 = time.perf_counter()

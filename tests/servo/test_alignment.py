@@ -42,6 +42,51 @@ def test_the_mat_and_its_bars_are_measured_from_depth_alone(servo_ctx, tilt):
             assert min(np.degrees(np.arccos(min(1.0, abs(b @ t_cam)))) for b in lf.bars) < 0.5
 
 
+def test_the_bars_lines_meet_on_the_crossing(servo_ctx):
+    """Fitted to the depth pixels along each bar, the two bars' lines meet within a tenth of a pixel of the
+    true crossing, wherever in the window the search started (here 1.8 px off)."""
+    ctx = servo_ctx
+    T, frame = _frame_at(
+        ctx, StartPose(look_at_m=(0.0, 0.0), standoff_m=0.6, tilt_deg=(9.0, -7.0), roll_deg=15.0)
+    )
+    p = apply(rigid_inverse(T), ctx.rm.crossings.point)
+    uv = ctx.camera.project(p)
+    inside = np.flatnonzero((uv[:, 0] > 120) & (uv[:, 0] < 520) & (uv[:, 1] > 120) & (uv[:, 1] < 360))
+    d = ctx.depth_offset_m
+    errors = []
+    for cid in inside[:8]:
+        lf = measure_local_frame(
+            frame.depth_m, uv[cid] + [1.5, -1.0], p[cid, 2] - d, ctx.camera, bar_width_m=d
+        )
+        assert lf is not None and lf.crossing is not None
+        errors.append(np.linalg.norm(ctx.camera.project(lf.crossing[None])[0] - uv[cid]))
+    assert len(errors) == 8 and max(errors) < 0.2, errors
+
+
+def test_a_visit_servos_on_the_lines_once_they_disagree_with_the_detection_for_three_frames():
+    from rebar_data.servo.alignment import AlignmentEstimate
+    from rebar_data.servo.camera import kinect_intrinsics
+    from rebar_data.servo.config import AlignConfig
+
+    cam = kinect_intrinsics()
+    pose = np.eye(4)
+    est = AlignmentEstimate(cam, AlignConfig(line_switch_px=1.0), depth_offset_m=0.012)
+    tracked = np.array([320.0, 240.0])
+    assert est.servo_point(tracked, pose) is tracked  # no lines measured yet
+    est.world_crossing = cam.back_project(np.array([[320.5, 240.0]]), np.array([0.6]))[0]
+    for _ in range(5):  # 0.5 px apart: within the bar, the detection stays
+        assert np.array_equal(est.servo_point(tracked, pose), tracked)
+    est.world_crossing = cam.back_project(np.array([[322.0, 240.0]]), np.array([0.6]))[0]
+    points = [est.servo_point(tracked, pose) for _ in range(3)]
+    assert np.array_equal(points[1], tracked) and np.allclose(points[2], [322.0, 240.0])
+    assert est.on_lines
+    est.world_crossing = cam.back_project(np.array([[320.2, 240.0]]), np.array([0.6]))[0]
+    assert np.allclose(est.servo_point(tracked, pose), [320.2, 240.0])  # switched for the rest of the visit
+    never = AlignmentEstimate(cam, AlignConfig(line_switch_px=None), depth_offset_m=0.012)
+    never.world_crossing = est.world_crossing
+    assert all(np.array_equal(never.servo_point(tracked + 5, pose), tracked + 5) for _ in range(5))
+
+
 def test_no_frame_is_measured_where_no_depth_is():
     from rebar_data.servo.camera import kinect_intrinsics
 
