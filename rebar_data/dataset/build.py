@@ -50,7 +50,7 @@ from rebar_data.pipeline import PipelineConfig, load_pipeline
 from rebar_data.render.engines import check_engine, engine_record
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample
-from rebar_data.workers import sigint_ignored
+from rebar_data.workers import check_workers, sigint_ignored
 
 COMMAND = "rebar dataset build"
 PLAN_FILE = "plan.json"
@@ -127,22 +127,6 @@ def staging_dir(final: Path) -> Path:
 def finishing_dir(final: Path) -> Path:
     """Where ``finalize`` keeps the records and plan out of the dataset's files until the swap is done."""
     return final.parent / f".{final.name}.finishing"
-
-
-def check_workers(workers: int | None, *, backend: str = "local") -> None:
-    """``--workers`` within bounds: 1 to the machine's cores for local processes, 1 or more Ray actors."""
-    if workers is None:
-        return
-    if backend == "ray":
-        if workers < 1:
-            raise ConfigError(f"--workers {workers}: not a number of Ray actors; accepted: 1 or more")
-        return
-    cores = os.cpu_count() or 1
-    if not 1 <= workers <= cores:
-        raise ConfigError(
-            f"--workers {workers}: out of range; accepted: 1 to {cores} (this machine's cores; one worker "
-            "already keeps two cores busy)"
-        )
 
 
 def check_paths(config: str | Path, out_root: str | Path) -> Path:

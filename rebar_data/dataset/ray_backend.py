@@ -19,7 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 from rebar_data.dataset import layout
-from rebar_data.dataset.build import Task, build_dataset, check_paths, check_workers, plural
+from rebar_data.dataset.build import Task, build_dataset, check_paths, plural
 from rebar_data.dataset.worker import FrameRecord, FrameWorker
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.pipeline import PipelineConfig, load_pipeline
@@ -30,6 +30,7 @@ from rebar_data.ray_cluster import (  # noqa: F401  (BackendError and import_ray
     dispatch,
     import_ray,
 )
+from rebar_data.workers import check_workers
 
 
 class RenderActor:

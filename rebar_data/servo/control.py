@@ -120,6 +120,9 @@ def visit(ep: Episode, k: int, target: Target) -> None:
                 if not was_on_lines:
                     ep.rec.event(ep.step_index, f"visit {k}: servoing on the bars' lines' meeting point")
                 state = dataclasses.replace(state, point=point)
+                # the depth where the visit servos: the detection's pixel may lie off the bar (a mat's edge)
+                z = ep.sensing.crossing_depth(s.frame, point)
+                Z = z if np.isfinite(z) else Z
         twist, err_px, err_m = ctl.twist(state.point, Z, omega)
         if not np.isfinite(initial_px):
             initial_px, initial_m = err_px, err_m

@@ -30,7 +30,7 @@ from rebar_data.pipeline import load_pipeline
 from rebar_data.resume import STEPS_FILE, Steps, key_of
 from rebar_data.servo.config import SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.sweep import Cell, CellActor, CellRunner, init_process, plan_cells, run_in_process
-from rebar_data.workers import sigint_ignored
+from rebar_data.workers import check_workers, sigint_ignored
 
 COMMAND = "rebar servo map"
 
@@ -44,13 +44,12 @@ def cells_record(out: Path) -> Path:
     return out.parent / f".{out.name}.map-cells"
 
 
-def check_workers(workers: int, backend: str, address: str | None) -> None:
+def check_backend(workers: int, backend: str, address: str | None) -> None:
     if backend not in ("local", "ray"):
         raise ConfigError(f"--backend {backend}: unknown; accepted: local or ray")
     if address and backend != "ray":
         raise ConfigError(f"--address {address} is for the Ray backend; accepted: --backend ray")
-    if workers < 1:
-        raise ConfigError(f"--workers {workers}: runs nothing; accepted: 1 or more")
+    check_workers(workers, backend=backend)
 
 
 def run_map(
@@ -63,7 +62,7 @@ def run_map(
     progress: bool = True,
 ) -> dict:
     """Run every cell of the suite's map not yet finished, then write the map to ``out``; the summary."""
-    check_workers(workers, backend, address)
+    check_backend(workers, backend, address)
     out = output_folder(out, arg="--out", command=COMMAND, swapped=True)
     suite = load_suite(suite_path)
     if suite.map is None:
