@@ -127,7 +127,7 @@ class CellRunner:
             )
         try:
             q, ok = world.solve_start(world.camera_pose_for(start))
-            if not ok:
+            if not (ok and world.clear_at(q)):  # out of reach, or a link in the mesh, the table or the floor
                 return row | _outcome("unreachable", reachable=False, wall_s=time.perf_counter() - t0)
             index = MAP_EPISODE_OFFSET + cell.index
             spec = EpisodeSpec(mode=cell.mode, start=start, targets=self.map.targets, choice="nearest")

@@ -184,9 +184,12 @@ class ServoWorld:
         return [self.layout.world_from_base] + [self.world_from_link(j) for j in range(6)]
 
     def in_contact(self) -> bool:
-        """Whether an arm link touches the mesh or the table (the base on the table does not count)."""
+        """Whether an arm link touches the mesh, the table (the base on the table does not count) or the
+        floor (a base moved down on its lift, or a low start, can put the arm's links into it)."""
         c = self.client
         if c.getContactPoints(bodyA=self.robot, bodyB=self.mesh_body):
+            return True
+        if any(p[3] > 0 for p in c.getContactPoints(bodyA=self.robot, bodyB=self.floor)):
             return True
         return bool(c.getContactPoints(bodyA=self.robot, bodyB=self.table))
 
@@ -220,8 +223,8 @@ class ServoWorld:
         self.physics_steps = target
 
     def clear_at(self, q: np.ndarray, margin_m: float = 0.02) -> bool:
-        """Whether the arm at joints ``q`` keeps ``margin_m`` from the mesh and the table (its base and
-        shoulder, mounted on the table, apart); the arm's state is put back exactly as it was."""
+        """Whether the arm at joints ``q`` keeps ``margin_m`` from the mesh, the table and the floor (its base
+        and shoulder, mounted on the table, apart); the arm's state is put back exactly as it was."""
         c = self.client
         saved = c.getJointStates(self.robot, range(6))
         for j in range(6):
@@ -229,7 +232,11 @@ class ServoWorld:
         try:
             if c.getClosestPoints(self.robot, self.mesh_body, margin_m):
                 return False
-            return not any(p[3] > 0 for p in c.getClosestPoints(self.robot, self.table, margin_m))
+            return not any(
+                p[3] > 0
+                for body in (self.table, self.floor)
+                for p in c.getClosestPoints(self.robot, body, margin_m)
+            )
         finally:
             for j, st in enumerate(saved):
                 c.resetJointState(self.robot, j, st[0], st[1])
