@@ -3,7 +3,7 @@
 The PNG draws each (mode, turn) as a row of three panels on the unrolled surface (axial distance from the crown
 across, arc distance up): the share of the cell's views that converged, their median iterations, and the worst
 true lateral error of those that did. A surface point no view could reach from the base is left grey and
-marked x.
+marked x: out of the arm's reach, or an arm link in the floor, the table or the mesh at the start.
 """
 
 from __future__ import annotations
@@ -156,7 +156,7 @@ def _surface_grid(rows: list[dict], axial: list[float], arc: list[float]) -> dic
 
 
 def _label(name: str, v: float) -> str:
-    return f"{100 * v:.0f}%" if name == "share" else f"{v:.0f}" if name == "iterations" else f"{v:.1f}"
+    return f"{100 * v:.0f}%" if name == "share" else f"{v:.0f}" if name == "iterations" else f"{v:.2f}"
 
 
 def _ink(name: str, x: float) -> str:
@@ -181,15 +181,11 @@ def draw_map(suite: SuiteConfig, rows: list[dict], path: Path) -> None:
     extent = (axial[0] - da, axial[-1] + da, arc[0] - ds, arc[-1] + ds)
     all_it = _finite(r["iterations"] for r in rows if r["converged"])
     all_lat = _finite(1000 * r["lateral_error_m"] for r in rows if r["converged"])
+    top_mm = max(1.0, max(all_lat)) if all_lat else 1.0
     scales = {
-        "share": (0.0, 1.0, "RdYlGn", "converged share of views"),
+        "share": (0.0, 1.0, "RdYlGn", "converged share"),
         "iterations": (0.0, max(all_it) if all_it else 1.0, "viridis", "median iterations"),
-        "lateral_mm": (
-            0.0,
-            max(2.0, max(all_lat)) if all_lat else 2.0,
-            "magma_r",
-            "worst true lateral error (mm)",
-        ),
+        "lateral_mm": (0.0, top_mm, "magma_r", "worst lateral error (mm)"),
     }
     for row_axes, (mode, t) in zip(axes, panels, strict=True):
         g = [r for r in rows if r["mode"] == mode and r["turn_deg"] == t]
@@ -215,13 +211,17 @@ def draw_map(suite: SuiteConfig, rows: list[dict], path: Path) -> None:
                         ax.text(
                             a, s, _label(name, v), ha="center", va="center", fontsize=6.5, color=_ink(name, x)
                         )
-            ax.set_title(f"{mode.upper()}, element turned {t:g} deg: {label}", fontsize=9)
+            ax.set_title(f"{mode.upper()}, turned {t:g} deg: {label}", fontsize=9)
             ax.set_xlabel("along the axis from the crown (m)", fontsize=8)
             ax.set_ylabel("along the arc (m)", fontsize=8)
             ax.tick_params(labelsize=7)
             fig.colorbar(im, ax=ax, fraction=0.046, pad=0.03).ax.tick_params(labelsize=7)
+    views = f"{len(m.views)} view{'s' if len(m.views) > 1 else ''} a surface point"
+    base = "the base moved to each point" if m.base == "follow" else "the base fixed"
     fig.suptitle(
-        f"Servo map: {suite.name} ({len(m.views)} views a surface point; grey x: out of reach)", fontsize=10
+        f"Servo map: {suite.name} ({views}, {base}; true errors from the simulator)\ngrey x: out of the arm's "
+        "reach, or an arm link in the floor, the table or the mesh",
+        fontsize=10,
     )
     fig.tight_layout()
     fig.savefig(path, dpi=90)

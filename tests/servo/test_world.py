@@ -51,3 +51,27 @@ def test_start_poses_look_at_the_mesh_from_the_standoff(servo_ctx):
     world.reset_joints(q)
     np.testing.assert_allclose(world.world_from_camera(), T, atol=1e-5)
     assert not world.in_contact()
+
+
+def test_an_arm_link_in_the_floor_is_a_collision_and_out_of_reach(servo_ctx):
+    """With its base lowered a metre (a lift at the segment's lower edge), the arm looking up at the segment
+    from a tilted view would reach into the floor: the reach check refuses it, and its contact counts."""
+    world = servo_ctx.world
+    start = StartPose(look_at_m=(-1.3, -1.0), standoff_m=0.6, tilt_deg=(10.6, -10.6), roll_deg=30.0)
+    low = world.surface_point(*start.look_at_m)[0] - world.surface_point(0.0, 0.0)[0]
+    assert low[2] < -0.9
+    try:
+        world.move_base(low)
+        q, ok = world.solve_start(world.camera_pose_for(start))
+        assert ok  # the joints exist: inverse kinematics alone would take it
+        assert not world.clear_at(q)
+        world.reset_joints(q)
+        world.client.performCollisionDetection()
+        assert world.in_contact()
+        square = StartPose(look_at_m=(-1.3, -1.0), standoff_m=0.6)
+        q_square, ok = world.solve_start(world.camera_pose_for(square))
+        assert ok and world.clear_at(q_square)  # looking square at the same point clears the floor
+    finally:
+        world.move_base(np.zeros(3))
+        q0, _ = world.solve_start(world.camera_pose_for(StartPose()))
+        world.reset_joints(q0)
