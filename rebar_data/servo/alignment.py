@@ -1,4 +1,5 @@
-"""The tool square to the mat and its jaw across the crossing: measured from the camera, scored by the truth.
+"""The tool square to the mat, its jaw across the crossing and the crossing itself: measured from the camera,
+scored by the truth.
 
 What the camera gives (:func:`measure_local_frame`): the pixels of the depth image around the tracked
 crossing that lie on the front mat (within ``band_m`` of the crossing's depth, then of a least-squares plane
@@ -6,7 +7,9 @@ through them) are back-projected. Seen from the crossing, the points of the two 
 that plane, so the histogram of their directions (weighted by distance, over 0-180 degrees) has two peaks,
 the second at least ``min_bar_angle_deg`` from the first; a 3D line fitted to each bar's points gives its
 direction, and the cross product of the two is the mat's normal, towards the camera (the plane only seeds
-this: through the bars' visible surfaces it is biased, the two bars lying a diameter apart in depth).
+this: through the bars' visible surfaces it is biased, the two bars lying a diameter apart in depth). Where the
+two lines meet (the midpoint of their closest points) is the crossing itself, to a tenth of a pixel, which the
+visit servos on once it is measured (:class:`AlignmentEstimate`).
 
 What the tool should do (:func:`desired_rotation`): its axis (the camera's optical axis, parallel to the
 tool's) along the inward normal, its jaw (the tool's x axis, the camera's x) on the bisector of the two bars

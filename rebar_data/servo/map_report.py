@@ -183,7 +183,7 @@ def draw_map(suite: SuiteConfig, rows: list[dict], path: Path) -> None:
     all_lat = _finite(1000 * r["lateral_error_m"] for r in rows if r["converged"])
     top_mm = max(1.0, max(all_lat)) if all_lat else 1.0
     scales = {
-        "share": (0.0, 1.0, "RdYlGn", "converged share"),
+        "share": (0.0, 1.0, "RdYlGn", "converged (of views reached)"),
         "iterations": (0.0, max(all_it) if all_it else 1.0, "viridis", "median iterations"),
         "lateral_mm": (0.0, top_mm, "magma_r", "worst lateral error (mm)"),
     }
@@ -204,13 +204,16 @@ def draw_map(suite: SuiteConfig, rows: list[dict], path: Path) -> None:
             )
             for i, s in enumerate(arc):
                 for j, a in enumerate(axial):
-                    if not any(r["reachable"] for r in g if r["axial_m"] == a and r["arc_m"] == s):
+                    here = [r for r in g if r["axial_m"] == a and r["arc_m"] == s]
+                    reached = sum(bool(r["reachable"]) for r in here)
+                    if not reached:
                         ax.plot(a, s, "x", color="#555555", ms=6)
                     elif np.isfinite(v := grids[name][i, j]) and len(axial) * len(arc) <= 81:
+                        text = _label(name, v)
+                        if name == "share" and reached < len(here):  # some views out of reach there
+                            text += f"\n{reached}/{len(here)} views"
                         x = (v - lo) / max(hi - lo, 1e-9)
-                        ax.text(
-                            a, s, _label(name, v), ha="center", va="center", fontsize=6.5, color=_ink(name, x)
-                        )
+                        ax.text(a, s, text, ha="center", va="center", fontsize=6.5, color=_ink(name, x))
             ax.set_title(f"{mode.upper()}, turned {t:g} deg: {label}", fontsize=9)
             ax.set_xlabel("along the axis from the crown (m)", fontsize=8)
             ax.set_ylabel("along the arc (m)", fontsize=8)
