@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from rebar_data.arguments import bounded
@@ -106,7 +107,8 @@ def register(sub: argparse._SubParsersAction) -> None:
         "--workers",
         type=EPISODES,
         default=1,
-        help="local worker processes (one renderer each), or Ray actors",
+        help=f"local worker processes (one renderer each), at most this machine's {os.cpu_count() or 1} cores, or "
+        f"Ray actors with --backend ray ({EPISODES}; default 1)",
     )
     m.add_argument(
         "--backend", choices=("local", "ray"), default="local", help="local processes or a Ray cluster"
