@@ -29,7 +29,14 @@ from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_st
 from rebar_data.pipeline import load_pipeline
 from rebar_data.resume import STEPS_FILE, Steps, key_of
 from rebar_data.servo.config import SuiteConfig, load_suite, resolve_path
-from rebar_data.servo.sweep import Cell, CellActor, CellRunner, init_process, plan_cells, run_in_process
+from rebar_data.servo.sweep import (
+    Cell,
+    CellActor,
+    CellRunner,
+    init_cell_process,
+    plan_cells,
+    run_cell_in_process,
+)
 from rebar_data.workers import check_workers, sigint_ignored
 
 COMMAND = "rebar servo map"
@@ -142,10 +149,10 @@ def _local(suite_path, cells: list[Cell], workers: int) -> Iterator[dict]:
         return
     ctx = mp.get_context("spawn")  # rebar_data.workers: spawned, Ctrl-C answered here alone
     with sigint_ignored():
-        pool = ctx.Pool(n, initializer=init_process, initargs=(str(suite_path),))
+        pool = ctx.Pool(n, initializer=init_cell_process, initargs=(str(suite_path),))
     try:
         # in order, one at a time: each worker keeps the scene of its turn (turns are outermost)
-        yield from pool.imap_unordered(run_in_process, cells, chunksize=1)
+        yield from pool.imap_unordered(run_cell_in_process, cells, chunksize=1)
     finally:
         pool.terminate()
         pool.join()

@@ -181,7 +181,7 @@ def _outcome(reason: str, *, reachable: bool, wall_s: float, **values) -> dict:
 _RUNNER: CellRunner | None = None
 
 
-def init_process(suite_path: str) -> None:
+def init_cell_process(suite_path: str) -> None:
     import signal
 
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent answers Ctrl-C and ends the pool
@@ -190,7 +190,7 @@ def init_process(suite_path: str) -> None:
     _RUNNER = CellRunner(suite_path)
 
 
-def run_in_process(cell: Cell) -> dict:
+def run_cell_in_process(cell: Cell) -> dict:
     assert _RUNNER is not None
     return _RUNNER.run(cell)
 

@@ -23,8 +23,9 @@ _STARTS = "|".join(re.escape(f) for f in FOLDERS + PACKAGES)
 TOKEN = re.compile(rf"(?<![\w./-])((?:{_STARTS})/[\w./-]*[\w/])")
 LINK = re.compile(r"\]\(([^)#\s]+)(?:#[^)]*)?\)")
 WORD = re.compile(r"[^\s`'\"()\[\],;]+")
-# a Markdown file named without a folder (``DESIGN.md``); outputs of a run (``report.md``) are not files here
-BARE_MD = re.compile(r"(?<![\w./(-])((?!report\.md)[\w-]+\.md)(?![\w.])")
+# a Markdown file named without a folder (``DESIGN.md``); outputs of a run (``report.md``, a servo map's
+# ``map.md``) are not files here
+BARE_MD = re.compile(r"(?<![\w./(-])((?!(?:report|map)\.md)[\w-]+\.md)(?![\w.])")
 PLACEHOLDER = re.compile(r"[<>*{}]|NAME|\.\.\.|/X\b|\bmy-")
 
 
