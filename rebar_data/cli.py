@@ -12,6 +12,7 @@ import sys
 
 from rebar_data.config import ConfigError
 from rebar_data.dataset.layout import DatasetFormatError
+from rebar_data.ray_cluster import BackendError
 
 COMMAND_MODULES = [
     "rebar_data.geometry.commands",
@@ -57,9 +58,13 @@ def main(argv: list[str] | None = None) -> int:
             file=sys.stderr,
         )
         return 2
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
+    except KeyboardInterrupt as e:
+        # a long command's own (BuildInterrupted, MapInterrupted) says what it kept and how to go on
+        print(str(e) or "interrupted", file=sys.stderr)
         return 130
+    except BackendError as e:  # a task failed on the Ray cluster after its retries; what finished is kept
+        print(f"error: {e}", file=sys.stderr)
+        return 1
     return int(result or 0)
 
 

@@ -3,9 +3,9 @@
 
 A command names the cluster with ``--address`` (or ``RAY_ADDRESS``); without either it starts a private local
 cluster of its own and shuts it down when done. An address where nothing answers is one clear ConfigError
-before any work (Ray itself waits minutes for a missing head). :func:`dispatch` keeps a few tasks queued on
-each actor, so an actor never waits for the driver, and yields results as they finish; a task that fails
-after Ray's retries is a :class:`BackendError`.
+before any work (Ray itself waits minutes for a missing head). :func:`on_actors` runs tasks on actors, a few queued on
+each so that an actor never waits for the driver, and yields results as they finish; a task that fails after
+Ray's retries is a :class:`BackendError`.
 """
 
 from __future__ import annotations
@@ -50,6 +50,12 @@ def answers(address: str, timeout_s: float = 5.0) -> bool:
         return False
 
 
+def check_backend(backend: str, address: str | None) -> None:
+    """``--address`` only with ``--backend ray``: one clear ConfigError otherwise."""
+    if address and backend != "ray":
+        raise ConfigError(f"--address {address} is for the Ray backend; accepted: --backend ray")
+
+
 def check_address(address: str | None) -> None:
     """One clear ConfigError when the cluster to join (``address``, else ``RAY_ADDRESS``) does not answer."""
     address = address or os.environ.get("RAY_ADDRESS", "")
@@ -81,24 +87,55 @@ def connect(ray, address: str | None, cpus: int | None) -> bool:
     return True
 
 
-def dispatch(
-    ray,
-    pool: list,
+def on_actors(
+    actor_class: type,
+    args: tuple,
     tasks: list,
     *,
-    submit: Callable[[Any, Any], Any],
+    address: str | None,
+    actors: int | None,
     name: Callable[[Any], str],
-    again: str = "what finished is kept, run the same command again to continue",
+    again: str,
+    max_restarts: int = 3,
+    max_task_retries: int = 3,
+    sized: Callable[[int], None] | None = None,
 ) -> Iterator[Any]:
-    """Hand ``tasks`` to the actors of ``pool`` as they free up (``submit(actor, task)`` returns the task's
-    object ref) and yield each result as it finishes; ``name(task)`` names a failed one, ``again`` says
-    what a user does then."""
+    """Each task's result as it finishes, run by ``actor.run(task)`` on Ray actors of ``actor_class(*args)``:
+    ``actors`` of them (default one per CPU of the cluster; never more than tasks), each restarted up to
+    ``max_restarts`` times when its process dies and a task run again up to ``max_task_retries`` times;
+    ``sized(n)`` is told how many. Joins the cluster at ``address`` (or starts a private one, shut down at the
+    end); the actors are ended when the caller stops reading. ``name(task)`` names a failed task in its
+    :class:`BackendError`, ``again`` says there what a user does then."""
+    if not tasks:
+        return
+    ray = import_ray()
+    started = connect(ray, address, actors)
+    pool = []
+    try:
+        n = max(1, min(actors or int(ray.cluster_resources().get("CPU", 1)), len(tasks)))
+        if sized is not None:
+            sized(n)
+        remote = ray.remote(num_cpus=1, max_restarts=max_restarts, max_task_retries=max_task_retries)(
+            actor_class
+        )
+        pool = [remote.remote(*args) for _ in range(n)]
+        yield from _dispatch(ray, pool, tasks, name=name, again=again)
+    finally:
+        for actor in pool:
+            ray.kill(actor)
+        if started:
+            ray.shutdown()
+
+
+def _dispatch(ray, pool: list, tasks: list, *, name: Callable[[Any], str], again: str) -> Iterator[Any]:
+    """Hand ``tasks`` to the actors of ``pool`` (``actor.run(task)``) as they free up, a few queued on each, and
+    yield each result as it finishes."""
     pending = list(reversed(tasks))
     in_flight: dict = {}
 
     def send(actor) -> None:
         task = pending.pop()
-        in_flight[submit(actor, task)] = (actor, task)
+        in_flight[actor.run.remote(task)] = (actor, task)
 
     for _ in range(TASKS_IN_FLIGHT_PER_ACTOR):
         for actor in pool:

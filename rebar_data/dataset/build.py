@@ -13,7 +13,6 @@ interrupted build. Ctrl-C ends the workers quietly and leaves a staging folder t
 from __future__ import annotations
 
 import json
-import multiprocessing as mp
 import os
 import pickle
 import shutil
@@ -50,7 +49,7 @@ from rebar_data.pipeline import PipelineConfig, load_pipeline
 from rebar_data.render.engines import check_engine, engine_record
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample
-from rebar_data.workers import check_workers, sigint_ignored
+from rebar_data.workers import check_workers, spawned_pool_map
 
 COMMAND = "rebar dataset build"
 PLAN_FILE = "plan.json"
@@ -255,16 +254,10 @@ def _run_tasks(
             worker.close()
         return
     # Spawned workers (rebar_data.workers), each rebuilding the mesh from the config (deterministic, under a
-    # second); they ignore Ctrl-C from their start and in their initializer, and this process ends them
-    # (terminate) when it stops the build.
-    ctx = mp.get_context("spawn")
-    with sigint_ignored():
-        pool = ctx.Pool(_processes(workers, tasks), initializer=init_process, initargs=(cfg, staging, None))
-    try:
-        yield from pool.imap_unordered(run_in_process, tasks)
-    finally:
-        pool.terminate()
-        pool.join()
+    # second); this process ends them when it stops the build.
+    yield from spawned_pool_map(
+        _processes(workers, tasks), init_process, (cfg, staging, None), run_in_process, tasks
+    )
 
 
 def build_dataset(

@@ -26,33 +26,23 @@ def dataset_folder(p: str) -> Path:
 
 
 def run_build(args: argparse.Namespace) -> int:
-    from rebar_data.dataset.build import BuildInterrupted, build_dataset
+    from rebar_data.dataset.build import build_dataset
+    from rebar_data.ray_cluster import check_backend
 
-    try:
-        if args.backend == "ray":
-            from rebar_data.dataset.ray_backend import BackendError, build_dataset_ray
+    check_backend(args.backend, args.address)
+    if args.backend == "ray":
+        from rebar_data.dataset.ray_backend import build_dataset_ray
 
-            try:
-                out = build_dataset_ray(
-                    args.config,
-                    args.out,
-                    address=args.address,
-                    actors=args.workers,
-                    force=args.force,
-                    resume=args.resume,
-                )
-            except BackendError as e:
-                print(f"error: {e}", file=sys.stderr)
-                return 1
-        else:
-            if args.address:
-                raise ConfigError(f"--address {args.address} is for the Ray backend; accepted: --backend ray")
-            out = build_dataset(
-                args.config, args.out, workers=args.workers, force=args.force, resume=args.resume
-            )
-    except BuildInterrupted as e:  # Ctrl-C: the summary line, and the shell's status for SIGINT
-        print(e, file=sys.stderr)
-        return 130
+        out = build_dataset_ray(
+            args.config,
+            args.out,
+            address=args.address,
+            actors=args.workers,
+            force=args.force,
+            resume=args.resume,
+        )
+    else:
+        out = build_dataset(args.config, args.out, workers=args.workers, force=args.force, resume=args.resume)
     print(out)
     return 0
 

@@ -14,7 +14,6 @@ shard neither duplicates nor loses samples.
 
 from __future__ import annotations
 
-import os
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -23,22 +22,20 @@ from rebar_data.dataset.build import Task, build_dataset, check_paths, plural
 from rebar_data.dataset.worker import FrameRecord, FrameWorker
 from rebar_data.geometry.build import RebarMesh
 from rebar_data.pipeline import PipelineConfig, load_pipeline
-from rebar_data.ray_cluster import (  # noqa: F401  (BackendError and import_ray: this backend's own errors)
+from rebar_data.ray_cluster import (
     BackendError,
     check_address,
-    connect,
-    dispatch,
     import_ray,
+    on_actors,
 )
-from rebar_data.workers import check_workers
+from rebar_data.workers import check_workers, renderer_process
 
 
 class RenderActor:
     """One renderer per actor process; runs shards one after another (wrapped by ``ray.remote``)."""
 
     def __init__(self, cfg: PipelineConfig, staging: str, worker_cls: type[FrameWorker] = FrameWorker):
-        os.environ.setdefault("EGL_PLATFORM", "surfaceless")
-        os.environ.setdefault("LP_NUM_THREADS", "1")  # one rasteriser thread: an actor has one CPU
+        renderer_process(answers_ctrl_c=True)
         self.worker = worker_cls(cfg, Path(staging))
 
     def run(self, task: Task) -> tuple[str, list[FrameRecord]]:
@@ -81,33 +78,19 @@ class RayRunner:
     def __call__(
         self, cfg: PipelineConfig, rm: RebarMesh, staging: Path, tasks: list[Task]
     ) -> Iterator[tuple[str, list[FrameRecord]]]:
-        if not tasks:
-            return
-        ray = import_ray()
-        started = connect(ray, self.address, self.actors)
-        pool = []
-        try:
-            n = self.actors or int(ray.cluster_resources().get("CPU", 1))
-            n = max(1, min(n, len(tasks)))
-            self.label = plural(n, "Ray actor")
-            actor_cls = ray.remote(
-                num_cpus=1, max_restarts=self.max_restarts, max_task_retries=self.max_task_retries
-            )(RenderActor)
-            pool = [actor_cls.remote(cfg, str(staging), self.worker_cls) for _ in range(n)]
-            yield from dispatch(
-                ray,
-                pool,
-                tasks,
-                submit=lambda actor, task: actor.run.remote(task),
-                name=lambda t: f"shard {t[0]}",
-                again="the shards that finished are kept, run the same build again with --resume to continue",
-            )
-            _check_shared_filesystem(staging, tasks)
-        finally:
-            for actor in pool:
-                ray.kill(actor)
-            if started:
-                ray.shutdown()
+        yield from on_actors(
+            RenderActor,
+            (cfg, str(staging), self.worker_cls),
+            tasks,
+            address=self.address,
+            actors=self.actors,
+            name=lambda t: f"shard {t[0]}",
+            again="the shards that finished are kept, run the same build again with --resume to continue",
+            max_restarts=self.max_restarts,
+            max_task_retries=self.max_task_retries,
+            sized=lambda n: setattr(self, "label", plural(n, "Ray actor")),
+        )
+        _check_shared_filesystem(staging, tasks)
 
 
 def _check_shared_filesystem(staging: Path, tasks: list[Task]) -> None:

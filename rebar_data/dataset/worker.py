@@ -9,7 +9,6 @@ depend on which worker did what.
 from __future__ import annotations
 
 import os
-import signal
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from rebar_data.render.depth_sensor import depth_mm, sense_depth
 from rebar_data.scene.cameras import intrinsics_from_config
 from rebar_data.scene.sample import SceneSample, sample_depth_sensor, sample_sensor
 from rebar_data.timing import StageTimer
+from rebar_data.workers import renderer_process
 
 
 @dataclass(frozen=True)
@@ -136,11 +136,7 @@ _WORKER: FrameWorker | None = None
 def init_process(cfg: PipelineConfig, staging: Path, rm: RebarMesh | None) -> None:
     """Set up a pool worker: its renderer, and Ctrl-C ignored (the build's process ends the workers)."""
     global _WORKER
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
-    os.environ.setdefault("EGL_PLATFORM", "surfaceless")
-    # one rasteriser thread per worker process: the workers already use every core, and Mesa's llvmpipe
-    # would otherwise start a thread per core in each of them
-    os.environ.setdefault("LP_NUM_THREADS", "1")
+    renderer_process()
     _WORKER = FrameWorker(cfg, staging, rm)
 
 

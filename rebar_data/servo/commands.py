@@ -11,51 +11,50 @@ from rebar_data.arguments import bounded
 EPISODES = bounded(int, 1)
 
 
+def _per_mode(summary: dict, line) -> None:
+    """One line a mode of a run's or a map's summary: ``line(figures)`` after the suite and the mode."""
+    for mode, m in summary["modes"].items():
+        print(f"{summary['suite']} {mode}: {line(m)}", file=sys.stderr)
+
+
+def _or_dash(value: float | None, scale: float, fmt: str) -> str:
+    return "-" if value is None else format(value * scale, fmt)
+
+
 def run_servo(args: argparse.Namespace) -> int:
     from rebar_data.servo.run import run_suite
 
     summary = run_suite(args.suite, args.out, progress=not args.quiet, limit_episodes=args.episodes)
-    for mode, m in summary["modes"].items():
-        it = m["median_iterations"]
-        lat = m["max_final_true_lateral_error_m"]
-        print(
-            f"{summary['suite']} {mode}: {m['converged']}/{m['visits']} converged, median "
-            f"{'-' if it is None else f'{it:.0f}'} iterations, worst true lateral error "
-            f"{'-' if lat is None else f'{lat * 1000:.2f}'} mm",
-            file=sys.stderr,
-        )
+    _per_mode(
+        summary,
+        lambda m: (
+            f"{m['converged']}/{m['visits']} converged, median {_or_dash(m['median_iterations'], 1, '.0f')} "
+            f"iterations, worst true lateral error {_or_dash(m['max_final_true_lateral_error_m'], 1000, '.2f')} mm"
+        ),
+    )
     print(args.out)
     return 0
 
 
 def run_map_command(args: argparse.Namespace) -> int:
-    from rebar_data.ray_cluster import BackendError
-    from rebar_data.servo.servo_map import MapInterrupted, run_map
+    from rebar_data.servo.servo_map import run_map
 
-    try:
-        summary = run_map(
-            args.suite,
-            args.out,
-            workers=args.workers,
-            backend=args.backend,
-            address=args.address,
-            progress=not args.quiet,
-        )
-    except MapInterrupted as e:  # Ctrl-C: what is kept, and the shell's status for SIGINT
-        print(e, file=sys.stderr)
-        return 130
-    except BackendError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 1
-    for mode, m in summary["modes"].items():
-        share = m["converged_share_of_reachable"]
-        lat = m["max_lateral_error_m"]
-        print(
-            f"{summary['suite']} {mode}: {m['reachable']}/{m['cells']} cells reachable, {m['converged']} converged "
-            f"({'-' if share is None else f'{100 * share:.0f}%'}), worst true lateral error "
-            f"{'-' if lat is None else f'{lat * 1000:.2f}'} mm",
-            file=sys.stderr,
-        )
+    summary = run_map(
+        args.suite,
+        args.out,
+        workers=args.workers,
+        backend=args.backend,
+        address=args.address,
+        progress=not args.quiet,
+    )
+    _per_mode(
+        summary,
+        lambda m: (
+            f"{m['reachable']}/{m['cells']} cells reachable, {m['converged']} converged "
+            f"({_or_dash(m['converged_share_of_reachable'], 1, '.0%')}), worst true lateral error "
+            f"{_or_dash(m['max_lateral_error_m'], 1000, '.2f')} mm"
+        ),
+    )
     print(args.out)
     return 0
 

@@ -13,7 +13,6 @@ worst true lateral error drawn on the unrolled surface) and ``summary.json``.
 
 from __future__ import annotations
 
-import multiprocessing as mp
 import shutil
 import sys
 import tempfile
@@ -27,6 +26,7 @@ from tqdm import tqdm
 from rebar_data.config import ConfigError
 from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_stale, replace_folder
 from rebar_data.pipeline import load_pipeline
+from rebar_data.ray_cluster import check_backend
 from rebar_data.resume import STEPS_FILE, Steps, key_of
 from rebar_data.servo.config import SuiteConfig, load_suite, resolve_path
 from rebar_data.servo.sweep import (
@@ -37,7 +37,7 @@ from rebar_data.servo.sweep import (
     plan_cells,
     run_cell_in_process,
 )
-from rebar_data.workers import check_workers, sigint_ignored
+from rebar_data.workers import check_workers, spawned_pool_map
 
 COMMAND = "rebar servo map"
 
@@ -51,14 +51,6 @@ def cells_record(out: Path) -> Path:
     return out.parent / f".{out.name}.map-cells"
 
 
-def check_backend(workers: int, backend: str, address: str | None) -> None:
-    if backend not in ("local", "ray"):
-        raise ConfigError(f"--backend {backend}: unknown; accepted: local or ray")
-    if address and backend != "ray":
-        raise ConfigError(f"--address {address} is for the Ray backend; accepted: --backend ray")
-    check_workers(workers, backend=backend)
-
-
 def run_map(
     suite_path: str | Path,
     out: str | Path,
@@ -69,7 +61,10 @@ def run_map(
     progress: bool = True,
 ) -> dict:
     """Run every cell of the suite's map not yet finished, then write the map to ``out``; the summary."""
-    check_backend(workers, backend, address)
+    if backend not in ("local", "ray"):
+        raise ConfigError(f"--backend {backend}: unknown; accepted: local or ray")
+    check_backend(backend, address)
+    check_workers(workers, backend=backend)
     out = output_folder(out, arg="--out", command=COMMAND, swapped=True)
     suite = load_suite(suite_path)
     if suite.map is None:
@@ -90,7 +85,7 @@ def run_map(
         record = cells_record(out)
         steps = Steps(record / STEPS_FILE)
         keys = {c.index: cell_key(suite, c) for c in cells}
-        todo = [c for c in cells if not steps.done(_name(c), keys[c.index])]
+        todo = [c for c in cells if not steps.done(_name(c.index), keys[c.index])]
         if len(todo) < len(cells):
             print(f"{len(cells) - len(todo)} of {len(cells)} cells done before, reused", file=sys.stderr)
         bar = tqdm(
@@ -103,18 +98,18 @@ def run_map(
         )
         try:
             for row in runs:
-                steps.keep(_name_of(row), keys[row["index"]], row)
+                steps.keep(_name(row["index"]), keys[row["index"]], row)
                 bar.update(1)
         except KeyboardInterrupt:
             runs.close()
-            done = sum(steps.done(_name(c), keys[c.index]) for c in cells)
+            done = sum(steps.done(_name(c.index), keys[c.index]) for c in cells)
             raise MapInterrupted(
                 f"interrupted: {done} of {len(cells)} cells done and kept in {record}; run the same command "
                 "again to continue"
             ) from None
         finally:
             bar.close()
-        rows = [steps.result(_name(c)) for c in cells]
+        rows = [steps.result(_name(c.index)) for c in cells]
         summary = _write(suite, rows, out, wall_s=time.perf_counter() - t0, workers=workers, backend=backend)
         shutil.rmtree(record, ignore_errors=True)
     return summary
@@ -127,12 +122,9 @@ def cell_key(suite: SuiteConfig, cell: Cell) -> str:
     return key_of(suite.model_dump(mode="json"), asdict(cell), _package_version())
 
 
-def _name(cell: Cell) -> str:
-    return f"cell {cell.index}"
-
-
-def _name_of(row: dict) -> str:
-    return f"cell {row['index']}"
+def _name(index: int) -> str:
+    """A cell's name in the record of finished cells."""
+    return f"cell {index}"
 
 
 def _local(suite_path, cells: list[Cell], workers: int) -> Iterator[dict]:
@@ -147,41 +139,22 @@ def _local(suite_path, cells: list[Cell], workers: int) -> Iterator[dict]:
         finally:
             runner.close()
         return
-    ctx = mp.get_context("spawn")  # rebar_data.workers: spawned, Ctrl-C answered here alone
-    with sigint_ignored():
-        pool = ctx.Pool(n, initializer=init_cell_process, initargs=(str(suite_path),))
-    try:
-        # in order, one at a time: each worker keeps the scene of its turn (turns are outermost)
-        yield from pool.imap_unordered(run_cell_in_process, cells, chunksize=1)
-    finally:
-        pool.terminate()
-        pool.join()
+    # each worker keeps the scene of the turn it ran last (turns are outermost, cells are handed out in order)
+    yield from spawned_pool_map(n, init_cell_process, (str(suite_path),), run_cell_in_process, cells)
 
 
 def _ray(suite_path, cells: list[Cell], actors: int, address: str | None) -> Iterator[dict]:
-    from rebar_data.ray_cluster import connect, dispatch, import_ray
+    from rebar_data.ray_cluster import on_actors
 
-    if not cells:
-        return
-    ray = import_ray()
-    started = connect(ray, address, actors)
-    pool = []
-    try:
-        actor_cls = ray.remote(num_cpus=1, max_restarts=3, max_task_retries=3)(CellActor)
-        pool = [actor_cls.remote(str(Path(suite_path).absolute())) for _ in range(min(actors, len(cells)))]
-        yield from dispatch(
-            ray,
-            pool,
-            cells,
-            submit=lambda actor, cell: actor.run.remote(cell),
-            name=lambda c: f"cell {c.index}",
-            again="the cells that finished are kept, run the same command again to continue",
-        )
-    finally:
-        for actor in pool:
-            ray.kill(actor)
-        if started:
-            ray.shutdown()
+    yield from on_actors(
+        CellActor,
+        (str(Path(suite_path).absolute()),),
+        cells,
+        address=address,
+        actors=actors,
+        name=lambda c: _name(c.index),
+        again="the cells that finished are kept, run the same command again to continue",
+    )
 
 
 def _write(

@@ -23,6 +23,7 @@ from scipy.spatial.transform import Rotation
 from rebar_data.servo.config import EpisodeSpec, MapConfig, StartPose, SuiteConfig, load_suite
 from rebar_data.servo.context import ServoContext
 from rebar_data.servo.recorder import Recorder
+from rebar_data.workers import renderer_process
 
 MAP_EPISODE_OFFSET = 3000  # a map cell's episode index (seed and rows): 3000 + the cell's index
 
@@ -182,11 +183,8 @@ _RUNNER: CellRunner | None = None
 
 
 def init_cell_process(suite_path: str) -> None:
-    import signal
-
-    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent answers Ctrl-C and ends the pool
-    os.environ.setdefault("LP_NUM_THREADS", "1")
     global _RUNNER
+    renderer_process()  # the parent answers Ctrl-C and ends the pool
     _RUNNER = CellRunner(suite_path)
 
 
@@ -199,7 +197,7 @@ class CellActor:
     """A Ray actor's cell runner (wrapped by ``ray.remote``)."""
 
     def __init__(self, suite_path: str):
-        os.environ.setdefault("LP_NUM_THREADS", "1")  # one rasteriser thread: an actor has one CPU
+        renderer_process(answers_ctrl_c=True)
         self.runner = CellRunner(suite_path)
 
     def run(self, cell: Cell) -> dict:
