@@ -243,6 +243,7 @@ def _detector_of(args: argparse.Namespace, *, flatten_behind: bool = False):
         reading=args.reading,
         resample=not args.no_resample,
         flatten_behind=flatten_behind,
+        zoom=not args.no_zoom,
     )
 
 
@@ -616,4 +617,8 @@ def _model_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--runtime", choices=RUNTIMES, default="auto", help=runtime)
     reading = "mirrored (the image and its mirror image, the mean; the default) or single (once, faster)"
     parser.add_argument("--reading", choices=READINGS, default="mirrored", help=reading)
-    parser.add_argument("--no-resample", action="store_true", help="read every frame at its own scale")
+    parser.add_argument(
+        "--no-resample", action="store_true", help="read every frame at its own scale (no zoom either)"
+    )
+    once = "read every frame once: not again, larger, where its crossings are seen small"
+    parser.add_argument("--no-zoom", action="store_true", help=once)

@@ -48,6 +48,51 @@ DUPLICATE_PX = 3.0  # two detections placed nearer than this are one crossing
 Run = Callable[[np.ndarray, np.ndarray], np.ndarray]  # the first stage: images and rays to its output
 
 
+@dataclass(frozen=True)
+class Zoom:
+    """Reading a frame whose crossings are seen small a second time, larger, and one whose crossings are seen
+    large a second time, smaller. The first reading's detections (those the RGB stages score at the operating
+    point or more, at least ``min_detections``) give their box sides from the second stage's size output
+    (four bar diameters, in the pixels of the frame as read). Where their median is under ``below_px``, the
+    frame is read again at ``to_px`` over that median times its scale, at most ``at_most`` times; where it is
+    over ``above_px`` (None: never), at ``shrink_to_px`` over it, at least ``at_least`` times. Measured in
+    docs/detector/experiments.md ("Far, thin bars read larger", "Heavy bars read smaller"):
+
+    - The size output reads small crossings large and large ones small (it learnt from crossings of about
+      25-100 px): on far-light-bars' frames (labelled medians 11.5-20.5 px) it gives 16-30.5 px, on the gate
+      set's (34.6-72 px) 33.6-73 px, on the tests' rendered frame (31.5 px) 29 px and drawn frame (25.6 px)
+      25.1 px, on heavy-bars' (43-300 px) 41-113 px. So it cannot part a frame of 20 px crossings from one of
+      25 px: under 24 px are most of far-light-bars' frames, and none whose crossings the first stage reads
+      well.
+    - Far thin bars (8-10 mm at 1.0-1.5 m) read 1.6 times larger are found and placed as near ones are:
+      recall@P0.99 0.55 to 0.85 with sensor depth. Past 1.6 times the gain in placement comes with
+      confident false detections.
+    - Heavy bars near (25-40 mm at 0.3-1.5 m) read smaller: PCK@2px 0.822 to 0.867, recall@P0.99 0.809 to
+      0.833; the gate set, a tenth of whose frames this reads smaller, 0.967 to 0.970.
+
+    A frame read twice costs the second reading again (1.6 times larger: 2.6 times the pixels)."""
+
+    below_px: float = 24.0
+    to_px: float = 40.0
+    at_most: float = 1.6
+    min_detections: int = 3
+    above_px: float | None = 60.0
+    shrink_to_px: float = 45.0
+    at_least: float = 0.5
+
+    def factor(self, box: np.ndarray | None) -> float:
+        """How much larger (or, under 1, smaller) to read the frame again (1: not again), from the first
+        reading's box sides."""
+        if box is None or len(box) < self.min_detections:
+            return 1.0
+        median = float(np.median(box))
+        if 0.0 < median < self.below_px:
+            return float(min(self.at_most, self.to_px / median))
+        if self.above_px is not None and median > self.above_px:
+            return float(max(self.at_least, self.shrink_to_px / median))
+        return 1.0
+
+
 def first_stage_rays(camera: Intrinsics) -> np.ndarray:
     """(2, ceil(H / 4), ceil(W / 4)) float32 viewing rays ((u - cx) / fx, (v - cy) / fy) of the output cells'
     centres: what the first stage reads beside the image."""
@@ -104,8 +149,10 @@ def score_bias_of(meta: dict[str, Any]) -> float:
 class Detector:
     """A loaded keypoint detector: its model file's ``meta``, the ``backend`` running the first stage
     (onnxruntime, openvino or torch) and its later stages (None: left out). ``reading`` is one of
-    :data:`READINGS`; ``resample`` reads a frame resized to the trained ``focal_px``; ``flatten_behind``,
-    given depth, takes what lies far behind the front bars out of the image first."""
+    :data:`READINGS`; ``resample`` reads a frame resized to the trained ``focal_px`` (off: every frame at its
+    own scale, the zoom too); ``flatten_behind``,
+    given depth, takes what lies far behind the front bars out of the image first; ``zoom`` reads a frame
+    whose crossings are seen small again, larger (None: never)."""
 
     def __init__(self, run: Run, *, meta: dict[str, Any], backend: str, path: Path | None):
         self._run = run
@@ -127,6 +174,7 @@ class Detector:
         self.focal_px: float | None = float(meta["focal_px"]) if meta.get("focal_px") else None
         self.resample = True
         self.flatten_behind = False
+        self.zoom: Zoom | None = Zoom()  # None: every frame read once, at the trained scale
 
     @classmethod
     def load(
@@ -138,16 +186,19 @@ class Detector:
         reading: str = "mirrored",
         resample: bool = True,
         flatten_behind: bool = False,
+        zoom: bool = True,
     ) -> Detector:
         """The one way to load a detector: ``path`` a ``.onnx`` model file with its later stages beside it, a
         ``.pt`` checkpoint (run in PyTorch, :data:`READERS`), a training run folder (its best model) or None
         (the shipped model). ``runtime`` runs an ``.onnx`` file: "auto", "onnxruntime" or "openvino"
-        (:mod:`.model_file`); ``reading``, ``resample`` and ``flatten_behind`` as the attributes say."""
+        (:mod:`.model_file`); ``reading``, ``resample`` and ``flatten_behind`` as the attributes say; ``zoom``
+        False reads every frame once (:class:`Zoom`)."""
         accepted("reading", reading, READINGS)
         p = resolve_model_path(path)
         read = _reader(p) if p.suffix in READERS else cls._read_onnx
         det = read(p, threads=threads, runtime=runtime)
         det.reading, det.resample, det.flatten_behind = reading, resample, flatten_behind
+        det.zoom = det.zoom if zoom else None
         return det
 
     @classmethod
@@ -238,12 +289,31 @@ class Detector:
                 "model trained with one (crossing_point: {enabled: true}, as `make train` ships)"
             )
         image = _check_image(rgb)
-        h, w = image.shape[:2]
         camera = self._camera(image, camera)
-        depth_m = as_depth_m(depth, (h, w)) if depth is not None else None
-        sx = sy = 1.0
+        depth_m = as_depth_m(depth, image.shape[:2]) if depth is not None else None
         scale = focal_scale(self.focal_px, camera) if self.resample else 1.0
-        if scale != 1.0:  # read at the trained scale
+        det, box = self._detect_at(image, camera, depth_m, scale, threshold=threshold, point=point)
+        zoom = self.zoom.factor(box) if self.zoom is not None and self.resample else 1.0
+        if zoom != 1.0:  # the crossings are seen small (or large): read the frame again, larger (or smaller)
+            det, _ = self._detect_at(image, camera, depth_m, scale * zoom, threshold=threshold, point=point)
+        return det
+
+    def _detect_at(
+        self,
+        image: np.ndarray,
+        camera: Intrinsics,
+        depth_m: np.ndarray | None,
+        scale: float,
+        *,
+        threshold: float,
+        point: str,
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """:meth:`detect` on the frame resized by ``scale``, in the frame's own pixels; and the box sides
+        (in the resized frame's pixels) the second stage gave the RGB stages' detections scoring
+        :data:`OPERATING_THRESHOLD` or more (None without a size output)."""
+        h, w = image.shape[:2]
+        sx = sy = 1.0
+        if scale != 1.0:
             h, w = max(1, round(h * scale)), max(1, round(w * scale))
             sx, sy = w / image.shape[1], h / image.shape[0]
             image, camera = resample(image, (h, w)), camera.resized(w, h)
@@ -257,6 +327,9 @@ class Detector:
             image, self.raw(image, camera=camera), floor, checked_from, check=lc, threshold=threshold
         )
         det = np.c_[seen.placed, seen.scores]
+        # what the zoom reads: the sizes of the crossings found at the operating point, whatever the caller's
+        # threshold (a score's low threshold would size every faint candidate)
+        box = None if seen.box is None else seen.box[seen.scores >= OPERATING_THRESHOLD]
         det = det[det[:, 2] >= threshold]  # the depth check only lowers: it reads only these
         if depth_m is not None and self.depth_check is not None and len(det):
             det[:, 2] = shifted_score(det[:, 2], self.depth_check.veto(depth_m, det[:, :2]))
@@ -267,7 +340,7 @@ class Detector:
         if point == "crossing" and len(det):
             det[:, :2] = self.crossing_point.points(as_it_comes, det[:, :2], camera)
         det[:, :2] /= (sx, sy)
-        return det
+        return det, box
 
     def line_pass(
         self,
@@ -300,22 +373,25 @@ class Detector:
             scores = check.scores(image, det[:, :2], evidence, checked, threshold=threshold)
         if refiner is not None:  # the later passes spare what can no longer reach the threshold
             moving = scores >= threshold if verify is not None else slice(None)
-            box = None if box is None else box[moving]
-            placed[moving] = refiner.later_passes(image, placed[moving], box, mirrored=mirrored)
-        return LineInputs(det[:, :2], evidence, checked, placed, scores)
+            placed[moving] = refiner.later_passes(
+                image, placed[moving], None if box is None else box[moving], mirrored=mirrored
+            )
+        return LineInputs(det[:, :2], evidence, checked, placed, scores, box)
 
 
 @dataclass(frozen=True)
 class LineInputs:
     """One image's candidates as the line check reads them: ``uv`` (N, 2) and ``evidence`` (N,) of every
     candidate, the indices ``checked`` (K,) of those checked, where the second stage ``placed`` them (K, 2),
-    and their ``scores`` (K,): the line check's, or the RGB stages' without one."""
+    and their ``scores`` (K,): the line check's, or the RGB stages' without one; ``box`` (K,) the box sides
+    the second stage gave them (None without a size output, or without a second stage)."""
 
     uv: np.ndarray
     evidence: np.ndarray
     checked: np.ndarray
     placed: np.ndarray
     scores: np.ndarray
+    box: np.ndarray | None = None
 
 
 def drop_duplicates(det: np.ndarray, radius_px: float) -> np.ndarray:
