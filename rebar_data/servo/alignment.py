@@ -137,27 +137,24 @@ def _bar_lines(
     d = pts - centre
     a, b = d @ e1, d @ e2
     r = np.hypot(a, b)
-    # the crossing's own knot of bar and wire says nothing of the directions
-    far = r > max(0.012, bar_width_m)
+    # the crossing's own knot of bar and wire says nothing of the directions, and near it a wide bar's
+    # points spread over tens of degrees (16 mm bars: within 12 mm of the crossing, 0-34 degrees off their
+    # axis, which the histogram took for a second bar 30 degrees from the first): only the points where the
+    # bars' lines are fitted count
+    beyond = max(0.025, 2.0 * bar_width_m)
+    far = r > beyond
     if far.sum() < 50:
         return None
     theta = np.degrees(np.arctan2(b[far], a[far])) % 180.0
-    nbins = int(round(180.0 / BIN_DEG))
-    hist = np.bincount((theta / BIN_DEG).astype(int) % nbins, weights=r[far], minlength=nbins)
-    kernel = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)
-    smooth = convolve1d(hist, kernel, mode="wrap")  # angles wrap at 180 degrees
-    p1 = int(np.argmax(smooth))
-    dist = np.abs(((np.arange(nbins) - p1) * BIN_DEG + 90.0) % 180.0 - 90.0)
-    masked = np.where(dist >= min_angle_deg, smooth, -1.0)
-    p2 = int(np.argmax(masked))
-    if masked[p2] < 0.1 * smooth[p1]:
+    peaks = _two_directions(theta, r[far], min_angle_deg)
+    if peaks is None:
         return None
     dirs, through = [], []
-    for p in (p1, p2):
+    for p in peaks:
         ang = np.radians((p + 0.5) * BIN_DEG)
         u = np.array([np.cos(ang), np.sin(ang)])
         off = np.abs(a * u[1] - b * u[0])  # distance from the line through the crossing, in the plane
-        on = (off < 0.75 * bar_width_m + 0.003) & (r > max(0.025, 2.0 * bar_width_m))
+        on = (off < 0.75 * bar_width_m + 0.003) & far
         if on.sum() < 30:
             return None
         mean = pts[on].mean(axis=0)
@@ -165,6 +162,28 @@ def _bar_lines(
         dirs.append(vt[0])
         through.append(mean)
     return np.array(dirs), np.array(through)
+
+
+def _two_directions(
+    theta_deg: np.ndarray, weight: np.ndarray, min_angle_deg: float
+) -> tuple[int, int] | None:
+    """The bins (of :data:`BIN_DEG`, over 0-180 degrees) of the two bars' directions: the highest peak of the
+    smoothed, weighted histogram of ``theta_deg``, and the highest other peak at least ``min_angle_deg`` from
+    it (None where that is under a tenth of the first). The second must be a peak of its own: a wide bar's
+    points spread its peak, and the highest bin ``min_angle_deg`` away can lie on that peak's flank (on the
+    16 mm deck a "bar" 28-30 degrees from the first, the jaw 12-22 degrees off: docs/servo.md)."""
+    nbins = int(round(180.0 / BIN_DEG))
+    hist = np.bincount((theta_deg / BIN_DEG).astype(int) % nbins, weights=weight, minlength=nbins)
+    kernel = np.exp(-0.5 * (np.arange(-6, 7) / 2.0) ** 2)
+    smooth = convolve1d(hist, kernel, mode="wrap")  # angles wrap at 180 degrees
+    p1 = int(np.argmax(smooth))
+    dist = np.abs(((np.arange(nbins) - p1) * BIN_DEG + 90.0) % 180.0 - 90.0)
+    peak = (smooth >= np.roll(smooth, 1)) & (smooth >= np.roll(smooth, -1))
+    masked = np.where((dist >= min_angle_deg) & peak, smooth, -1.0)
+    p2 = int(np.argmax(masked))
+    if masked[p2] < 0.1 * smooth[p1]:
+        return None
+    return p1, p2
 
 
 def jaw_lines(bars: np.ndarray, jaw_to_bar_deg: float | None) -> list[np.ndarray]:

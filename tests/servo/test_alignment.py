@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 
 from rebar_data.camera import rigid_inverse
-from rebar_data.servo.alignment import desired_rotation, jaw_lines, measure_local_frame, rotation_error
+from rebar_data.servo.alignment import (
+    _two_directions,
+    desired_rotation,
+    jaw_lines,
+    measure_local_frame,
+    rotation_error,
+)
 from rebar_data.servo.config import EpisodeSpec, StartPose, SuiteConfig
 from rebar_data.servo.episode import EpisodeRunner
 from rebar_data.servo.transforms import apply, from_rotvec
@@ -141,3 +147,17 @@ def test_a_tilted_rolled_start_ends_square_to_the_mat_and_tied(servo_ctx):
     phases = [s.phase for s in r.steps]
     dwell = phases.count("tie") * ctx.world.cfg.control_period_s
     assert dwell == pytest.approx(suite.tcp.dwell_s, abs=ctx.world.cfg.control_period_s)
+
+
+def test_the_second_bar_is_a_peak_of_its_own_not_the_flank_of_a_wide_first_one():
+    """A wide bar at 0 degrees spreads its directions over 0-40 degrees, more of them than a thin bar at 90
+    degrees gives: the highest bin 30 degrees from the first peak lies on that peak's flank, and the second
+    bar is the peak at 90 degrees."""
+    rng = np.random.default_rng(0)
+    wide = rng.normal(0.0, 18.0, 8000) % 180.0
+    thin = rng.normal(90.0, 1.0, 150) % 180.0
+    theta = np.concatenate([wide, thin])
+    p1, p2 = _two_directions(theta, np.ones_like(theta), 30.0)
+    assert min(p1, 180 - p1) <= 4
+    assert abs(p2 - 90) <= 2, p2
+    assert _two_directions(wide, np.ones_like(wide), 30.0) is None  # one bar: no second peak
