@@ -17,6 +17,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+import rebar_data
 from rebar_data.servo.config import SuiteConfig
 
 
@@ -66,7 +67,7 @@ def write_map(
     suite: SuiteConfig, rows: list[dict], out: Path, *, wall_s: float, workers: int, backend: str
 ) -> dict:
     """Write every output of the map to ``out``; the summary."""
-    from rebar_data.servo.run import _json_default, _package_version
+    from rebar_data.servo.run import json_default
 
     table = pa.Table.from_pylist(rows)
     pq.write_table(table, out / "map.parquet")
@@ -82,11 +83,11 @@ def write_map(
             "workers": workers,
             "backend": backend,
             "python": platform.python_version(),
-            "package_version": _package_version(),
+            "package_version": rebar_data.__version__,
         }
     )
     (out / "summary.json").write_text(
-        json.dumps(summary, indent=2, sort_keys=True, default=_json_default) + "\n"
+        json.dumps(summary, indent=2, sort_keys=True, default=json_default) + "\n"
     )
     draw_map(suite, rows, out / "map.png")
     (out / "map.md").write_text(map_markdown(suite, rows, summary))

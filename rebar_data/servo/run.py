@@ -21,6 +21,7 @@ import numpy as np
 import pyarrow as pa
 import pyarrow.parquet as pq
 
+import rebar_data
 from rebar_data.config import ConfigError
 from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_stale, replace_folder
 from rebar_data.pipeline import load_pipeline
@@ -320,11 +321,11 @@ def write_outputs(
             "config": suite.model_dump(mode="json"),
             "wall_s": wall_s,
             "python": platform.python_version(),
-            "package_version": _package_version(),
+            "package_version": rebar_data.__version__,
         }
     )
     (out / "summary.json").write_text(
-        json.dumps(summary, indent=2, sort_keys=True, default=_json_default) + "\n"
+        json.dumps(summary, indent=2, sort_keys=True, default=json_default) + "\n"
     )
     snapshots: dict[str, list] = {}
     for r in results:
@@ -334,18 +335,10 @@ def write_outputs(
     return summary
 
 
-def _json_default(x):
+def json_default(x):
+    """``json.dumps``' ``default`` for the numbers and arrays of a run's summary."""
     if isinstance(x, np.generic):
         return x.item()
     if isinstance(x, np.ndarray):
         return x.tolist()
     raise TypeError(f"not JSON serialisable: {type(x).__name__}")
-
-
-def _package_version() -> str:
-    try:
-        from importlib.metadata import version
-
-        return version("rebar-data")
-    except Exception:
-        return "unknown"

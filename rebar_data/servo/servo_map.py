@@ -23,6 +23,7 @@ from pathlib import Path
 
 from tqdm import tqdm
 
+import rebar_data
 from rebar_data.config import ConfigError
 from rebar_data.outputs import OutputLock, mark_output, output_folder, remove_stale, replace_folder
 from rebar_data.pipeline import load_pipeline
@@ -117,9 +118,7 @@ def run_map(
 
 def cell_key(suite: SuiteConfig, cell: Cell) -> str:
     """What a cell's row is computed from: the whole suite (its map, detector, world...) and the cell."""
-    from rebar_data.servo.run import _package_version
-
-    return key_of(suite.model_dump(mode="json"), asdict(cell), _package_version())
+    return key_of(suite.model_dump(mode="json"), asdict(cell), rebar_data.__version__)
 
 
 def _name(index: int) -> str:
