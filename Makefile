@@ -119,8 +119,8 @@ MAP_WORKERS ?= 2
 map: setup
 	$(REBAR) servo map eval/map-paper.yaml --out $(EVAL_OUT)/map-paper --workers $(MAP_WORKERS)
 
-# The whole paper segment tied from 16 base poses (eval/element-paper.yaml): the loop's reach and coverage, on the
-# exact detector and ray-cast frames; about 40 minutes on 2 cores.
+# The whole paper segment tied from 20 base poses (eval/element-paper.yaml): the loop's reach and coverage, on the
+# exact detector and ray-cast frames; about 25 minutes on 2 cores.
 element: setup
 	$(REBAR) servo run eval/element-paper.yaml --out $(EVAL_OUT)/element-paper
 	$(REBAR) servo check $(EVAL_OUT)/element-paper
