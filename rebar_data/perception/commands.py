@@ -620,5 +620,5 @@ def _model_flags(parser: argparse.ArgumentParser) -> None:
     parser.add_argument(
         "--no-resample", action="store_true", help="read every frame at its own scale (no zoom either)"
     )
-    once = "read every frame once: not again, larger, where its crossings are seen small"
+    once = "read every frame once: not again larger where its crossings are seen small, smaller where large"
     parser.add_argument("--no-zoom", action="store_true", help=once)

@@ -150,9 +150,9 @@ class Detector:
     """A loaded keypoint detector: its model file's ``meta``, the ``backend`` running the first stage
     (onnxruntime, openvino or torch) and its later stages (None: left out). ``reading`` is one of
     :data:`READINGS`; ``resample`` reads a frame resized to the trained ``focal_px`` (off: every frame at its
-    own scale, the zoom too); ``flatten_behind``,
-    given depth, takes what lies far behind the front bars out of the image first; ``zoom`` reads a frame
-    whose crossings are seen small again, larger (None: never)."""
+    own scale, the zoom too); ``flatten_behind``, given depth, takes what lies far behind the front bars out
+    of the image first; ``zoom`` reads a frame whose crossings are seen small (or large) again, larger (or
+    smaller) (None: never)."""
 
     def __init__(self, run: Run, *, meta: dict[str, Any], backend: str, path: Path | None):
         self._run = run
@@ -292,10 +292,12 @@ class Detector:
         camera = self._camera(image, camera)
         depth_m = as_depth_m(depth, image.shape[:2]) if depth is not None else None
         scale = focal_scale(self.focal_px, camera) if self.resample else 1.0
-        det, box = self._detect_at(image, camera, depth_m, scale, threshold=threshold, point=point)
-        zoom = self.zoom.factor(box) if self.zoom is not None and self.resample else 1.0
-        if zoom != 1.0:  # the crossings are seen small (or large): read the frame again, larger (or smaller)
-            det, _ = self._detect_at(image, camera, depth_m, scale * zoom, threshold=threshold, point=point)
+        zoom = self.zoom if self.resample else None
+        det, factor = self._detect_at(
+            image, camera, depth_m, scale, threshold=threshold, point=point, zoom=zoom
+        )
+        if det is None:  # the crossings are seen small (or large): read the frame again, larger (or smaller)
+            det, _ = self._detect_at(image, camera, depth_m, scale * factor, threshold=threshold, point=point)
         return det
 
     def _detect_at(
@@ -307,10 +309,11 @@ class Detector:
         *,
         threshold: float,
         point: str,
-    ) -> tuple[np.ndarray, np.ndarray | None]:
-        """:meth:`detect` on the frame resized by ``scale``, in the frame's own pixels; and the box sides
-        (in the resized frame's pixels) the second stage gave the RGB stages' detections scoring
-        :data:`OPERATING_THRESHOLD` or more (None without a size output)."""
+        zoom: Zoom | None = None,
+    ) -> tuple[np.ndarray | None, float]:
+        """:meth:`detect` on the frame resized by ``scale``, in the frame's own pixels, and 1.0; or, where
+        ``zoom`` would read the frame again, None and its factor, as soon as the RGB stages have sized the
+        crossings (the depth check and the crossing-point stage then run on the second reading only)."""
         h, w = image.shape[:2]
         sx = sy = 1.0
         if scale != 1.0:
@@ -326,10 +329,13 @@ class Detector:
         seen = self.line_pass(
             image, self.raw(image, camera=camera), floor, checked_from, check=lc, threshold=threshold
         )
+        if zoom is not None:
+            # the sizes of the crossings found at the operating point, whatever the caller's threshold (a
+            # score's low threshold would size every faint candidate)
+            factor = zoom.factor(None if seen.box is None else seen.box[seen.scores >= OPERATING_THRESHOLD])
+            if factor != 1.0:
+                return None, factor
         det = np.c_[seen.placed, seen.scores]
-        # what the zoom reads: the sizes of the crossings found at the operating point, whatever the caller's
-        # threshold (a score's low threshold would size every faint candidate)
-        box = None if seen.box is None else seen.box[seen.scores >= OPERATING_THRESHOLD]
         det = det[det[:, 2] >= threshold]  # the depth check only lowers: it reads only these
         if depth_m is not None and self.depth_check is not None and len(det):
             det[:, 2] = shifted_score(det[:, 2], self.depth_check.veto(depth_m, det[:, :2]))
@@ -340,7 +346,7 @@ class Detector:
         if point == "crossing" and len(det):
             det[:, :2] = self.crossing_point.points(as_it_comes, det[:, :2], camera)
         det[:, :2] /= (sx, sy)
-        return det, box
+        return det, 1.0
 
     def line_pass(
         self,
