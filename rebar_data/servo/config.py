@@ -247,7 +247,8 @@ class TourConfig(Strict):
     ``standoff_m`` out from the surface point the base was moved by, and every crossing of the top mat it
     finds within the arm's reach is tied once, nearest first along the shortest path over those seen
     (a crossing found behind the front mat by more than ``front_band_m`` is on a lower mat and never a
-    target; one that fails ``max_attempts`` visits is left). ``max_ties`` ends the whole tour early."""
+    target; one that fails ``max_attempts`` visits from a base is left by that base, and tried again from
+    a later one that reaches it). ``max_ties`` ends the whole tour early."""
 
     mode: Literal["ibvs", "pbvs"] = "ibvs"
     bases: list[TourBase] = Field(default_factory=lambda: [TourBase()], min_length=1)

@@ -6,7 +6,8 @@ controller's own camera pose estimate and the depth image; one map for the whole
 from one base is never tied again from the next). Then, until no open crossing is left in reach:
 
 - the open crossings the arm can reach (its servo pose and its tie pose both solved by the UR5's inverse
-  kinematics within the joint limits, the elbow neither stretched nor folded, every link 20 mm clear of the
+  kinematics within the joint limits, the elbow neither stretched nor folded nor bent the other way than
+  it is, every link 20 mm clear of the
   mesh and the table) are ordered along the shortest open path from where the camera looks
   (nearest neighbour, then 2-opt), and the first is the next target;
 - the target is picked up in the present frame on the detection nearest where the map projects it (none
@@ -17,7 +18,9 @@ from one base is never tied again from the next). Then, until no open crossing i
 A detection lying more than ``front_band_m`` behind the front mat around it (the depth image's nearest
 surface there) is on a lower mat: it enters the map as such and is never a target. A target where the servo
 never resolved two bars on the front mat (a top bar passing over a lower one, a spurious detection) ends its
-visit as ``no_crossing``, untied, and is never a target again.
+visit as ``no_crossing``, untied, and is never a target again. A target not tied in ``max_attempts`` visits
+from one base (or in one, where the tool did not reach its tie pose: the arm at its reach) is left by that
+base and stays in the map as failed; a later base that reaches it tries it again from its own pose.
 """
 
 from __future__ import annotations
@@ -48,13 +51,23 @@ class MapEntry:
     point: np.ndarray  # world, by the controller's pose estimate (a running mean over sightings)
     sightings: int
     state: str = OPEN
-    attempts: int = 0
+    attempts: int = 0  # visits that did not tie, from every base
+    here: int = 0  # of those, from the present base
+    left_by: frozenset[int] = frozenset()  # the bases that left it
 
-    def failed(self, max_attempts: int) -> None:
-        """One attempt that did not tie; after ``max_attempts`` the crossing is left."""
+    def failed(self, base: int, max_attempts: int, *, out_of_reach: bool = False) -> None:
+        """One attempt from ``base`` that did not tie. After ``max_attempts`` from one base (or at once, where
+        the tool did not reach its tie pose: the arm's reach from there, which another try does not change)
+        this base leaves it, ``FAILED`` until another base ties it."""
         self.attempts += 1
-        if self.attempts >= max_attempts:
+        self.here += 1
+        if out_of_reach or self.here >= max_attempts:
             self.state = FAILED
+            self.left_by = self.left_by | {base}
+
+    def open_to(self, base: int) -> bool:
+        """Whether ``base`` may visit it: open, or failed only from other bases (a new base sees it anew)."""
+        return self.state == OPEN or (self.state == FAILED and base not in self.left_by)
 
 
 class CrossingMap:
@@ -139,6 +152,8 @@ class TourRunner(EpisodeRunner):
     def run_base(self, start: StartPose, q_start: np.ndarray) -> None:
         """Survey from the start pose, then visit every open crossing in reach (fills ``self.result``)."""
         self.begin(start, q_start)
+        for e in self.map.entries:
+            e.here = 0
         self.rec.event(self.step_index, f"tour base {self.index}: look at {start.look_at_m}")
         last = self.survey(frames=self.ctx.suite.targets.acquire_frames)
         while self.ties_left is None or self.ties_left > 0:
@@ -151,7 +166,7 @@ class TourRunner(EpisodeRunner):
                 last = self.look_at(entry, k)
                 target = self.pick_up(entry, last)
             if target is None:
-                entry.failed(self.tour.max_attempts)
+                entry.failed(self.index, self.tour.max_attempts)
                 continue
             self.pending = [target]
             control.visit(self, k, target)
@@ -163,7 +178,7 @@ class TourRunner(EpisodeRunner):
                 if self.ties_left is not None:
                     self.ties_left -= 1
             else:
-                entry.failed(self.tour.max_attempts)
+                entry.failed(self.index, self.tour.max_attempts, out_of_reach=row.converged and not row.tcp_reached)
             self.rec.event(
                 self.step_index,
                 f"ties {sum(v.tied for v in self.result.visits)} from this base, {self.map.count(TIED)} in all",
@@ -201,7 +216,7 @@ class TourRunner(EpisodeRunner):
     def next_entry(self) -> MapEntry | None:
         pose = self.controller.camera_pose()
         here = pose[:3, 3] + pose[:3, 2] * self.ctx.suite.ibvs.desired_depth_m
-        cands = [(i, e) for i, e in enumerate(self.map.entries) if e.state == OPEN and self._reachable(i, e)]
+        cands = [(i, e) for i, e in enumerate(self.map.entries) if e.open_to(self.index) and self._reachable(i, e)]
         if not cands:
             return None
         order = open_path(here, np.array([e.point for _, e in cands]))
@@ -219,7 +234,11 @@ class TourRunner(EpisodeRunner):
         ok = True
         for T in (view, tie):
             q, solved = world.solve_start(T, seed=world.q)
-            ok = ok and solved and ELBOW_MIN_RAD <= abs(float(q[2])) <= ELBOW_MAX_RAD and world.clear_at(q)
+            # the elbow bent the way it is now: the arm moves there continuously, and an elbow bent the other
+            # way is a pose it reaches only through the stretched arm, past its reach
+            same_bend = np.sign(q[2]) == np.sign(world.q[2])
+            ok = ok and solved and same_bend and ELBOW_MIN_RAD <= abs(float(q[2])) <= ELBOW_MAX_RAD
+            ok = ok and world.clear_at(q)
         self._reach[i] = ok
         return ok
 

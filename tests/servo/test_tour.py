@@ -10,7 +10,7 @@ import pytest
 import yaml
 
 from rebar_data.cli import main
-from rebar_data.servo.tour import LOWER, OPEN, CrossingMap, open_path
+from rebar_data.servo.tour import FAILED, LOWER, OPEN, CrossingMap, MapEntry, open_path
 from tests.servo.conftest import suite_dict
 
 
@@ -46,6 +46,17 @@ def test_the_map_merges_sightings_and_keeps_the_lower_mat_apart():
     c = m.add(np.array([0.1, 0.0, 0.0]), lower=True)
     assert c is not a and c.state == LOWER and a.state == OPEN
     assert m.count(OPEN) == 1 and m.count(LOWER) == 1
+
+
+def test_a_base_leaves_a_crossing_it_cannot_tie_and_a_later_base_tries_it_again():
+    e = MapEntry(point=np.zeros(3), sightings=1)
+    e.failed(base=0, max_attempts=2)
+    assert e.state == OPEN and e.open_to(0)  # one more try from here
+    e.failed(base=0, max_attempts=2)
+    assert e.state == FAILED and not e.open_to(0) and e.open_to(1)
+    e.here = 0  # the next base's tries are its own
+    e.failed(base=1, max_attempts=2, out_of_reach=True)  # the tool did not reach its tie pose: left at once
+    assert not e.open_to(1) and e.open_to(2) and e.attempts == 3 and e.left_by == {0, 1}
 
 
 def test_a_short_tour_ties_each_crossing_once_square_and_on_time(tmp_path, root, monkeypatch, capsys):
